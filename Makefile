@@ -1,0 +1,44 @@
+# packml_ros2 — the two commands of the README, and the habits behind them.
+#   make demo   set up (first run: a few minutes), then run the demo cell
+#   make test   set up, then linters, type check and the whole test suite
+SHELL := /bin/bash
+VENV ?= .venv
+BIN := $(VENV)/bin
+CELL ?= config/demo_cell.yaml
+
+# DDS traffic stays on this machine; discovery is quick (see config/fastdds_localhost.xml).
+export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
+export FASTDDS_DEFAULT_PROFILES_FILE ?= $(CURDIR)/config/fastdds_localhost.xml
+export AMENT_PREFIX_PATH := $(CURDIR)/$(VENV)$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH))
+
+.PHONY: setup demo test lint format typecheck pytest bench clean
+
+setup:
+	@tools/setup.sh
+
+demo: setup
+	$(BIN)/packml launch $(CELL)
+
+test: setup lint typecheck pytest
+
+lint:
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+format:
+	$(BIN)/ruff check --fix .
+	$(BIN)/ruff format .
+
+typecheck:
+	$(BIN)/mypy
+
+pytest:
+	$(BIN)/pytest $(PYTEST_ARGS)
+
+bench: setup
+	$(BIN)/python bench/engine.py
+	$(BIN)/python bench/ros_latency.py
+	$(BIN)/python bench/replay.py
+
+clean:
+	rm -rf $(VENV) .cache msg_defs/build build *.egg-info .pytest_cache .mypy_cache .ruff_cache

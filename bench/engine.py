@@ -1,0 +1,200 @@
+"""Engine benchmark: transitions per second of packml_ros2's engine and of packmlpy on the same full
+cycle, measured side by side in one run, and the cost per transition with 8 EMs reporting and alarms
+defined. Prints JSON.
+
+    python bench/engine.py [--seconds 0.4] [--repeats 9]
+
+The full cycle is the one packmlpy can run: Idle -> Starting -> Execute -> Completing -> Complete
+-> Resetting -> Idle (6 transitions). packmlpy completes acting states on its own; our unit has no
+EMs, so it completes acting states at once too, and Execute is left with the Complete command.
+Both run in this process, interleaved, repeats alternating, so machine noise hits both alike.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import gc
+import json
+import platform
+import statistics
+import sys
+import time
+from collections.abc import Callable
+
+from packml_ros2.core import Cmd, State, Unit, unit_config
+from packml_ros2.core.alarms import AlarmDef
+from packml_ros2.core.config import EmConfig
+
+CYCLE_TRANSITIONS = 6
+
+
+class FakeClock:
+    """A settable clock; the engine takes its clock as a parameter."""
+
+    def __init__(self) -> None:
+        self.t = 1_700_000_000.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def ours_cycle_runner() -> Callable[[int], int]:
+    clock = FakeClock()
+    unit = Unit(unit_config("bench"), clock=clock)
+    unit.command(Cmd.RESET)  # Stopped -> Resetting -> Idle
+    assert unit.state is State.IDLE
+
+    def run(cycles: int) -> int:
+        before = unit.sequence
+        command, drain = unit.command, unit.drain
+        for _ in range(cycles):
+            clock.t += 0.001
+            command(Cmd.START)  # Idle -> Starting -> Execute
+            command(Cmd.COMPLETE)  # Execute -> Completing -> Complete
+            command(Cmd.RESET)  # Complete -> Resetting -> Idle
+            drain()
+        assert unit.state is State.IDLE
+        return unit.sequence - before
+
+    return run
+
+
+def packmlpy_cycle_runner() -> Callable[[int], int] | None:
+    try:
+        from packmlpy.statemachine.StateMachineBuilder import StateMachineBuilder
+    except ImportError:
+        return None
+    loop = asyncio.new_event_loop()
+    sm = StateMachineBuilder().build()  # starts in Idle
+
+    async def cycles_async(cycles: int) -> None:
+        for _ in range(cycles):
+            await sm.start()  # Idle -> Starting -> Execute -> Completing -> Complete
+            await sm.reset()  # Complete -> Resetting -> Idle
+
+    def run(cycles: int) -> int:
+        loop.run_until_complete(cycles_async(cycles))
+        assert sm.state.name == "Idle", sm.state
+        return cycles * CYCLE_TRANSITIONS
+
+    return run
+
+
+def ours_with_ems_runner(ems: int = 8, alarms: int = 32) -> Callable[[int], int]:
+    """Resetting, Starting, Completing each wait for State Complete from every EM."""
+    clock = FakeClock()
+    config = unit_config(
+        "bench_ems",
+        equipment_modules=tuple(EmConfig(f"em{i}") for i in range(ems)),
+        alarms=tuple(AlarmDef(100 + i, 0, f"alarm {i}", i % 10) for i in range(alarms)),
+    )
+    unit = Unit(config, clock=clock)
+    names = [f"em{i}" for i in range(ems)]
+    for name in names:
+        unit.em_seen(name)
+
+    def complete_all() -> None:
+        state, seq = unit.state, unit.sequence
+        for name in names:
+            unit.em_complete(name, state, seq)
+
+    unit.command(Cmd.RESET)
+    complete_all()
+    assert unit.state is State.IDLE
+
+    def run(cycles: int) -> int:
+        before = unit.sequence
+        for _ in range(cycles):
+            clock.t += 0.001
+            unit.command(Cmd.START)
+            complete_all()  # Starting -> Execute
+            unit.command(Cmd.COMPLETE)
+            complete_all()  # Completing -> Complete
+            unit.command(Cmd.RESET)
+            complete_all()  # Resetting -> Idle
+            unit.drain()
+        assert unit.state is State.IDLE
+        return unit.sequence - before
+
+    return run
+
+
+def calibrate(run: Callable[[int], int], seconds: float) -> int:
+    cycles = 10
+    while True:
+        t0 = time.perf_counter()
+        run(cycles)
+        dt = time.perf_counter() - t0
+        if dt >= seconds / 4:
+            return max(10, int(cycles * seconds / dt))
+        cycles *= 4
+
+
+def measure(
+    runners: dict[str, Callable[[int], int]], seconds: float, repeats: int
+) -> dict[str, list[float]]:
+    """Seconds per transition of each runner, ``repeats`` times, interleaved."""
+    sizes = {name: calibrate(run, seconds) for name, run in runners.items()}
+    samples: dict[str, list[float]] = {name: [] for name in runners}
+    gc.disable()
+    try:
+        for _ in range(repeats):
+            for name, run in runners.items():
+                t0 = time.perf_counter()
+                transitions = run(sizes[name])
+                samples[name].append((time.perf_counter() - t0) / transitions)
+    finally:
+        gc.enable()
+    return samples
+
+
+def summary(per_transition: list[float]) -> dict[str, float]:
+    median = statistics.median(per_transition)
+    best = min(per_transition)
+    return {
+        "us_per_transition_median": round(median * 1e6, 3),
+        "us_per_transition_best": round(best * 1e6, 3),
+        "transitions_per_second_median": round(1 / median),
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=0.4, help="target time per sample")
+    parser.add_argument("--repeats", type=int, default=9)
+    args = parser.parse_args()
+
+    runners: dict[str, Callable[[int], int]] = {"packml_ros2": ours_cycle_runner()}
+    theirs = packmlpy_cycle_runner()
+    if theirs is not None:
+        runners["packmlpy"] = theirs
+    runners["packml_ros2_8_ems_32_alarms"] = ours_with_ems_runner()
+    samples = measure(runners, args.seconds, args.repeats)
+
+    result: dict[str, object] = {
+        "benchmark": "engine",
+        "python": platform.python_version(),
+        "cycle": "Idle>Starting>Execute>Completing>Complete>Resetting>Idle (6 transitions)",
+        "repeats": args.repeats,
+        "engines": {name: summary(values) for name, values in samples.items()},
+    }
+    if "packmlpy" in samples:
+        ratio = statistics.median(samples["packmlpy"]) / statistics.median(samples["packml_ros2"])
+        result["ratio_packml_ros2_over_packmlpy"] = round(ratio, 1)
+        result["target_ratio"] = 50
+    else:
+        result["packmlpy"] = "not installed (pip install packmlpy) - no ratio"
+    ems = summary(samples["packml_ros2_8_ems_32_alarms"])
+    result["with_8_ems"] = {
+        "us_per_transition_median": ems["us_per_transition_median"],
+        "target_us": 10,
+        "note": "per transition, including the 8 State Complete reports of each acting state",
+    }
+    json.dump(result, sys.stdout, indent=2)
+    print()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,358 @@
+"""Alarms and warnings (PACKML.md section 7).
+
+An alarm is keyed by (ID, Value). It latches: once raised it stays listed, with ``trigger`` showing
+whether the condition is active now, until an alarm reset finds it inactive. Re-activation before
+the reset is the same event. Operators acknowledge once. The first alarm per unit, per EM and per
+category is kept as first-out until it is cleared explicitly or the unit enters Starting. The
+category decides the reaction (Abort / Stop / Hold / Suspend / none), overridable per alarm;
+warnings never act.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Any
+
+from .numbers import Cmd
+
+NUM_CATEGORIES = 10
+
+
+class Kind(IntEnum):
+    """Mirrors ``packml_interfaces/msg/Alarm`` KIND_*."""
+
+    ALARM = 0
+    WARNING = 1
+    COMMAND = 2
+    EVENT = 3
+
+
+class OperatorState(IntEnum):
+    ACTIVE_UNACKNOWLEDGED = 0
+    INACTIVE_UNACKNOWLEDGED = 1
+    ACKNOWLEDGED = 2
+
+
+#: Configuration names of reactions -> the command the unit applies (0 = none).
+REACTIONS: Mapping[str, int] = {
+    "none": 0,
+    "abort": Cmd.ABORT,
+    "stop": Cmd.STOP,
+    "hold": Cmd.HOLD,
+    "suspend": Cmd.SUSPEND,
+}
+#: Category -> reaction by default: 0-1 Abort, 2-4 Stop, 5-9 none (Mitsubishi).
+DEFAULT_REACTIONS: Mapping[int, int] = {
+    0: Cmd.ABORT,
+    1: Cmd.ABORT,
+    2: Cmd.STOP,
+    3: Cmd.STOP,
+    4: Cmd.STOP,
+    **dict.fromkeys(range(5, NUM_CATEGORIES), 0),
+}
+#: While an alarm with this reaction is active, these commands are refused: a fault reaction never
+#: lets new motion start before its cause is gone.
+BLOCKED_BY_REACTION: Mapping[int, frozenset[Cmd]] = {
+    Cmd.ABORT: frozenset({Cmd.CLEAR, Cmd.RESET, Cmd.START, Cmd.UNHOLD, Cmd.UNSUSPEND}),
+    Cmd.STOP: frozenset({Cmd.RESET, Cmd.START, Cmd.UNHOLD, Cmd.UNSUSPEND}),
+    Cmd.HOLD: frozenset({Cmd.RESET, Cmd.START, Cmd.UNHOLD, Cmd.UNSUSPEND}),
+    Cmd.SUSPEND: frozenset({Cmd.RESET, Cmd.START, Cmd.UNHOLD, Cmd.UNSUSPEND}),
+}
+
+
+@dataclass(frozen=True, slots=True)
+class AlarmDef:
+    """An alarm or warning from the configuration."""
+
+    id: int
+    value: int
+    message: str
+    category: int
+    warning: bool = False
+    reaction: int | None = None  # None = by category
+    em: str = ""
+
+
+@dataclass(slots=True, eq=False)
+class AlarmEvent:
+    """One alarm/warning occurrence (or a command stop reason / history event)."""
+
+    id: int
+    value: int
+    message: str
+    category: int
+    kind: Kind
+    time: float  # first occurrence (node clock, seconds)
+    em: str = ""
+    source: str = ""
+    reaction: int = 0
+    trigger: bool = True
+    latched: bool = True
+    ack_time: float | None = None
+    cleared_time: float | None = None
+    activations: int = 1
+
+    @property
+    def key(self) -> tuple[int, int]:
+        return (self.id, self.value)
+
+    @property
+    def acknowledged(self) -> bool:
+        return self.ack_time is not None
+
+    @property
+    def operator_state(self) -> OperatorState:
+        if self.ack_time is not None:
+            return OperatorState.ACKNOWLEDGED
+        if self.trigger:
+            return OperatorState.ACTIVE_UNACKNOWLEDGED
+        return OperatorState.INACTIVE_UNACKNOWLEDGED
+
+    def label(self) -> str:
+        """``'65/0 "Stop PB pressed" (category 2)'``"""
+        return f'{self.id}/{self.value} "{self.message}" (category {self.category})'
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "value": self.value,
+            "message": self.message,
+            "category": self.category,
+            "kind": int(self.kind),
+            "time": self.time,
+            "em": self.em,
+            "source": self.source,
+            "reaction": self.reaction,
+            "trigger": self.trigger,
+            "latched": self.latched,
+            "ack_time": self.ack_time,
+            "cleared_time": self.cleared_time,
+            "activations": self.activations,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> AlarmEvent:
+        d = dict(d)
+        d["kind"] = Kind(d["kind"])
+        return cls(**d)
+
+
+@dataclass(frozen=True, slots=True)
+class Raised:
+    """What raising an alarm did: the event, and the reaction to apply now (0 = none)."""
+
+    event: AlarmEvent
+    new: bool
+    rising: bool
+    reaction: int
+
+
+@dataclass
+class AlarmManager:
+    """Active/latched alarms and warnings, first-outs, the history ring and the query."""
+
+    defs: Mapping[tuple[int, int], AlarmDef]
+    reactions: Mapping[int, int] = field(default_factory=lambda: dict(DEFAULT_REACTIONS))
+    alarm_capacity: int = 64
+    warning_capacity: int = 64
+    history_capacity: int = 256
+
+    def __post_init__(self) -> None:
+        self.current: dict[tuple[int, int], AlarmEvent] = {}  # alarms and warnings, oldest first
+        self.history: deque[AlarmEvent] = deque(maxlen=self.history_capacity)  # newest first
+        self.history_dropped = 0
+        self.first_out: AlarmEvent | None = None
+        self.first_out_by_category: dict[int, AlarmEvent] = {}
+        self.first_out_by_em: dict[str, AlarmEvent] = {}
+        self.version = 0  # +1 on every change (publishers compare)
+        self.blocking_version = 0  # +1 when the set of active reacting alarms changes
+
+    # -- raising and clearing ------------------------------------------------------------------------
+    def definition(self, alarm_id: int, value: int) -> AlarmDef | None:
+        return self.defs.get((alarm_id, value))
+
+    def reaction_of(self, d: AlarmDef) -> int:
+        if d.warning:
+            return 0
+        if d.reaction is not None:
+            return d.reaction
+        return self.reactions.get(d.category, 0)
+
+    def raise_(self, d: AlarmDef, now: float, source: str = "", em: str = "") -> Raised:
+        """Set the condition of ``d`` active."""
+        ev = self.current.get((d.id, d.value))
+        reaction = self.reaction_of(d)
+        if ev is not None:
+            if ev.trigger:
+                return Raised(ev, new=False, rising=False, reaction=0)
+            ev.trigger = True
+            ev.cleared_time = None
+            ev.activations += 1
+            self._changed(reaction)
+            return Raised(ev, new=False, rising=True, reaction=reaction)
+        ev = AlarmEvent(
+            id=d.id,
+            value=d.value,
+            message=d.message,
+            category=d.category,
+            kind=Kind.WARNING if d.warning else Kind.ALARM,
+            time=now,
+            em=em or d.em,
+            source=source,
+            reaction=reaction,
+        )
+        self.current[ev.key] = ev
+        self._push_history(ev)
+        if not d.warning:
+            if self.first_out is None:
+                self.first_out = ev
+            self.first_out_by_category.setdefault(ev.category, ev)
+            if ev.em:
+                self.first_out_by_em.setdefault(ev.em, ev)
+        self._changed(reaction)
+        return Raised(ev, new=True, rising=True, reaction=reaction)
+
+    def clear(self, alarm_id: int, value: int, now: float) -> AlarmEvent | None:
+        """The condition went inactive; the alarm stays latched. None if it was not active."""
+        ev = self.current.get((alarm_id, value))
+        if ev is None or not ev.trigger:
+            return None
+        ev.trigger = False
+        ev.cleared_time = now
+        self._changed(ev.reaction)
+        return ev
+
+    def log_event(self, message: str, now: float, source: str = "unit", event_id: int = 0) -> None:
+        """A history entry that is not an alarm ("unit restarted", "EM gripper switched inactive")."""
+        ev = AlarmEvent(
+            event_id, 0, message, 9, Kind.EVENT, now, source=source, trigger=False, latched=False
+        )
+        self._push_history(ev)
+        self.version += 1
+
+    def _push_history(self, ev: AlarmEvent) -> None:
+        if len(self.history) == self.history.maxlen:
+            self.history_dropped += 1
+        self.history.appendleft(ev)
+
+    def _changed(self, reaction: int) -> None:
+        self.version += 1
+        if reaction:
+            self.blocking_version += 1
+
+    # -- operator actions ----------------------------------------------------------------------------
+    def acknowledge(self, key: tuple[int, int] | None, now: float) -> int:
+        """Acknowledge one alarm (``key``) or all; returns how many were acknowledged now."""
+        targets = self.current.values() if key is None else [self.current[key]]
+        n = 0
+        for ev in targets:
+            if ev.ack_time is None:
+                ev.ack_time = now
+                n += 1
+        if n:
+            self.version += 1
+        return n
+
+    def reset(self) -> int:
+        """Drop latched alarms whose condition is no longer active; active ones stay."""
+        gone = [k for k, ev in self.current.items() if not ev.trigger]
+        for k in gone:
+            self.current[k].latched = False
+            del self.current[k]
+        if gone:
+            self.version += 1
+        return len(gone)
+
+    def clear_first_out(self) -> bool:
+        had = self.first_out is not None or bool(self.first_out_by_category)
+        self.first_out = None
+        self.first_out_by_category.clear()
+        self.first_out_by_em.clear()
+        if had:
+            self.version += 1
+        return had
+
+    # -- reading -----------------------------------------------------------------------------------------
+    def alarms(self) -> list[AlarmEvent]:
+        return [ev for ev in self.current.values() if ev.kind is Kind.ALARM]
+
+    def warnings(self) -> list[AlarmEvent]:
+        return [ev for ev in self.current.values() if ev.kind is Kind.WARNING]
+
+    def listed(self, warnings: bool = False) -> tuple[list[AlarmEvent], int]:
+        """``Admin.Alarm[]`` (or ``Warning[]``) up to its capacity, and the overflow count: a full
+        list never overwrites, it counts what did not fit."""
+        items = self.warnings() if warnings else self.alarms()
+        cap = self.warning_capacity if warnings else self.alarm_capacity
+        return items[:cap], max(0, len(items) - cap)
+
+    def active_count(self) -> int:
+        return sum(1 for ev in self.current.values() if ev.trigger and ev.kind is Kind.ALARM)
+
+    def unacknowledged_count(self) -> int:
+        return sum(
+            1 for ev in self.current.values() if ev.ack_time is None and ev.kind is Kind.ALARM
+        )
+
+    def blocking(self, cmd: int) -> AlarmEvent | None:
+        """The first active alarm whose reaction refuses ``cmd``."""
+        for ev in self.current.values():
+            if ev.trigger and ev.reaction and cmd in BLOCKED_BY_REACTION.get(ev.reaction, ()):
+                return ev
+        return None
+
+    def banner(self) -> str:
+        """One line for operator screens: the unit's first-out if still active, else the oldest
+        active alarm, with how many more are active."""
+        active = [ev for ev in self.alarms() if ev.trigger]
+        if not active:
+            return ""
+        first = self.first_out if self.first_out in active else active[0]
+        where = f" [{first.em}]" if first.em else ""
+        more = f" (+{len(active) - 1} more)" if len(active) > 1 else ""
+        return f"ALARM {first.id}/{first.value} cat {first.category}: {first.message}{where}{more}"
+
+    def query(
+        self,
+        active_only: bool = False,
+        category: int | None = None,
+        sort: str = "time",
+        include_warnings: bool = False,
+        history: bool = False,
+    ) -> list[AlarmEvent]:
+        """Filter (active only, category) and sort (``time``, ``category``+time, ``newest``)."""
+        source: Iterable[AlarmEvent] = self.history if history else self.current.values()
+        kinds = {Kind.ALARM, Kind.WARNING} if include_warnings else {Kind.ALARM}
+        if history:
+            kinds |= {Kind.EVENT, Kind.COMMAND}
+        items = [
+            ev
+            for ev in source
+            if ev.kind in kinds
+            and (not active_only or ev.trigger)
+            and (category is None or ev.category == category)
+        ]
+        sorters = {
+            "time": lambda ev: (ev.time,),
+            "category": lambda ev: (ev.category, ev.time),
+            "newest": lambda ev: (-ev.time,),
+        }
+        if sort not in sorters:
+            raise ValueError(f"sort must be one of {', '.join(sorters)}, not {sort!r}")
+        return sorted(items, key=sorters[sort])
+
+    # -- persistence -------------------------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "history": [ev.to_dict() for ev in self.history],
+            "history_dropped": self.history_dropped,
+        }
+
+    def restore(self, data: dict[str, Any]) -> None:
+        self.history.clear()
+        self.history.extend(AlarmEvent.from_dict(d) for d in data.get("history", []))
+        self.history_dropped = int(data.get("history_dropped", 0))
+        self.version += 1

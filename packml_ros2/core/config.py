@@ -1,0 +1,631 @@
+"""Cell configuration: one YAML file describes a cell, its units, their modes, EMs, alarms,
+reactions, array sizes, persistence, timeouts and leases, and the coordinator.
+
+:func:`load_cell` validates everything at load; :class:`~.schema.ConfigError` lists every problem
+with the file, the key path and what is wrong. ``config/reference_cell.yaml`` shows every option.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from . import schema as sc
+from .alarms import DEFAULT_REACTIONS, NUM_CATEGORIES, REACTIONS, AlarmDef
+from .counters import KINDS, CounterDef
+from .modes import GROUPS, ModeDef, default_modes, make_mode
+from .numbers import ACTING, MAX_MODE, WAIT, Cmd, Mode, State, parse_state
+from .schema import ConfigError, Node, invalid
+from .transitions import MODELS, TransitionTable, build_table
+
+__all__ = [
+    "ArraySizes",
+    "CellConfig",
+    "ConfigError",
+    "CoordinatorConfig",
+    "EmConfig",
+    "InterlockRule",
+    "SystemAlarms",
+    "UnitConfig",
+    "load_cell",
+    "parse_cell",
+    "unit_config",
+]
+
+DEFAULT_STATE_DIR = "~/.local/state/packml_ros2"
+
+
+@dataclass(frozen=True)
+class ArraySizes:
+    """PackTags array capacities; the defaults are Mitsubishi's (PACKML.md section 5)."""
+
+    parameters: int = 10
+    admin_parameters: int = 10
+    products: int = 5
+    process_variables: int = 10
+    ingredients: int = 10
+    ingredient_parameters: int = 10
+    remote_interfaces: int = 10
+    remote_parameters: int = 10
+    alarms: int = 64
+    warnings: int = 64
+    history: int = 256
+    counters: int = 10
+
+
+@dataclass(frozen=True)
+class Descriptor:
+    """PackTags ``{ID, Name, Unit, Value}``."""
+
+    id: int
+    name: str = ""
+    unit: str = ""
+    value: float = 0.0
+
+
+@dataclass(frozen=True)
+class Ingredient:
+    ingredient_id: int
+    parameter: tuple[Descriptor, ...] = ()
+
+
+@dataclass(frozen=True)
+class Product:
+    product_id: int
+    process_variables: tuple[Descriptor, ...] = ()
+    ingredients: tuple[Ingredient, ...] = ()
+
+
+@dataclass(frozen=True)
+class RemoteInterfaceDef:
+    number: int
+    name: str = ""
+
+
+@dataclass(frozen=True)
+class EmConfig:
+    name: str
+    active: bool = True
+    lost_reaction: int | None = None  # None: the unit's em_lost_reaction
+    sim: Mapping[str, Any] = field(default_factory=dict)  # simulated behaviour (packml_ros2.sim_em)
+
+
+@dataclass(frozen=True)
+class SystemAlarms:
+    """IDs of the alarms the unit raises itself."""
+
+    em_lost: int = 9001
+    state_timeout: int = 9002
+    mode_change_timeout: int = 9003
+    state_timeout_category: int = 2
+    mode_change_timeout_category: int = 5
+
+
+@dataclass(frozen=True)
+class UnitConfig:
+    name: str
+    cell: str = ""
+    description: str = ""
+    modes: Mapping[int, ModeDef] = field(default_factory=default_modes)
+    initial_mode: int = Mode.PRODUCTION
+    table: TransitionTable = field(default_factory=build_table)
+    remote_commands_enabled: bool = False
+    equipment_modules: tuple[EmConfig, ...] = ()
+    allow_registration: bool = True
+    em_lease: float = 2.0
+    em_lost_reaction: int = Cmd.ABORT
+    timeouts: Mapping[State, float] = field(default_factory=dict)
+    min_dwell: Mapping[State, float] = field(default_factory=dict)
+    mode_change_timeout: float = 10.0
+    alarms: tuple[AlarmDef, ...] = ()
+    reactions: Mapping[int, int] = field(default_factory=lambda: dict(DEFAULT_REACTIONS))
+    interlock_reaction: int = Cmd.SUSPEND
+    sizes: ArraySizes = ArraySizes()
+    counters: Mapping[str, tuple[CounterDef, ...]] = field(default_factory=dict)
+    mach_speed: float = 0.0
+    mach_design_speed: float = 0.0  # units per minute
+    parameters: tuple[Descriptor, ...] = ()
+    admin_parameters: tuple[Descriptor, ...] = ()
+    products: tuple[Product, ...] = ()
+    remote_interfaces: tuple[RemoteInterfaceDef, ...] = ()
+    persistence_path: str | None = None
+    persistence_period: float = 5.0
+    admin_period: float = 1.0
+    system_alarms: SystemAlarms = SystemAlarms()
+    planned_stop_ids: tuple[int, int] = (4000, 4999)
+
+    def mode_by_name(self, text: str) -> ModeDef | None:
+        key = text.strip().upper()
+        return next((m for m in self.modes.values() if m.name == key), None)
+
+
+@dataclass(frozen=True)
+class InterlockRule:
+    """When ``unit`` reports ``condition`` (blocked / starved), suspend ``suspend``."""
+
+    unit: str
+    condition: str
+    suspend: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class CoordinatorConfig:
+    enabled: bool = True
+    start_order: tuple[str, ...] = ()
+    stop_order: tuple[str, ...] = ()
+    step_timeout: float = 15.0
+    unit_lease: float = 3.0
+    interlocks: tuple[InterlockRule, ...] = ()
+    propagate_interlocks: bool = True
+
+
+@dataclass(frozen=True)
+class CellConfig:
+    cell: str
+    units: Mapping[str, UnitConfig]
+    coordinator: CoordinatorConfig
+    file: str = "<memory>"
+
+
+# -- parsing ---------------------------------------------------------------------------------------------
+def _state(n: Node) -> State:
+    return sc.via(parse_state)(n)
+
+
+def _states(
+    n: Node, allowed: frozenset[State] | None = None, groups: bool = False
+) -> frozenset[State]:
+    out: set[State] = set()
+    for e in n.elements():
+        key = str(e.value).strip().upper()
+        if groups and key in ("HOLD", "SUSPEND", "COMPLETE_GROUP"):
+            out |= GROUPS[key]
+            continue
+        s = e.parse(_state, None)
+        if s is None:
+            continue
+        if allowed is not None and s not in allowed:
+            e.error(
+                f"{s.name} is not allowed here (allowed: {', '.join(x.name for x in sorted(allowed))})"
+            )
+            continue
+        out.add(s)
+    return frozenset(out)
+
+
+def _state_seconds(n: Node, allowed: frozenset[State]) -> dict[State, float]:
+    out: dict[State, float] = {}
+    for key, child in n.items():
+        s = Node(key, child.path, child.problems).parse(_state, None)
+        if s is None:
+            continue
+        if s not in allowed:
+            child.error(f"{s.name} is not an acting state")
+            continue
+        out[s] = child.parse(sc.number(positive=True), 0.0)
+    return out
+
+
+_REACTION = sc.choice(REACTIONS)
+_LOST_REACTION = sc.choice({**REACTIONS, "ignore": 0})
+
+
+def _descriptor(n: Node) -> Descriptor:
+    n.check_keys({"id", "name", "unit", "value"})
+    return Descriptor(
+        n.get("id", sc.integer(), 0),
+        n.get("name", sc.text, ""),
+        n.get("unit", sc.text, ""),
+        n.get("value", sc.number(), 0.0),
+    )
+
+
+def _descriptors(n: Node, capacity: int) -> tuple[Descriptor, ...]:
+    items = tuple(e.parse(_descriptor, Descriptor(0)) for e in n.elements())
+    if len(items) > capacity:
+        n.error(f"{len(items)} entries, but the array holds {capacity} (sizes)")
+    return items
+
+
+def _product(sizes: ArraySizes) -> Callable[[Node], Product]:
+    def parse(n: Node) -> Product:
+        n.check_keys({"product_id", "process_variables", "ingredients"})
+        ingredients = []
+        for e in n.list_at("ingredients"):
+            e.check_keys({"ingredient_id", "parameter"})
+            ingredients.append(
+                Ingredient(
+                    e.get("ingredient_id", sc.integer(), 0),
+                    e.get("parameter", lambda x: _descriptors(x, sizes.ingredient_parameters), ()),
+                )
+            )
+        if len(ingredients) > sizes.ingredients:
+            n.child("ingredients", None).error(
+                f"{len(ingredients)} entries, the array holds {sizes.ingredients}"
+            )
+        return Product(
+            n.get("product_id", sc.integer(), 0),
+            n.get("process_variables", lambda x: _descriptors(x, sizes.process_variables), ()),
+            tuple(ingredients),
+        )
+
+    return parse
+
+
+def _sizes(n: Node) -> ArraySizes:
+    fields = ArraySizes.__dataclass_fields__
+    n.check_keys(set(fields))
+    return ArraySizes(
+        **{k: n.get(k, sc.integer(1, 100_000), getattr(ArraySizes(), k)) for k in fields}
+    )
+
+
+def _modes(n: Node) -> dict[int, ModeDef]:
+    modes = default_modes()
+    names = {m.name.lower(): num for num, m in modes.items()}
+    for key, child in n.items():
+        child.check_keys({"number", "disabled_states", "mode_change_states", "enabled"})
+        number = names.get(key.lower())
+        if number is None:
+            number = child.get("number", sc.integer(4, MAX_MODE), None)
+            if number is None:
+                child.error(f"user mode {key!r} needs a number in 4..{MAX_MODE}")
+                continue
+        elif "number" in child.mapping() and child.mapping()["number"] != number:
+            child.child("number", child.mapping()["number"]).error(f"{key} is mode {number}")
+        if not child.get("enabled", sc.boolean, True):
+            modes.pop(number, None)
+            continue
+        base = modes.get(number)
+        disabled = child.get(
+            "disabled_states",
+            lambda x: _states(x, groups=True),
+            base.disabled if base else frozenset(),
+        )
+        change = child.get(
+            "mode_change_states", _states, base.change_allowed if base else frozenset()
+        )
+        try:
+            modes[number] = make_mode(number, key.upper(), disabled, change)
+        except ValueError as exc:
+            child.error(str(exc))
+    return modes
+
+
+def _alarm(n: Node) -> AlarmDef:
+    n.check_keys({"id", "value", "message", "category", "warning", "reaction", "em"})
+    if "id" not in n.mapping():
+        raise invalid("an alarm needs an id")
+    reaction = n.get("reaction", _REACTION, None)
+    return AlarmDef(
+        id=n.get("id", sc.integer(1, 2**31 - 1), 0),
+        value=n.get("value", sc.integer(), 0),
+        message=n.get("message", sc.text, ""),
+        category=n.get("category", sc.integer(0, NUM_CATEGORIES - 1), 5),
+        warning=n.get("warning", sc.boolean, False),
+        reaction=reaction,
+        em=n.get("em", sc.text, ""),
+    )
+
+
+def _counters(n: Node, capacity: int) -> dict[str, tuple[CounterDef, ...]]:
+    n.check_keys(set(KINDS))
+    out = {}
+    for kind, child in n.items():
+        defs = []
+        for e in child.elements():
+            e.check_keys({"id", "name", "unit"})
+            defs.append(
+                CounterDef(
+                    e.get("id", sc.integer(), 0),
+                    e.get("name", sc.text, ""),
+                    e.get("unit", sc.text, ""),
+                )
+            )
+        if len(defs) > capacity:
+            child.error(f"{len(defs)} counters, but the array holds {capacity} (sizes.counters)")
+        out[kind] = tuple(defs)
+    return out
+
+
+def _ems(n: Node) -> tuple[EmConfig, ...]:
+    out = []
+    for key, child in n.items():
+        Node(key, child.path, child.problems).parse(sc.name, "")
+        child.check_keys({"active", "lost_reaction", "sim"})
+        sim: dict[str, Any] = child.get("sim", lambda x: dict(x.mapping()), {})
+        out.append(
+            EmConfig(
+                key,
+                child.get("active", sc.boolean, True),
+                child.get("lost_reaction", _LOST_REACTION, None),
+                sim,
+            )
+        )
+    return tuple(out)
+
+
+_UNIT_KEYS = {
+    "description", "initial_mode", "model", "hold_from", "complete_from", "remote_commands_enabled",
+    "modes", "equipment_modules", "allow_registration", "em_lease", "em_lost_reaction", "timeouts",
+    "min_dwell", "mode_change_timeout", "alarms", "reactions", "interlock_reaction", "sizes",
+    "counters", "mach_speed", "mach_design_speed", "parameters", "admin_parameters", "products",
+    "remote_interfaces", "persistence", "admin_period", "system_alarms", "planned_stop_ids",
+}  # fmt: skip
+
+
+def _unit(name: str, n: Node, cell: str, base_dir: Path) -> UnitConfig:
+    n.check_keys(_UNIT_KEYS)
+    d = UnitConfig(name=name)
+    sizes = n.get("sizes", _sizes, ArraySizes())
+    modes = n.get("modes", _modes, default_modes())
+    model = n.get("model", sc.choice({m: m for m in MODELS}), "2022")
+    hold_ok = (
+        frozenset(State)
+        - {State.UNDEFINED, State.HOLDING, State.HELD}
+        - {State.STOPPING, State.STOPPED, State.ABORTING, State.ABORTED, State.CLEARING}
+    )
+    complete_ok = frozenset(
+        {
+            State.EXECUTE,
+            State.HELD,
+            State.SUSPENDED,
+            State.HOLDING,
+            State.SUSPENDING,
+            State.UNHOLDING,
+            State.UNSUSPENDING,
+            State.STARTING,
+        }
+    )
+    hold_from = n.get("hold_from", lambda x: _states(x, hold_ok), None)
+    complete_from = n.get("complete_from", lambda x: _states(x, complete_ok), None)
+
+    def mode_ref(x: Node) -> int:
+        by_name = {m.name.lower(): num for num, m in modes.items()}
+        if isinstance(x.value, int) and not isinstance(x.value, bool):
+            if x.value not in modes:
+                raise invalid(
+                    f"mode {x.value} is not configured (configured: {', '.join(map(str, sorted(modes)))})"
+                )
+            return x.value
+        return sc.choice(by_name)(x)
+
+    reactions = dict(DEFAULT_REACTIONS)
+    for key, child in n.items_at("reactions"):
+        cat = Node(key, child.path, child.problems).parse(sc.via(int), -1)
+        if not 0 <= cat < NUM_CATEGORIES:
+            child.error(f"category must be 0..{NUM_CATEGORIES - 1}")
+            continue
+        reactions[cat] = child.parse(_REACTION, reactions[cat])
+
+    alarms = tuple(e.parse(_alarm, None) for e in n.list_at("alarms"))
+    alarm_defs = tuple(a for a in alarms if a is not None)
+    seen: set[tuple[int, int]] = set()
+    for i, a in enumerate(alarm_defs):
+        if (a.id, a.value) in seen:
+            n.child("alarms", None).child(i, None).error(f"alarm {a.id}/{a.value} is defined twice")
+        seen.add((a.id, a.value))
+
+    persistence_path: str | None = str(Path(DEFAULT_STATE_DIR) / "{cell}" / "{unit}.sqlite3")
+    persistence_period = d.persistence_period
+    pn = n.mapping().get("persistence", {})
+    if pn is None or pn is False:
+        persistence_path = None
+    else:
+        pnode = n.child("persistence", pn)
+        pnode.check_keys({"path", "period"})
+        persistence_path = pnode.get("path", sc.text, persistence_path)
+        persistence_period = pnode.get("period", sc.number(positive=True), persistence_period)
+    if persistence_path is not None:
+        p = Path(os.path.expanduser(persistence_path.format(cell=cell or "cell", unit=name)))
+        persistence_path = str(p if p.is_absolute() else base_dir / p)
+
+    sys_node = n.mapping().get("system_alarms")
+    system_alarms = SystemAlarms()
+    if sys_node is not None:
+        sn = n.child("system_alarms", sys_node)
+        sn.check_keys(set(SystemAlarms.__dataclass_fields__))
+        system_alarms = SystemAlarms(
+            **{
+                k: sn.get(
+                    k,
+                    sc.integer(0, 9) if k.endswith("category") else sc.integer(1, 2**31 - 1),
+                    getattr(system_alarms, k),
+                )
+                for k in SystemAlarms.__dataclass_fields__
+            }
+        )
+
+    def remote(x: Node) -> RemoteInterfaceDef:
+        x.check_keys({"number", "name"})
+        return RemoteInterfaceDef(x.get("number", sc.integer(), 0), x.get("name", sc.text, ""))
+
+    remotes = tuple(e.parse(remote, RemoteInterfaceDef(0)) for e in n.list_at("remote_interfaces"))
+    if len(remotes) > sizes.remote_interfaces:
+        n.child("remote_interfaces", None).error(
+            f"{len(remotes)} entries, the array holds {sizes.remote_interfaces}"
+        )
+
+    def id_range(x: Node) -> tuple[int, int]:
+        v = x.value
+        if not (
+            isinstance(v, list)
+            and len(v) == 2
+            and all(isinstance(i, int) for i in v)
+            and v[0] <= v[1]
+        ):
+            raise invalid("expected [first, last] stop-reason IDs")
+        return (v[0], v[1])
+
+    products = tuple(e.parse(_product(sizes), Product(0)) for e in n.list_at("products"))
+    if len(products) > sizes.products:
+        n.child("products", None).error(
+            f"{len(products)} products, the array holds {sizes.products}"
+        )
+
+    interlock_reaction = n.get(
+        "interlock_reaction", sc.choice({"suspend": int(Cmd.SUSPEND), "none": 0}), int(Cmd.SUSPEND)
+    )
+    return UnitConfig(
+        name=name,
+        cell=cell,
+        description=n.get("description", sc.text, ""),
+        modes=modes,
+        initial_mode=n.get(
+            "initial_mode",
+            mode_ref,
+            Mode.PRODUCTION if Mode.PRODUCTION in modes else min(modes, default=1),
+        ),
+        table=build_table(model, hold_from, complete_from),
+        remote_commands_enabled=n.get("remote_commands_enabled", sc.boolean, False),
+        equipment_modules=n.get("equipment_modules", _ems, ()),
+        allow_registration=n.get("allow_registration", sc.boolean, True),
+        em_lease=n.get("em_lease", sc.number(positive=True), d.em_lease),
+        em_lost_reaction=n.get("em_lost_reaction", _LOST_REACTION, int(Cmd.ABORT)),
+        timeouts=n.get("timeouts", lambda x: _state_seconds(x, ACTING), {}),
+        min_dwell=n.get("min_dwell", lambda x: _state_seconds(x, ACTING - {State.EXECUTE}), {}),
+        mode_change_timeout=n.get(
+            "mode_change_timeout", sc.number(positive=True), d.mode_change_timeout
+        ),
+        alarms=alarm_defs,
+        reactions=reactions,
+        interlock_reaction=interlock_reaction,
+        sizes=sizes,
+        counters=n.get("counters", lambda x: _counters(x, sizes.counters), {}),
+        mach_speed=n.get("mach_speed", sc.number(lo=0), 0.0),
+        mach_design_speed=n.get("mach_design_speed", sc.number(lo=0), 0.0),
+        parameters=n.get("parameters", lambda x: _descriptors(x, sizes.parameters), ()),
+        admin_parameters=n.get(
+            "admin_parameters", lambda x: _descriptors(x, sizes.admin_parameters), ()
+        ),
+        products=products,
+        remote_interfaces=remotes,
+        persistence_path=persistence_path,
+        persistence_period=persistence_period,
+        admin_period=n.get("admin_period", sc.number(positive=True), d.admin_period),
+        system_alarms=system_alarms,
+        planned_stop_ids=n.get("planned_stop_ids", id_range, d.planned_stop_ids),
+    )
+
+
+def _coordinator(n: Node, units: Mapping[str, UnitConfig]) -> CoordinatorConfig:
+    n.check_keys(
+        {
+            "enabled",
+            "start_order",
+            "stop_order",
+            "step_timeout",
+            "unit_lease",
+            "interlocks",
+            "propagate_interlocks",
+        }
+    )
+    unit_names = {k: k for k in units}
+
+    def order(x: Node) -> tuple[str, ...]:
+        out = tuple(e.parse(sc.choice(unit_names), "") for e in x.elements())
+        if len(set(out)) != len(out):
+            x.error("a unit is listed twice")
+        return out
+
+    def rule(x: Node) -> InterlockRule:
+        x.check_keys({"unit", "when", "suspend"})
+        return InterlockRule(
+            x.get("unit", sc.choice(unit_names), ""),
+            x.get("when", sc.choice({"blocked": "blocked", "starved": "starved"}), "blocked"),
+            x.get("suspend", order, ()),
+        )
+
+    default_order = tuple(units)
+    return CoordinatorConfig(
+        enabled=n.get("enabled", sc.boolean, True),
+        start_order=n.get("start_order", order, default_order),
+        stop_order=n.get("stop_order", order, tuple(reversed(default_order))),
+        step_timeout=n.get("step_timeout", sc.number(positive=True), 15.0),
+        unit_lease=n.get("unit_lease", sc.number(positive=True), 3.0),
+        interlocks=tuple(
+            r
+            for e in n.list_at("interlocks")
+            if (r := e.parse(rule, InterlockRule("", "", ()))).unit
+        ),
+        propagate_interlocks=n.get("propagate_interlocks", sc.boolean, True),
+    )
+
+
+def parse_cell(data: Any, file: str = "<memory>", base_dir: Path | None = None) -> CellConfig:
+    """Validate a cell document (already parsed YAML). Raises ConfigError listing every problem."""
+    root = Node(data, "")
+    root.check_keys({"cell", "defaults", "units", "coordinator"})
+    cell = root.get("cell", sc.name, "")
+    if "cell" not in root.mapping():
+        root.error("missing key 'cell' (the cell namespace, e.g. demo_cell)")
+    defaults = root.mapping().get("defaults") or {}
+    if not isinstance(defaults, Mapping):
+        root.child("defaults", defaults).error("expected a mapping")
+        defaults = {}
+    units_node = root.child("units", root.mapping().get("units"))
+    if not units_node.mapping() and not units_node.problems:
+        units_node.error("a cell needs at least one unit")
+    units: dict[str, UnitConfig] = {}
+    for uname, un in units_node.items():
+        Node(uname, un.path, un.problems).parse(sc.name, "")
+        merged = {**defaults, **un.mapping()}
+        units[uname] = _unit(
+            uname, Node(merged, un.path, un.problems), cell, base_dir or Path.cwd()
+        )
+    coord = root.get(
+        "coordinator",
+        lambda x: _coordinator(x, units),
+        CoordinatorConfig(start_order=tuple(units), stop_order=tuple(reversed(list(units)))),
+    )
+    _cross_checks(root, units)
+    if root.problems:
+        raise ConfigError(file, root.problems)
+    return CellConfig(cell, units, coord, file)
+
+
+def _cross_checks(root: Node, units: Mapping[str, UnitConfig]) -> None:
+    for uname, u in units.items():
+        path = f"units.{uname}"
+        ems = {e.name for e in u.equipment_modules}
+        for i, a in enumerate(u.alarms):
+            if a.em and a.em not in ems and not u.allow_registration:
+                root.problems.append(
+                    (f"{path}.alarms[{i}].em", f"no equipment module {a.em!r} in this unit")
+                )
+        mode = u.modes.get(u.initial_mode)
+        if mode is not None and State.STOPPED in mode.disabled:
+            root.problems.append(
+                (f"{path}.initial_mode", "the unit starts in STOPPED, which is disabled there")
+            )
+        for s in u.min_dwell:
+            if s in WAIT:
+                root.problems.append((f"{path}.min_dwell", f"{s.name} is a wait state"))
+
+
+def load_cell(path: str | os.PathLike[str]) -> CellConfig:
+    """Read and validate a cell YAML file."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(str(p), [("", f"cannot read: {exc.strerror}")]) from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}" if mark else ""
+        raise ConfigError(
+            str(p), [(where, f"not valid YAML: {getattr(exc, 'problem', exc)}")]
+        ) from None
+    return parse_cell(data, str(p), p.resolve().parent)
+
+
+def unit_config(name: str = "unit", **overrides: Any) -> UnitConfig:
+    """A unit configuration in code (tests, embedding), e.g. ``unit_config(em_lease=1.0)``."""
+    return replace(UnitConfig(name=name, persistence_path=None), **overrides)

@@ -1,0 +1,176 @@
+"""Mode and state times (PACKML.md section 6): current and cumulative, per mode and per
+(mode, state), AccTimeSinceReset, both reset scopes and the Int32 rollover.
+
+Time only advances at :meth:`ModeStateTimes.enter` (every state or mode change) and is read at any
+instant with :meth:`snapshot`, so results depend on the clock values passed in, never on when the
+caller happened to look.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from .numbers import NUM_MODES, NUM_STATES
+
+#: Timers roll over here (OPC UA Int32) and raise the rollover warning.
+ROLLOVER = 2**31 - 1
+
+
+@dataclass(frozen=True, slots=True)
+class TimesSnapshot:
+    """Whole seconds as published (``Admin.*Time``), already rolled over."""
+
+    mode_current: tuple[int, ...]
+    mode_cumulative: tuple[int, ...]
+    state_current: tuple[int, ...]  # flattened: mode * NUM_STATES + state
+    state_cumulative: tuple[int, ...]
+    acc_time_since_reset: int
+    rollover_warning: bool
+
+
+class ModeStateTimes:
+    """Accumulates seconds of the current mode and (mode, state) between changes."""
+
+    def __init__(self, now: float, mode: int, state: int) -> None:
+        self.mode_current = [0.0] * NUM_MODES
+        self.mode_cumulative = [0.0] * NUM_MODES
+        self.state_current = [0.0] * (NUM_MODES * NUM_STATES)
+        self.state_cumulative = [0.0] * (NUM_MODES * NUM_STATES)
+        self.acc_time_since_reset = 0.0
+        self.planned_stop = 0.0  # OEE: Production time spent in a planned stop
+        self._mode = mode
+        self._state = state
+        self._planned = False
+        self._since = now
+
+    # -- accumulation ------------------------------------------------------------------------------
+    def _close(self, now: float) -> None:
+        dt = now - self._since
+        if dt <= 0.0:
+            return
+        m = self._mode
+        i = m * NUM_STATES + self._state
+        self.mode_current[m] += dt
+        self.mode_cumulative[m] += dt
+        self.state_current[i] += dt
+        self.state_cumulative[i] += dt
+        self.acc_time_since_reset += dt
+        if self._planned:
+            self.planned_stop += dt
+        self._since = now
+
+    def enter(self, now: float, mode: int, state: int, planned: bool = False) -> None:
+        """The unit entered ``state`` (and/or ``mode``) at ``now``: restart their current times."""
+        dt = now - self._since
+        if dt > 0.0:  # _close(now), inlined: this runs on every transition
+            m = self._mode
+            i = m * NUM_STATES + self._state
+            self.mode_current[m] += dt
+            self.mode_cumulative[m] += dt
+            self.state_current[i] += dt
+            self.state_cumulative[i] += dt
+            self.acc_time_since_reset += dt
+            if self._planned:
+                self.planned_stop += dt
+            self._since = now
+        if mode != self._mode:
+            self.mode_current[mode] = 0.0
+        self.state_current[mode * NUM_STATES + state] = 0.0
+        self._mode = mode
+        self._state = state
+        self._planned = planned
+
+    def set_planned(self, now: float, planned: bool) -> None:
+        self._close(now)
+        self._since = max(self._since, now)
+        self._planned = planned
+
+    # -- resets --------------------------------------------------------------------------------------
+    def reset_current_mode(self, now: float) -> None:
+        """The current mode's times and the times of all its states."""
+        self._close(now)
+        self._since = max(self._since, now)
+        m = self._mode
+        self.mode_current[m] = self.mode_cumulative[m] = 0.0
+        for i in range(m * NUM_STATES, (m + 1) * NUM_STATES):
+            self.state_current[i] = self.state_cumulative[i] = 0.0
+
+    def reset_all(self, now: float) -> None:
+        """Every time, including AccTimeSinceReset."""
+        self._close(now)
+        self._since = max(self._since, now)
+        for values in (
+            self.mode_current,
+            self.mode_cumulative,
+            self.state_current,
+            self.state_cumulative,
+        ):
+            values[:] = [0.0] * len(values)
+        self.acc_time_since_reset = 0.0
+        self.planned_stop = 0.0
+
+    # -- reading -------------------------------------------------------------------------------------
+    def live(self, now: float) -> tuple[list[float], list[float], list[float], list[float], float]:
+        """Float seconds as of ``now`` without changing anything."""
+        dt = max(0.0, now - self._since)
+        mc, mcum = list(self.mode_current), list(self.mode_cumulative)
+        sc, scum = list(self.state_current), list(self.state_cumulative)
+        m = self._mode
+        i = m * NUM_STATES + self._state
+        mc[m] += dt
+        mcum[m] += dt
+        sc[i] += dt
+        scum[i] += dt
+        return mc, mcum, sc, scum, self.acc_time_since_reset + dt
+
+    def planned_stop_at(self, now: float) -> float:
+        return self.planned_stop + (max(0.0, now - self._since) if self._planned else 0.0)
+
+    def snapshot(self, now: float) -> TimesSnapshot:
+        mc, mcum, sc, scum, acc = self.live(now)
+        over = False
+
+        def publish(values: list[float]) -> tuple[int, ...]:
+            nonlocal over
+            out = []
+            for v in values:
+                n = int(v)
+                if n >= ROLLOVER:
+                    over = True
+                    n %= ROLLOVER
+                out.append(n)
+            return tuple(out)
+
+        snap = (publish(mc), publish(mcum), publish(sc), publish(scum), publish([acc])[0])
+        return TimesSnapshot(*snap, rollover_warning=over)
+
+    # -- persistence -----------------------------------------------------------------------------------
+    def to_dict(self, now: float) -> dict[str, Any]:
+        """Sparse: only non-zero entries, keyed by index (most (mode, state) pairs never occur)."""
+        mc, mcum, sc, scum, acc = self.live(now)
+
+        def sparse(values: list[float]) -> dict[str, float]:
+            return {str(i): v for i, v in enumerate(values) if v}
+
+        return {
+            "mode_current": sparse(mc),
+            "mode_cumulative": sparse(mcum),
+            "state_current": sparse(sc),
+            "state_cumulative": sparse(scum),
+            "acc_time_since_reset": acc,
+            "planned_stop": self.planned_stop_at(now),
+        }
+
+    def restore(self, data: dict[str, Any], now: float) -> None:
+        """Cumulative values from a saved unit; the current mode/state restart from ``now``."""
+        for key in ("mode_current", "mode_cumulative", "state_current", "state_cumulative"):
+            target: list[float] = getattr(self, key)
+            for index, value in data.get(key, {}).items():
+                if 0 <= int(index) < len(target):
+                    target[int(index)] = float(value)
+        self.acc_time_since_reset = float(data.get("acc_time_since_reset", 0.0))
+        self.planned_stop = float(data.get("planned_stop", 0.0))
+        self._since = now
+        self.mode_current[self._mode] = 0.0
+        self.state_current[self._mode * NUM_STATES + self._state] = 0.0

@@ -1,0 +1,79 @@
+#!/usr/bin/env bash
+# The one set-up step for a fresh Debian machine (no ROS installed):
+#   1. apt prerequisites, only if missing (cmake, g++, ninja, Python headers and venv, iproute2);
+#   2. .venv with the pinned ROS 2 Kilted wheels, the interface build tools and the dev tools;
+#   3. the packml_interfaces wheel, built from msg_defs/ once and kept in .cache/wheels/;
+#   4. packml_ros2 itself, editable.
+# Each step is skipped when its inputs did not change, so a second run takes seconds.
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+
+VENV=${VENV:-.venv}
+PYTHON=${PYTHON:-python3}
+CACHE=.cache/wheels
+say() { printf '\033[1m[setup]\033[0m %s\n' "$*"; }
+digest() { sha256sum "$@" | sha256sum | cut -c1-16; }
+
+# --- 1. system packages -------------------------------------------------------------------------
+missing=()
+command -v cmake >/dev/null || missing+=(cmake)
+command -v g++ >/dev/null || missing+=(g++)
+command -v ninja >/dev/null || missing+=(ninja-build)
+command -v ip >/dev/null || missing+=(iproute2)
+if command -v "$PYTHON" >/dev/null; then
+  "$PYTHON" - <<'PY' || missing+=(python3-dev)
+import os, sys, sysconfig
+sys.exit(0 if os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")) else 1)
+PY
+  "$PYTHON" -c 'import ensurepip, venv' 2>/dev/null || missing+=(python3-venv)
+else
+  missing+=(python3 python3-dev python3-venv)
+fi
+if ((${#missing[@]})); then
+  say "installing Debian packages: ${missing[*]}"
+  sudo=""
+  [ "$(id -u)" = 0 ] || sudo=sudo
+  $sudo apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${missing[@]}"
+fi
+
+# --- 2. the virtual environment -----------------------------------------------------------------
+if [ ! -x "$VENV/bin/python" ]; then
+  say "creating $VENV"
+  "$PYTHON" -m venv "$VENV"
+fi
+pip=("$VENV/bin/python" -m pip --disable-pip-version-check -q)
+deps_key=$(digest requirements/*.txt setup.py package.xml)
+if [ "$(cat "$VENV/.packml-deps" 2>/dev/null)" != "$deps_key" ]; then
+  say "installing the pinned ROS 2 wheels and tools into $VENV"
+  "${pip[@]}" install --upgrade pip
+  "${pip[@]}" install -r requirements/ros.txt -r requirements/build.txt -r requirements/dev.txt
+  echo "$deps_key" > "$VENV/.packml-deps"
+  rm -f "$VENV/.packml-self"
+fi
+
+# --- 3. packml_interfaces -----------------------------------------------------------------------
+msg_key=$(digest $(find msg_defs -path msg_defs/build -prune -o -type f \( -name '*.msg' -o -name '*.srv' \
+  -o -name CMakeLists.txt -o -name package.xml -o -name pyproject.toml \) -print | LC_ALL=C sort) \
+  requirements/ros.txt requirements/build.txt)
+if [ "$(cat "$VENV/.packml-interfaces" 2>/dev/null)" != "$msg_key" ]; then
+  wheel_dir="$CACHE/packml_interfaces-$msg_key"
+  if ! ls "$wheel_dir"/*.whl >/dev/null 2>&1; then
+    say "building packml_interfaces from msg_defs/ (about 1-2 minutes, once)"
+    rm -rf msg_defs/build "$wheel_dir.tmp"
+    "${pip[@]}" wheel --no-deps --no-build-isolation -w "$wheel_dir.tmp" ./msg_defs
+    rm -rf msg_defs/build
+    mv "$wheel_dir.tmp" "$wheel_dir"
+  fi
+  say "installing $(basename "$wheel_dir"/*.whl)"
+  "${pip[@]}" install --no-deps --force-reinstall "$wheel_dir"/*.whl
+  echo "$msg_key" > "$VENV/.packml-interfaces"
+fi
+
+# --- 4. packml_ros2, editable ---------------------------------------------------------------------
+if [ "$(cat "$VENV/.packml-self" 2>/dev/null)" != "$deps_key" ]; then
+  say "installing packml_ros2 (editable)"
+  "${pip[@]}" install --no-build-isolation -e .
+  echo "$deps_key" > "$VENV/.packml-self"
+fi
+say "ready: $VENV ($("$VENV/bin/python" -c 'import rclpy, packml_interfaces, packml_ros2; print("rclpy, packml_interfaces, packml_ros2 import")'))"
