@@ -1,0 +1,321 @@
+"""Engine views -> packml_interfaces messages (and back for request types). Nothing here decides
+anything: it only translates field by field."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from packml_interfaces.msg import (
+    Admin,
+    Alarm,
+    AlarmList,
+    Count,
+    Descriptor,
+    EmSummary,
+    EquipmentInterlock,
+    Ingredient,
+    Oee,
+    Product,
+    RemoteInterface,
+    Status,
+    TransitionEvent,
+)
+
+from .core import config as cfg
+from .core.alarms import AlarmEvent, AlarmManager
+from .core.counters import Counter
+from .core.numbers import state_name
+from .core.packtags import AdminView, StatusView, date_time_array
+from .core.unit import Transition
+
+_ZERO7 = [0] * 7
+
+
+def stamp(seconds: float) -> Time:
+    sec = int(seconds // 1)
+    return Time(sec=sec, nanosec=min(999_999_999, round((seconds - sec) * 1e9)))
+
+
+def seconds(t: Time) -> float:
+    return t.sec + t.nanosec * 1e-9
+
+
+# -- descriptors and products -----------------------------------------------------------------------
+def descriptor(d: cfg.Descriptor) -> Descriptor:
+    return Descriptor(id=d.id, name=d.name, unit=d.unit, value=float(d.value))
+
+
+def descriptor_in(d: Descriptor) -> cfg.Descriptor:
+    return cfg.Descriptor(d.id, d.name, d.unit, d.value)
+
+
+def product(p: cfg.Product) -> Product:
+    return Product(
+        product_id=p.product_id,
+        process_variables=[descriptor(d) for d in p.process_variables],
+        ingredients=[
+            Ingredient(
+                ingredient_id=i.ingredient_id, parameter=[descriptor(d) for d in i.parameter]
+            )
+            for i in p.ingredients
+        ],
+    )
+
+
+def product_in(p: Product) -> cfg.Product:
+    return cfg.Product(
+        p.product_id,
+        tuple(descriptor_in(d) for d in p.process_variables),
+        tuple(
+            cfg.Ingredient(i.ingredient_id, tuple(descriptor_in(d) for d in i.parameter))
+            for i in p.ingredients
+        ),
+    )
+
+
+# -- status -------------------------------------------------------------------------------------------------
+def status(v: StatusView) -> Status:
+    return Status(
+        stamp=stamp(v.time),
+        unit=v.unit,
+        unit_mode_current=v.unit_mode_current,
+        unit_mode_requested=v.unit_mode_requested,
+        unit_mode_change_in_process=v.unit_mode_change_in_process,
+        state_current=v.state_current,
+        state_requested=v.state_requested,
+        state_change_in_process=v.state_change_in_process,
+        mach_speed=v.mach_speed,
+        cur_mach_speed=v.cur_mach_speed,
+        material_interlock=v.material_interlock,
+        equipment_interlock=EquipmentInterlock(blocked=v.blocked, starved=v.starved),
+        remote_interface=[
+            RemoteInterface(
+                number=r.number,
+                control_cmd_number=r.control_cmd_number,
+                cmd_value=r.cmd_value,
+                parameter=[descriptor(d) for d in r.parameter],
+            )
+            for r in v.remote_interface
+        ],
+        parameter=[descriptor(d) for d in v.parameter],
+        product=[product(p) for p in v.product],
+        cntrl_cmd=v.cntrl_cmd,
+        command_unit_mode=v.command_unit_mode,
+        command_mach_speed=v.command_mach_speed,
+        state_current_name=v.state_current_name,
+        unit_mode_current_name=v.unit_mode_current_name,
+        sequence=v.sequence,
+        states_disabled=v.states_disabled,
+        commands_valid=list(v.commands_valid),
+        commands_valid_names=list(v.commands_valid_names),
+        mode_change_not_allowed=v.mode_change_not_allowed,
+        remote_commands_enabled=v.remote_commands_enabled,
+        time_rollover_warning=v.time_rollover_warning,
+        equipment_modules=[
+            EmSummary(
+                name=e.name,
+                active=e.active,
+                online=e.online,
+                configured=e.configured,
+                state_complete=e.state_complete,
+                sequence=e.sequence,
+                command_request=e.command_request,
+                blocked=e.blocked,
+                starved=e.starved,
+                stale_reports=e.stale_reports,
+            )
+            for e in v.equipment
+        ],
+        active_alarms=v.active_alarms,
+        unacknowledged_alarms=v.unacknowledged_alarms,
+        alarm_banner=v.alarm_banner,
+        stop_reason_id=v.stop_reason_id,
+    )
+
+
+def transition(
+    unit: str, t: Transition, mode_names: dict[int, str] | None = None
+) -> TransitionEvent:
+    return TransitionEvent(
+        stamp=stamp(t.time),
+        unit=unit,
+        sequence=t.sequence,
+        from_state=int(t.from_state),
+        to_state=int(t.to_state),
+        from_state_name=state_name(t.from_state),
+        to_state_name=state_name(t.to_state),
+        from_mode=t.from_mode,
+        to_mode=t.to_mode,
+        trigger=int(t.trigger),
+        trigger_name=t.trigger.name,
+        command=int(t.command),
+        source=t.source,
+        skipped_states=[int(s) for s in t.skipped],
+        detail=t.detail,
+    )
+
+
+# -- alarms --------------------------------------------------------------------------------------------------
+def alarm(ev: AlarmEvent | None) -> Alarm:
+    if ev is None:
+        return Alarm(date_time=_ZERO7, ack_date_time=_ZERO7)
+    return Alarm(
+        trigger=ev.trigger,
+        id=ev.id,
+        value=ev.value,
+        message=ev.message,
+        category=ev.category,
+        date_time=list(date_time_array(ev.time)),
+        ack_date_time=list(date_time_array(ev.ack_time)) if ev.ack_time is not None else _ZERO7,
+        kind=int(ev.kind),
+        latched=ev.latched,
+        acknowledged=ev.acknowledged,
+        operator_state=int(ev.operator_state),
+        em=ev.em,
+        source=ev.source,
+        reaction=int(ev.reaction),
+        stamp=stamp(ev.time),
+        ack_stamp=stamp(ev.ack_time) if ev.ack_time is not None else Time(),
+        cleared_stamp=stamp(ev.cleared_time) if ev.cleared_time is not None else Time(),
+    )
+
+
+def alarm_list(unit: str, now: float, alarms: AlarmManager) -> AlarmList:
+    listed, alarm_over = alarms.listed(warnings=False)
+    warnings, warning_over = alarms.listed(warnings=True)
+    by_category = [alarm(alarms.first_out_by_category.get(c)) for c in range(10)]
+    return AlarmList(
+        stamp=stamp(now),
+        unit=unit,
+        alarms=[alarm(ev) for ev in listed],
+        warnings=[alarm(ev) for ev in warnings],
+        first_out=alarm(alarms.first_out),
+        first_out_by_category=by_category,
+        first_out_em_names=list(alarms.first_out_by_em),
+        first_out_by_em=[alarm(ev) for ev in alarms.first_out_by_em.values()],
+        alarm_overflow=alarm_over,
+        warning_overflow=warning_over,
+        banner=alarms.banner(),
+    )
+
+
+# -- admin --------------------------------------------------------------------------------------------------
+def _counts(counters: Iterable[Counter]) -> list[Count]:
+    return [
+        Count(id=c.id, name=c.name, unit=c.unit, count=c.count, acc_count=c.acc_count)
+        for c in counters
+    ]
+
+
+def admin(v: AdminView) -> Admin:
+    t = v.times
+    o = v.oee
+    return Admin(
+        stamp=stamp(v.time),
+        unit=v.unit,
+        parameter=[descriptor(d) for d in v.parameter],
+        alarm=[alarm(ev) for ev in v.alarm],
+        alarm_extent=len(v.alarm),
+        alarm_history=[alarm(ev) for ev in v.alarm_history],
+        alarm_history_extent=len(v.alarm_history),
+        stop_reason=alarm(v.stop_reason),
+        stop_reason_extent=1 if v.stop_reason is not None else 0,
+        warning=[alarm(ev) for ev in v.warning],
+        warning_extent=len(v.warning),
+        mode_current_time=list(t.mode_current),
+        mode_cumulative_time=list(t.mode_cumulative),
+        state_current_time=list(t.state_current),
+        state_cumulative_time=list(t.state_cumulative),
+        prod_consumed_count=_counts(v.prod_consumed_count),
+        prod_processed_count=_counts(v.prod_processed_count),
+        prod_defective_count=_counts(v.prod_defective_count),
+        acc_time_since_reset=t.acc_time_since_reset,
+        mach_design_speed=v.mach_design_speed,
+        states_disabled=v.states_disabled,
+        plc_date_time=list(v.plc_date_time),
+        time_rollover_warning=t.rollover_warning,
+        alarm_overflow=v.alarm_overflow,
+        warning_overflow=v.warning_overflow,
+        oee=Oee(
+            availability=o.availability,
+            performance=o.performance,
+            quality=o.quality,
+            oee=o.oee,
+            production_time=o.production_time,
+            execute_time=o.execute_time,
+            planned_stop_time=o.planned_stop_time,
+            internal_downtime=o.internal_downtime,
+            external_downtime=o.external_downtime,
+            stopped_time=o.stopped_time,
+            aborted_time=o.aborted_time,
+            processed=o.processed,
+            defective=o.defective,
+        ),
+    )
+
+
+# -- diagnostics -------------------------------------------------------------------------------------------
+_LEVEL = {True: DiagnosticStatus.ERROR, False: DiagnosticStatus.OK}
+
+
+def diagnostics(
+    unit: str, hardware_id: str, now: float, view: StatusView, alarms: AlarmManager
+) -> DiagnosticArray:
+    """One status for the unit (its alarms and warnings) and one per EM (online, active)."""
+    active = [ev for ev in alarms.alarms() if ev.trigger]
+    warnings = [ev for ev in alarms.warnings() if ev.trigger]
+    level = (
+        DiagnosticStatus.ERROR
+        if active
+        else DiagnosticStatus.WARN
+        if warnings
+        else DiagnosticStatus.OK
+    )
+    values = [
+        KeyValue(key="state", value=view.state_current_name),
+        KeyValue(key="mode", value=view.unit_mode_current_name),
+        KeyValue(key="sequence", value=str(view.sequence)),
+        KeyValue(key="active_alarms", value=str(len(active))),
+        KeyValue(key="unacknowledged_alarms", value=str(view.unacknowledged_alarms)),
+    ]
+    values += [
+        KeyValue(key=f"alarm {ev.id}/{ev.value}", value=f"cat {ev.category}: {ev.message}"
+                 + (f" [{ev.em}]" if ev.em else ""))
+        for ev in active + warnings
+    ]  # fmt: skip
+    message = view.alarm_banner or (
+        f"{len(warnings)} warning(s)" if warnings else view.state_current_name
+    )
+    statuses = [
+        DiagnosticStatus(
+            level=level,
+            name=f"packml: {unit}",
+            message=message,
+            hardware_id=hardware_id,
+            values=values,
+        )
+    ]
+    for em in view.equipment:
+        ok = em.online or not em.active
+        statuses.append(
+            DiagnosticStatus(
+                level=DiagnosticStatus.OK if ok else DiagnosticStatus.ERROR,
+                name=f"packml: {unit}/{em.name}",
+                message=("online" if em.online else "offline")
+                + ("" if em.active else ", inactive"),
+                hardware_id=hardware_id,
+                values=[
+                    KeyValue(key="active", value=str(em.active)),
+                    KeyValue(key="online", value=str(em.online)),
+                ],
+            )
+        )
+    return DiagnosticArray(header=_header(now), status=statuses)
+
+
+def _header(now: float):  # type: ignore[no-untyped-def]
+    from std_msgs.msg import Header
+
+    return Header(stamp=stamp(now))

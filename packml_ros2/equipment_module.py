@@ -1,0 +1,282 @@
+"""Base class for equipment-module (EM) nodes: robots, grippers, conveyors, vision...
+
+An EM follows its unit's state and reports State Complete. Subclass :class:`EquipmentModule` and
+define a hook per acting state you care about::
+
+    class Gripper(EquipmentModule):
+        async def on_starting(self, ctx):      # a coroutine ...
+            await self.open_jaws()
+
+        def on_stopping(self, ctx):            # ... or a plain function (runs in a thread)
+            self.hardware.release()
+
+        async def execute(self, ctx):          # production; return = the run is finished
+            while True:
+                await ctx.finish(self.pick())  # Hold/Stop in the middle: the pick completes first
+                self.count("processed")
+
+Hook names: ``on_resetting``, ``on_starting``, ``execute``, ``on_completing``, ``on_holding``,
+``on_unholding``, ``on_suspending``, ``on_unsuspending``, ``on_stopping``, ``on_aborting``,
+``on_clearing``, and ``on_mode_change`` (during a unit mode change). When a hook returns, the base
+class reports State Complete for that (state, sequence); states without a hook are reported
+complete at once. When the unit leaves the state, the running hook is cancelled: a coroutine gets
+``CancelledError`` at its next ``await`` (``ctx.finish(aw)`` lets one step complete first), a plain
+function sees ``ctx.cancelled`` set (``ctx.sleep(s)`` returns False). The next state's hook starts
+only after the previous one has ended. An exception in a hook raises the EM's fault alarm.
+
+Heartbeats keep the EM's lease alive at the unit; an EM that restarts re-joins at the unit's current
+state and sequence (the status topic is latched).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import contextlib
+import inspect
+import threading
+import traceback
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from typing import Any, TypeVar
+
+from builtin_interfaces.msg import Time
+from packml_interfaces.msg import EmReport, Status
+from rclpy.node import Node
+
+from . import qos
+from .core.numbers import ACTING, Cmd, State, state_name
+
+T = TypeVar("T")
+
+HOOKS: dict[State, str] = {
+    State.RESETTING: "on_resetting",
+    State.STARTING: "on_starting",
+    State.EXECUTE: "execute",
+    State.COMPLETING: "on_completing",
+    State.HOLDING: "on_holding",
+    State.UNHOLDING: "on_unholding",
+    State.SUSPENDING: "on_suspending",
+    State.UNSUSPENDING: "on_unsuspending",
+    State.STOPPING: "on_stopping",
+    State.ABORTING: "on_aborting",
+    State.CLEARING: "on_clearing",
+}
+COUNTERS = {"consumed": EmReport.COUNTER_CONSUMED, "processed": EmReport.COUNTER_PROCESSED,
+            "defective": EmReport.COUNTER_DEFECTIVE}  # fmt: skip
+FAULT_ALARM_ID = 9100  # default ID of the alarm raised when a hook fails
+
+
+@dataclass
+class StateContext:
+    """What a hook gets: the (state, sequence) it works for, the unit mode, and cancellation."""
+
+    state: State
+    sequence: int
+    mode: int
+    cancelled: threading.Event = field(default_factory=threading.Event)
+
+    def sleep(self, seconds: float) -> bool:
+        """For plain-function hooks: wait ``seconds``; False (early) if the state was left."""
+        return not self.cancelled.wait(seconds)
+
+    async def finish(self, aw: Awaitable[T]) -> T:
+        """Run ``aw`` to its end even if the unit leaves the state meanwhile (finish the move),
+        then let the cancellation proceed."""
+        task = asyncio.ensure_future(aw)
+        try:
+            return await asyncio.shield(task)
+        except asyncio.CancelledError:
+            await task
+            raise
+
+
+class EquipmentModule(Node):
+    """An EM node ``name`` under its unit: ``/<cell>/<unit>/<name>``."""
+
+    def __init__(self, name: str, unit: str, cell: str = "", *, lease: float = 1.0,
+                 fault_alarm_id: int = FAULT_ALARM_ID, **node_kwargs: Any) -> None:  # fmt: skip
+        namespace = "/" + "/".join(p for p in (cell, unit) if p)
+        super().__init__(name, namespace=namespace, **node_kwargs)
+        self.em_name = name
+        self.unit_name = unit
+        self.lease = lease
+        self.fault_alarm_id = fault_alarm_id
+        self.unit_status: Status | None = None
+        self.active = True
+        self._key: tuple[int, int] | None = None  # (state, sequence) being worked on
+        self._pub = self.create_publisher(EmReport, "em_reports", qos.EM_REPORTS)
+        self.create_subscription(Status, "status", self._on_status, qos.STATUS)
+        self.create_timer(lease / 4.0, self._heartbeat)
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(
+            target=self._loop.run_forever, name=f"em-{name}", daemon=True
+        )
+        self._thread.start()
+        self._latest: tuple[Status, bool] | None = None
+        self._wakeup = asyncio.Event()
+        self._driver = asyncio.run_coroutine_threadsafe(self._drive(), self._loop)
+        self._heartbeat()
+
+    # -- what integrators call -------------------------------------------------------------------------
+    @property
+    def state(self) -> State:
+        return State(self.unit_status.state_current) if self.unit_status else State.UNDEFINED
+
+    @property
+    def sequence(self) -> int:
+        return self.unit_status.sequence if self.unit_status else 0
+
+    @property
+    def mode(self) -> int:
+        return self.unit_status.unit_mode_current if self.unit_status else 0
+
+    def request(self, command: Cmd | int) -> None:
+        """Ask the unit for a state command (e.g. ``Cmd.STOP``); 0 withdraws."""
+        self._send(EmReport.KIND_COMMAND_REQUEST, command=int(command))
+
+    def count(self, counter: str = "processed", increment: int = 1, index: int = 0) -> None:
+        """Add to the unit's ProdConsumed/Processed/DefectiveCount[index]."""
+        self._send(
+            EmReport.KIND_COUNT, counter=COUNTERS[counter], counter_index=index, increment=increment
+        )
+
+    def raise_alarm(self, alarm_id: int, value: int = 0, message: str = "", category: int = -1,
+                    warning: bool = False) -> None:  # fmt: skip
+        """Raise alarm (``alarm_id``, ``value``); category/message default to the unit's configuration."""
+        self._send(EmReport.KIND_ALARM, alarm_id=alarm_id, alarm_value=value, alarm_active=True,
+                   warning=warning, category=category, message=message)  # fmt: skip
+
+    def clear_alarm(self, alarm_id: int, value: int = 0) -> None:
+        """The alarm's condition is gone (it stays latched at the unit until reset)."""
+        self._send(
+            EmReport.KIND_ALARM,
+            alarm_id=alarm_id,
+            alarm_value=value,
+            alarm_active=False,
+            category=-1,
+        )
+
+    def set_interlock(
+        self, blocked: bool = False, starved: bool = False, material_interlock: int = 0
+    ) -> None:
+        """Report Blocked (downstream full) / Starved (no infeed): the unit suspends."""
+        self._send(
+            EmReport.KIND_INTERLOCK,
+            blocked=blocked,
+            starved=starved,
+            material_interlock=material_interlock,
+        )
+
+    def report_complete(self, state: int | None = None, sequence: int | None = None) -> None:
+        """State Complete for (state, sequence); the base class does this when a hook returns."""
+        self._send(
+            EmReport.KIND_STATE_COMPLETE,
+            state=int(self.state if state is None else state),
+            sequence=self.sequence if sequence is None else sequence,
+        )
+
+    # -- plumbing ------------------------------------------------------------------------------------------
+    def _send(self, kind: int, **fields: Any) -> None:
+        msg = EmReport(em=self.em_name, kind=kind, lease=self.lease, **fields)
+        msg.stamp = self._stamp()
+        self._pub.publish(msg)
+
+    def _stamp(self) -> Time:
+        return self.get_clock().now().to_msg()
+
+    def _heartbeat(self) -> None:
+        self._send(EmReport.KIND_HEARTBEAT)
+
+    def _on_status(self, msg: Status) -> None:
+        """Executor thread: remember the newest status and wake the driver."""
+        mine = next((e for e in msg.equipment_modules if e.name == self.em_name), None)
+        self.active = mine.active if mine is not None else True
+        already_done = mine is not None and mine.state_complete
+        self.unit_status = msg
+        self._latest = (msg, already_done)
+        self._loop.call_soon_threadsafe(self._wakeup.set)
+
+    async def _drive(self) -> None:
+        """The asyncio thread: one hook at a time, always for the newest (state, sequence)."""
+        task: asyncio.Task[None] | None = None
+        ctx: StateContext | None = None
+        while True:
+            await self._wakeup.wait()
+            self._wakeup.clear()
+            if self._latest is None:
+                continue
+            msg, already_done = self._latest
+            key = (msg.state_current, msg.sequence)
+            if key == self._key:
+                continue
+            if task is not None and not task.done():
+                assert ctx is not None
+                ctx.cancelled.set()
+                task.cancel()
+                await asyncio.gather(task, return_exceptions=True)
+            self._key = key
+            task, ctx = None, None
+            if already_done or not self.active:
+                continue
+            state = (
+                State(msg.state_current)
+                if msg.state_current in State._value2member_map_
+                else State.UNDEFINED
+            )
+            if msg.unit_mode_change_in_process:
+                ctx = StateContext(state, msg.sequence, msg.unit_mode_requested)
+                task = self._loop.create_task(self._run(getattr(self, "on_mode_change", None), ctx))
+            elif state in ACTING:
+                ctx = StateContext(state, msg.sequence, msg.unit_mode_current)
+                task = self._loop.create_task(self._run(getattr(self, HOOKS[state], None), ctx))
+
+    async def _run(self, hook: Callable[[StateContext], Any] | None, ctx: StateContext) -> None:
+        try:
+            if hook is not None:
+                if inspect.iscoroutinefunction(hook):
+                    await hook(ctx)
+                else:
+                    future = self._loop.run_in_executor(None, hook, ctx)
+                    try:
+                        result = await asyncio.shield(future)
+                    except asyncio.CancelledError:
+                        ctx.cancelled.set()
+                        await future  # a plain function cannot be interrupted: let it return
+                        raise
+                    if inspect.isawaitable(result):
+                        await result
+        except asyncio.CancelledError:
+            return
+        except Exception as exc:
+            name = getattr(hook, "__name__", "hook")
+            self.get_logger().error(
+                f"{name} failed in {state_name(ctx.state)}: {exc}\n{traceback.format_exc()}"
+            )
+            self.raise_alarm(
+                self.fault_alarm_id, 0, f"{self.em_name}: {name} failed: {exc}"[:200], category=2
+            )
+            return
+        if (self.unit_status is not None and (self.unit_status.state_current, self.unit_status.sequence)
+                == (int(ctx.state), ctx.sequence)):  # fmt: skip
+            self.report_complete(ctx.state, ctx.sequence)
+
+    def run_coroutine(self, coro: Awaitable[T]) -> concurrent.futures.Future[T]:
+        """Run a coroutine on the EM's asyncio loop from any thread."""
+        return asyncio.run_coroutine_threadsafe(coro, self._loop)  # type: ignore[arg-type]
+
+    def close(self) -> None:
+        """Say goodbye to the unit (it applies its lost-EM reaction at once) and stop the loop."""
+        with contextlib.suppress(Exception):  # the context may already be shut down
+            self._send(EmReport.KIND_LEAVE)
+        with contextlib.suppress(concurrent.futures.TimeoutError, RuntimeError):
+            asyncio.run_coroutine_threadsafe(self._stop_tasks(), self._loop).result(timeout=5)
+        self._loop.call_soon_threadsafe(self._loop.stop)
+        self._thread.join(2)
+
+    async def _stop_tasks(self) -> None:
+        current = asyncio.current_task()
+        tasks = [t for t in asyncio.all_tasks() if t is not current]
+        for t in tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)

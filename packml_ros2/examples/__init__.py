@@ -1,0 +1,1 @@
+"""Example equipment modules to copy from."""

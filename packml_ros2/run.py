@@ -1,0 +1,62 @@
+"""Running nodes from entry points: localhost-only defaults, an executor, and a clean exit on
+Ctrl-C / SIGTERM (exit code 0, no traceback)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+from collections.abc import Callable, Sequence
+
+import rclpy
+from rclpy.executors import (
+    Executor,
+    ExternalShutdownException,
+    MultiThreadedExecutor,
+    SingleThreadedExecutor,
+)
+from rclpy.node import Node
+
+from .paths import fastdds_profile
+
+
+def default_environment() -> None:
+    """Keep DDS on this machine unless the user chose otherwise, and discover quickly."""
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    profile = fastdds_profile()
+    if profile.exists():
+        os.environ.setdefault("FASTDDS_DEFAULT_PROFILES_FILE", str(profile))
+
+
+def spin(
+    nodes: Sequence[Node], threads: int = 0, on_shutdown: Callable[[], None] | None = None
+) -> int:
+    """Spin ``nodes`` until Ctrl-C or SIGTERM, then shut down in order; returns the exit code."""
+    executor: Executor = (
+        MultiThreadedExecutor(num_threads=threads or None)
+        if threads != 1 and len(nodes) > 1
+        else SingleThreadedExecutor()
+    )
+    for node in nodes:
+        executor.add_node(node)
+    signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if on_shutdown is not None:
+            on_shutdown()
+        executor.shutdown(timeout_sec=2)
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def init(argv: Sequence[str] | None = None) -> list[str]:
+    """rclpy.init with the default environment; returns the non-ROS arguments."""
+    default_environment()
+    args = list(sys.argv if argv is None else argv)
+    rclpy.init(args=args, signal_handler_options=rclpy.signals.SignalHandlerOptions.ALL)
+    return rclpy.utilities.remove_ros_args(args)[1:]

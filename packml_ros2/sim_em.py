@@ -1,0 +1,199 @@
+"""A simulated equipment module, configured by the ``sim:`` block of an EM in the cell YAML.
+
+Each acting state takes its configured duration; Execute cycles (``cycle_time``), counting a
+product per cycle with defects at ``defect_rate``. Faults listed under ``faults`` are switched on
+and off with a service per fault (``std_srvs/SetBool``):
+``/<cell>/<unit>/<em>/fault/<name>`` — an alarm (by category it stops or aborts the unit), or an
+interlock (``blocked`` / ``starved``: the unit suspends).
+
+Run: ``em_node <cell.yaml> <unit> <em>``; ``packml launch`` starts these for every configured EM.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import random
+import sys
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any
+
+from std_srvs.srv import SetBool
+
+from . import run
+from .core import schema as sc
+from .core.config import load_cell
+from .core.numbers import ACTING, State, parse_state
+from .core.schema import ConfigError, Node
+from .equipment_module import EquipmentModule, StateContext
+
+SIM_KEYS = {"durations", "cycle_time", "counter", "counter_index", "defect_rate", "defect_counter_index",
+            "consumed_per_cycle", "cycles_per_run", "lease", "faults", "seed"}  # fmt: skip
+FAULT_KEYS = {"kind", "alarm_id", "value", "category", "message"}
+
+
+@dataclass(frozen=True)
+class Fault:
+    name: str
+    kind: str  # alarm | warning | blocked | starved
+    alarm_id: int = 0
+    value: int = 0
+    category: int = -1
+    message: str = ""
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    durations: Mapping[State, float] = field(default_factory=dict)
+    cycle_time: float = 1.0
+    counter: str = "processed"
+    counter_index: int = 0
+    defect_rate: float = 0.0
+    defect_counter_index: int = 0
+    consumed_per_cycle: int = 0
+    cycles_per_run: int = 0  # Execute completes after this many cycles (0: runs until commanded)
+    lease: float = 1.0
+    faults: Mapping[str, Fault] = field(default_factory=dict)
+    seed: int | None = None
+
+
+def parse_sim(data: Mapping[str, Any], path: str = "sim", file: str = "<memory>") -> SimConfig:
+    """Validate a ``sim:`` block; ConfigError names the key path."""
+    n = Node(dict(data), path)
+    n.check_keys(SIM_KEYS)
+    durations: dict[State, float] = {}
+    for key, child in n.items_at("durations"):
+        state = Node(key, child.path, child.problems).parse(sc.via(parse_state), State.UNDEFINED)
+        if state not in ACTING:
+            child.error(f"{key!r} is not an acting state")
+            continue
+        durations[state] = child.parse(sc.number(lo=0), 0.0)
+    faults: dict[str, Fault] = {}
+    for name, child in n.items_at("faults"):
+        child.check_keys(FAULT_KEYS)
+        kind = child.get(
+            "kind", sc.choice({k: k for k in ("alarm", "warning", "blocked", "starved")}), "alarm"
+        )
+        if kind in ("alarm", "warning") and "alarm_id" not in child.mapping():
+            child.error("an alarm fault needs alarm_id")
+        faults[name] = Fault(
+            name,
+            kind,
+            child.get("alarm_id", sc.integer(1), 0),
+            child.get("value", sc.integer(), 0),
+            child.get("category", sc.integer(-1, 9), -1),
+            child.get("message", sc.text, ""),
+        )
+    cfg = SimConfig(
+        durations=durations,
+        cycle_time=n.get("cycle_time", sc.number(positive=True), 1.0),
+        counter=n.get(
+            "counter",
+            sc.choice({k: k for k in ("processed", "consumed", "defective", "none")}),
+            "processed",
+        ),
+        counter_index=n.get("counter_index", sc.integer(0), 0),
+        defect_rate=n.get("defect_rate", sc.number(0.0, 1.0), 0.0),
+        defect_counter_index=n.get("defect_counter_index", sc.integer(0), 0),
+        consumed_per_cycle=n.get("consumed_per_cycle", sc.integer(0), 0),
+        cycles_per_run=n.get("cycles_per_run", sc.integer(0), 0),
+        lease=n.get("lease", sc.number(positive=True), 1.0),
+        faults=faults,
+        seed=n.get("seed", sc.integer(), None),  # type: ignore[arg-type]
+    )
+    if n.problems:
+        raise ConfigError(file, n.problems)
+    return cfg
+
+
+class SimulatedEm(EquipmentModule):
+    """An EM whose work is simulated by time; see the module docstring."""
+
+    def __init__(self, name: str, unit: str, cell: str, sim: SimConfig, **node_kwargs: Any) -> None:
+        super().__init__(name, unit, cell, lease=sim.lease, **node_kwargs)
+        self.sim = sim
+        self.random = random.Random(
+            sim.seed if sim.seed is not None else sum(map(ord, f"{unit}/{name}"))
+        )
+        self.faults_on: set[str] = set()
+        for fault in sim.faults.values():
+            self.create_service(SetBool, f"~/fault/{fault.name}", partial(self._srv_fault, fault))
+
+    # -- acting states: wait for the configured duration --------------------------------------------------
+    async def _work(self, ctx: StateContext) -> None:
+        await asyncio.sleep(self.sim.durations.get(ctx.state, 0.0))
+
+    on_resetting = on_starting = on_completing = on_holding = on_unholding = _work
+    on_suspending = on_unsuspending = on_stopping = on_aborting = on_clearing = _work
+
+    async def execute(self, ctx: StateContext) -> None:
+        """Cycle: each cycle produces one product (possibly defective); Hold or Stop in the middle
+        of a cycle lets the cycle finish first."""
+        cycles = 0
+        while not self.sim.cycles_per_run or cycles < self.sim.cycles_per_run:
+            await ctx.finish(asyncio.sleep(self.sim.cycle_time))
+            cycles += 1
+            if self.sim.consumed_per_cycle:
+                self.count("consumed", self.sim.consumed_per_cycle)
+            if self.sim.counter != "none":
+                self.count(self.sim.counter, 1, self.sim.counter_index)
+            if self.sim.defect_rate and self.random.random() < self.sim.defect_rate:
+                self.count("defective", 1, self.sim.defect_counter_index)
+
+    # -- fault injection ----------------------------------------------------------------------------------------
+    def _srv_fault(
+        self, fault: Fault, req: SetBool.Request, resp: SetBool.Response
+    ) -> SetBool.Response:
+        on = bool(req.data)
+        if fault.kind in ("blocked", "starved"):
+            (self.faults_on.add if on else self.faults_on.discard)(fault.name)
+            blocked = any(self.sim.faults[f].kind == "blocked" for f in self.faults_on)
+            starved = any(self.sim.faults[f].kind == "starved" for f in self.faults_on)
+            self.set_interlock(blocked=blocked, starved=starved)
+        elif on:
+            self.faults_on.add(fault.name)
+            self.raise_alarm(
+                fault.alarm_id,
+                fault.value,
+                fault.message,
+                fault.category,
+                warning=fault.kind == "warning",
+            )
+        else:
+            self.faults_on.discard(fault.name)
+            self.clear_alarm(fault.alarm_id, fault.value)
+        resp.success = True
+        resp.message = f"{fault.name} {'on' if on else 'off'} ({fault.kind})"
+        self.get_logger().warning(f"fault {resp.message}")
+        return resp
+
+
+def create(cell_file: str, unit: str, em: str, **node_kwargs: Any) -> SimulatedEm:
+    cell = load_cell(cell_file)
+    if unit not in cell.units:
+        raise SystemExit(f"{cell_file} has no unit {unit!r} (units: {', '.join(cell.units)})")
+    ems = {e.name: e for e in cell.units[unit].equipment_modules}
+    sim = (
+        parse_sim(ems[em].sim, f"units.{unit}.equipment_modules.{em}.sim", cell_file)
+        if em in ems
+        else SimConfig()
+    )
+    return SimulatedEm(em, unit, cell.cell, sim, **node_kwargs)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = run.init(argv)
+    if len(args) != 3:
+        print(__doc__)
+        return 2
+    try:
+        node = create(*args)
+    except (ConfigError, OSError) as exc:
+        print(f"em_node: {exc}", file=sys.stderr)
+        return 2
+    return run.spin([node], on_shutdown=node.close)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,127 @@
+"""rclpy in the test process: a fresh Context per test, nodes spun by a multi-threaded executor
+in a background thread, and helpers that wait on conditions instead of sleeping."""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, Generic, TypeVar
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile
+
+M = TypeVar("M")
+
+
+class Collector(Generic[M]):
+    """Messages of one subscription, with waiting."""
+
+    def __init__(self) -> None:
+        self.messages: list[M] = []
+        self._cond = threading.Condition()
+
+    def __call__(self, msg: M) -> None:
+        with self._cond:
+            self.messages.append(msg)
+            self._cond.notify_all()
+
+    @property
+    def last(self) -> M:
+        with self._cond:
+            return self.messages[-1]
+
+    def wait_for(self, predicate: Callable[[M], bool], timeout: float = 10.0, what: str = "") -> M:
+        """The first message (already received or coming) for which ``predicate`` holds."""
+        deadline = time.monotonic() + timeout
+        seen = 0
+        with self._cond:
+            while True:
+                for msg in self.messages[seen:]:
+                    if predicate(msg):
+                        return msg
+                seen = len(self.messages)
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    tail = self.messages[-3:]
+                    raise TimeoutError(
+                        f"no message {what or 'matching'} within {timeout:g} s; last: {tail}"
+                    )
+                self._cond.wait(remaining)
+
+    def wait_count(self, n: int, timeout: float = 10.0) -> list[M]:
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while len(self.messages) < n:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise TimeoutError(f"{len(self.messages)} of {n} messages within {timeout:g} s")
+                self._cond.wait(remaining)
+            return list(self.messages)
+
+    def clear(self) -> None:
+        with self._cond:
+            self.messages.clear()
+
+
+class RosHarness:
+    """Nodes of one test on their own Context (domain ``domain``)."""
+
+    def __init__(self, domain: int, threads: int = 4) -> None:
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain)
+        self.executor = MultiThreadedExecutor(num_threads=threads, context=self.context)
+        self.node = Node(f"test_harness_{threading.get_ident() % 100000}", context=self.context)
+        self.executor.add_node(self.node)
+        self._nodes: list[Node] = [self.node]
+        self._thread = threading.Thread(target=self._spin, name="ros-harness", daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        with contextlib.suppress(ExternalShutdownException, rclpy.executors.ShutdownException):
+            self.executor.spin()
+
+    def add(self, node: Node) -> Node:
+        """Spin ``node`` (created with ``context=harness.context``) until the test ends."""
+        self.executor.add_node(node)
+        self._nodes.append(node)
+        return node
+
+    def subscribe(self, msg_type: type[M], topic: str, qos: QoSProfile | int = 10) -> Collector[M]:
+        collector: Collector[M] = Collector()
+        self.node.create_subscription(msg_type, topic, collector, qos)
+        return collector
+
+    def call(self, srv_type: Any, name: str, request: Any = None, timeout: float = 10.0) -> Any:
+        """Call service ``name`` (waiting for it to appear first) and return the response."""
+        client = self._clients.get((srv_type, name)) if hasattr(self, "_clients") else None
+        if client is None:
+            client = self.node.create_client(srv_type, name)
+            self.__dict__.setdefault("_clients", {})[(srv_type, name)] = client
+        if not client.wait_for_service(timeout_sec=timeout):
+            raise TimeoutError(f"service {name} did not appear within {timeout:g} s")
+        future = client.call_async(request if request is not None else srv_type.Request())
+        done = threading.Event()
+        future.add_done_callback(lambda _: done.set())
+        if not done.wait(timeout):
+            raise TimeoutError(f"service {name} did not answer within {timeout:g} s")
+        return future.result()
+
+    def wait_for_service(self, srv_type: Any, name: str, timeout: float = 10.0) -> None:
+        client = self.node.create_client(srv_type, name)
+        try:
+            if not client.wait_for_service(timeout_sec=timeout):
+                raise TimeoutError(f"service {name} did not appear within {timeout:g} s")
+        finally:
+            self.node.destroy_client(client)
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=5)
+        for node in self._nodes:
+            node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+        self._thread.join(5)

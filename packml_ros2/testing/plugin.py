@@ -1,0 +1,57 @@
+"""pytest plugin ``packml_ros2`` (loaded automatically where packml_ros2 is installed).
+
+At start it makes the test process (and every child) localhost-only with quick discovery and a
+ROS domain of its own (per run and per pytest-xdist worker). Fixtures:
+
+- ``ros_domain``: the domain of this worker;
+- ``ros``: a :class:`~packml_ros2.testing.harness.RosHarness` on a fresh Context;
+- ``processes``: start nodes as separate OS processes; stopped (SIGINT) at teardown.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from .environment import allocate_domain, localhost_environment
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    localhost_environment()
+    os.environ.setdefault("ROS_PYTHON_CHECK_FIELDS", "1")
+    # Every process (each pytest-xdist worker too) locks a domain of its own; children inherit it.
+    os.environ["ROS_DOMAIN_ID"] = str(allocate_domain())
+
+
+@pytest.fixture(scope="session")
+def ros_domain() -> int:
+    return int(os.environ["ROS_DOMAIN_ID"])
+
+
+@pytest.fixture
+def ros(ros_domain: int) -> Iterator[object]:
+    from .harness import RosHarness
+
+    harness = RosHarness(ros_domain)
+    try:
+        yield harness
+    finally:
+        harness.close()
+
+
+@pytest.fixture
+def processes(tmp_path: Path) -> Iterator[object]:
+    from .processes import Processes
+
+    log_dir = tmp_path / "logs"
+    log_dir.mkdir(exist_ok=True)
+    procs = Processes(log_dir)
+    try:
+        yield procs
+    finally:
+        failures = procs.close()
+        if failures:
+            print(failures)

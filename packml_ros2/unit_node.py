@@ -1,0 +1,424 @@
+"""The PackML unit node: the engine (:class:`packml_ros2.core.Unit`) on ROS 2.
+
+Services (relative to the node, e.g. ``/demo_cell/robot_cell/command``): ``command``, ``set_mode``,
+the Trigger shortcuts ``reset`` ... ``complete``, ``reset_times``, ``reset_counters``,
+``ack_alarms``, ``reset_alarms``, ``query_alarms``, ``set_alarm``, ``set_mach_speed``,
+``set_unit_parameters``, ``set_product``, ``set_em_active``, ``set_interlock``.
+Topics: ``status``, ``transitions``, ``admin``, ``alarms``, ``input_log``, ``/diagnostics``;
+EMs report on ``em_reports``.
+
+Run: ``unit_node <cell.yaml> [unit] [--ros-args -p remote_commands_enabled:=true ...]``
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Callable, Sequence
+from functools import partial
+from typing import Any
+
+from diagnostic_msgs.msg import DiagnosticArray
+from packml_interfaces.msg import Admin, AlarmList, EmReport, Status, TransitionEvent, UnitInput
+from packml_interfaces.srv import (
+    AckAlarms,
+    Command,
+    QueryAlarms,
+    ResetAlarms,
+    ResetCounters,
+    ResetTimes,
+    SetAlarm,
+    SetEmActive,
+    SetInterlock,
+    SetMachSpeed,
+    SetMode,
+    SetProduct,
+    SetUnitParameters,
+)
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from std_srvs.srv import Trigger
+
+from . import convert, qos, run
+from .core import Cmd, Store, Unit, UnitConfig, load_cell, state_name
+from .core.counters import KINDS
+from .core.liveliness import Liveliness
+from .core.unit import StatusMark, Transition
+
+SORTS = {QueryAlarms.Request.SORT_TIME: "time", QueryAlarms.Request.SORT_CATEGORY_TIME: "category",
+         QueryAlarms.Request.SORT_TIME_NEWEST: "newest"}  # fmt: skip
+ADVANCE_PERIOD = 0.05  # s: deadlines (timeouts, dwell, admin) and EM leases are checked this often
+DIAGNOSTICS_PERIOD = 1.0
+
+
+class UnitNode(Node):
+    """One PackML unit. ``UnitNode(config)`` names itself ``config.name`` in ``/<config.cell>``."""
+
+    def __init__(self, config: UnitConfig, *, context: Any = None, store_path: str | None = None,
+                 **node_kwargs: Any) -> None:  # fmt: skip
+        namespace = node_kwargs.pop("namespace", f"/{config.cell}" if config.cell else "/")
+        super().__init__(config.name, namespace=namespace, context=context, **node_kwargs)
+        self.config = config
+        self._declare_parameters(config, store_path)
+        path = self.get_parameter("persistence_path").value
+        self.store = Store(path, config.name) if path else None
+        self.unit = Unit(config, clock=self._now, store=self.store)
+        self.liveliness = Liveliness(config.em_lease)
+        self._inputs: list[UnitInput] = []
+        self._input_index = 0
+        self._record = bool(self.get_parameter("record_inputs").value)
+        self.unit.on_input = self._on_input if self._record else None
+        self._last_status: Status | None = None
+        self._hardware_id = f"{config.cell}/{config.name}" if config.cell else config.name
+
+        self.pub_status = self.create_publisher(Status, "~/status", qos.STATUS)
+        self.pub_transitions = self.create_publisher(
+            TransitionEvent, "~/transitions", qos.TRANSITIONS
+        )
+        self.pub_admin = self.create_publisher(Admin, "~/admin", qos.ADMIN)
+        self.pub_alarms = self.create_publisher(AlarmList, "~/alarms", qos.ALARMS)
+        self.pub_inputs = self.create_publisher(UnitInput, "~/input_log", qos.INPUT_LOG)
+        self.pub_diagnostics = self.create_publisher(
+            DiagnosticArray, "/diagnostics", qos.DIAGNOSTICS
+        )
+        self.create_subscription(EmReport, "~/em_reports", self._on_report, qos.EM_REPORTS)
+        self._create_services()
+        self.create_timer(ADVANCE_PERIOD, self._on_tick)
+        self.create_timer(DIAGNOSTICS_PERIOD, self._publish_diagnostics)
+        self.add_post_set_parameters_callback(self._on_parameters_set)
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self._publish()
+        self._publish_admin_now()
+        self.get_logger().info(
+            f"PackML unit {self.get_fully_qualified_name()} up: {state_name(self.unit.state)} in "
+            f"{self.unit.mode_def.name}, {len(config.equipment_modules)} EM(s) configured"
+            + (f", admin data from {path}" if path else ", no persistence")
+        )
+
+    # -- parameters ----------------------------------------------------------------------------------
+    def _declare_parameters(self, config: UnitConfig, store_path: str | None) -> None:
+        self.declare_parameter(
+            "remote_commands_enabled",
+            config.remote_commands_enabled,
+            ParameterDescriptor(description="accept commands whose source starts with 'remote'"),
+        )
+        self.declare_parameter(
+            "persistence_path",
+            store_path if store_path is not None else (config.persistence_path or ""),
+            ParameterDescriptor(
+                description="SQLite file for admin data ('' = none)", read_only=True
+            ),
+        )
+        self.declare_parameter(
+            "record_inputs",
+            True,
+            ParameterDescriptor(
+                description="publish every engine input on ~/input_log", read_only=True
+            ),
+        )
+
+    def _validate_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        for p in params:
+            if p.name == "remote_commands_enabled" and p.type_ != Parameter.Type.BOOL:
+                return SetParametersResult(
+                    successful=False, reason="remote_commands_enabled must be a bool"
+                )
+        return SetParametersResult(successful=True)
+
+    def _on_parameters_set(self, params: list[Parameter]) -> None:
+        for p in params:
+            if p.name == "remote_commands_enabled":
+                self.unit.set_remote_enabled(bool(p.value))
+                self._publish()
+
+    # -- clock ----------------------------------------------------------------------------------------
+    def _now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    # -- services --------------------------------------------------------------------------------------
+    def _create_services(self) -> None:
+        services: list[tuple[Any, str, Callable[[Any, Any], Any]]] = [
+            (Command, "command", self._srv_command),
+            (SetMode, "set_mode", self._srv_set_mode),
+            (ResetTimes, "reset_times", self._srv_reset_times),
+            (ResetCounters, "reset_counters", self._srv_reset_counters),
+            (AckAlarms, "ack_alarms", self._srv_ack_alarms),
+            (ResetAlarms, "reset_alarms", self._srv_reset_alarms),
+            (QueryAlarms, "query_alarms", self._srv_query_alarms),
+            (SetAlarm, "set_alarm", self._srv_set_alarm),
+            (SetMachSpeed, "set_mach_speed", self._srv_set_mach_speed),
+            (SetUnitParameters, "set_unit_parameters", self._srv_set_parameters),
+            (SetProduct, "set_product", self._srv_set_product),
+            (SetEmActive, "set_em_active", self._srv_set_em_active),
+            (SetInterlock, "set_interlock", self._srv_set_interlock),
+        ]
+        for cmd in Cmd:
+            if cmd:
+                services.append((Trigger, cmd.name.lower(), partial(self._srv_trigger, cmd)))
+        for srv_type, name, handler in services:
+            self.create_service(srv_type, f"~/{name}", handler)
+
+    @staticmethod
+    def _answer(resp: Any, answer: Any, message_field: str = "message") -> Any:
+        resp.accepted = answer.accepted
+        resp.result = int(answer.reason)
+        setattr(resp, message_field, answer.message)
+        return resp
+
+    def _srv_command(self, req: Command.Request, resp: Command.Response) -> Command.Response:
+        answer = self.unit.command(req.command, req.source or "operator")
+        self._publish()
+        self._answer(resp, answer)
+        resp.state_current = int(self.unit.state)
+        resp.state_requested = int(self.unit.state_requested())
+        return resp
+
+    def _srv_trigger(
+        self, cmd: Cmd, req: Trigger.Request, resp: Trigger.Response
+    ) -> Trigger.Response:
+        answer = self.unit.command(cmd, "operator")
+        self._publish()
+        resp.success = answer.accepted
+        resp.message = answer.message
+        if answer.accepted and not answer.message.endswith(state_name(self.unit.state)):
+            resp.message += f" (now {state_name(self.unit.state)})"
+        return resp
+
+    def _srv_set_mode(self, req: SetMode.Request, resp: SetMode.Response) -> SetMode.Response:
+        mode: int | str = req.mode_name if req.mode_name else req.mode
+        self._answer(resp, self.unit.set_mode(mode, req.source or "operator"))
+        self._publish()
+        resp.mode_current = self.unit.mode
+        return resp
+
+    def _srv_reset_times(
+        self, req: ResetTimes.Request, resp: ResetTimes.Response
+    ) -> ResetTimes.Response:
+        if req.scope not in (ResetTimes.Request.SCOPE_CURRENT_MODE, ResetTimes.Request.SCOPE_ALL):
+            resp.accepted, resp.result = False, 13
+            resp.message = f"scope {req.scope} is neither SCOPE_CURRENT_MODE (0) nor SCOPE_ALL (1)"
+            return resp
+        answer = self.unit.reset_times(
+            req.scope == ResetTimes.Request.SCOPE_ALL, req.source or "operator"
+        )
+        self._publish()
+        return self._answer(resp, answer)
+
+    def _srv_reset_counters(
+        self, req: ResetCounters.Request, resp: ResetCounters.Response
+    ) -> ResetCounters.Response:
+        answer = self.unit.reset_counters(req.source or "operator")
+        self._publish()
+        return self._answer(resp, answer)
+
+    def _srv_ack_alarms(
+        self, req: AckAlarms.Request, resp: AckAlarms.Response
+    ) -> AckAlarms.Response:
+        before = self.unit.alarms.unacknowledged_count()
+        answer = self.unit.ack_alarms(
+            None if req.all else req.id, req.value, req.source or "operator"
+        )
+        self._publish()
+        resp.acknowledged = before - self.unit.alarms.unacknowledged_count()
+        return self._answer(resp, answer)
+
+    def _srv_reset_alarms(
+        self, req: ResetAlarms.Request, resp: ResetAlarms.Response
+    ) -> ResetAlarms.Response:
+        before = len(self.unit.alarms.current)
+        answer = self.unit.reset_alarms(req.clear_first_out, req.source or "operator")
+        self._publish()
+        resp.cleared = before - len(self.unit.alarms.current)
+        return self._answer(resp, answer)
+
+    def _srv_query_alarms(
+        self, req: QueryAlarms.Request, resp: QueryAlarms.Response
+    ) -> QueryAlarms.Response:
+        events = self.unit.alarms.query(
+            active_only=req.active_only,
+            category=req.category if req.filter_category else None,
+            sort=SORTS.get(req.sort, "time"),
+            include_warnings=req.include_warnings,
+            history=req.history,
+        )
+        resp.alarms = [convert.alarm(ev) for ev in events]
+        resp.count = len(events)
+        return resp
+
+    def _srv_set_alarm(self, req: SetAlarm.Request, resp: SetAlarm.Response) -> SetAlarm.Response:
+        answer = self.unit.set_alarm(req.id, req.value, req.active, req.source or "operator", "",
+                                     req.warning or None, req.category, req.message)  # fmt: skip
+        self._publish()
+        return self._answer(resp, answer, "message_out")
+
+    def _srv_set_mach_speed(
+        self, req: SetMachSpeed.Request, resp: SetMachSpeed.Response
+    ) -> SetMachSpeed.Response:
+        answer = self.unit.set_mach_speed(req.mach_speed, req.source or "operator")
+        self._publish()
+        resp.mach_speed = self.unit.mach_speed
+        return self._answer(resp, answer)
+
+    def _srv_set_parameters(
+        self, req: SetUnitParameters.Request, resp: SetUnitParameters.Response
+    ) -> SetUnitParameters.Response:
+        answer = self.unit.set_parameters(
+            [convert.descriptor_in(d) for d in req.parameter], req.source or "operator"
+        )
+        self._publish()
+        return self._answer(resp, answer)
+
+    def _srv_set_product(
+        self, req: SetProduct.Request, resp: SetProduct.Response
+    ) -> SetProduct.Response:
+        answer = self.unit.set_product(
+            [convert.product_in(p) for p in req.product], req.source or "operator"
+        )
+        self._publish()
+        return self._answer(resp, answer)
+
+    def _srv_set_em_active(
+        self, req: SetEmActive.Request, resp: SetEmActive.Response
+    ) -> SetEmActive.Response:
+        answer = self.unit.set_em_active(req.em, req.active, req.source or "operator")
+        self._publish()
+        return self._answer(resp, answer)
+
+    def _srv_set_interlock(
+        self, req: SetInterlock.Request, resp: SetInterlock.Response
+    ) -> SetInterlock.Response:
+        answer = self.unit.set_interlock(req.active, req.reason, req.source or "remote")
+        self._publish()
+        return self._answer(resp, answer)
+
+    # -- equipment modules ---------------------------------------------------------------------------
+    def _on_report(self, msg: EmReport) -> None:
+        name = msg.em
+        unit = self.unit
+        if msg.kind == EmReport.KIND_LEAVE:
+            if self.liveliness.left(name):
+                unit.em_lost(name, "left")
+            self._publish()
+            return
+        if self.liveliness.seen(name, self._now(), msg.lease):
+            unit.em_seen(name)
+        kind = msg.kind
+        if kind == EmReport.KIND_STATE_COMPLETE:
+            unit.em_complete(name, msg.state, msg.sequence)
+        elif kind == EmReport.KIND_COMMAND_REQUEST:
+            unit.em_request(name, msg.command)
+        elif kind == EmReport.KIND_INTERLOCK:
+            unit.em_interlock(name, msg.blocked, msg.starved, msg.material_interlock)
+        elif kind == EmReport.KIND_COUNT:
+            if msg.counter < len(KINDS):
+                unit.em_count(name, KINDS[msg.counter], msg.counter_index, msg.increment)
+        elif kind == EmReport.KIND_ALARM:
+            unit.em_alarm(
+                name,
+                msg.alarm_id,
+                msg.alarm_value,
+                msg.alarm_active,
+                msg.warning,
+                msg.category,
+                msg.message,
+            )
+        self._publish()
+
+    def _on_tick(self) -> None:
+        now = self._now()
+        for name, lease in self.liveliness.expired(now):
+            self.unit.em_lost(name, f"no report for {lease:g} s")
+        self.unit.advance()
+        self._publish()
+
+    # -- publishing ------------------------------------------------------------------------------------
+    def _publish(self) -> None:
+        """Publish everything the engine produced: transitions with their status first."""
+        unit = self.unit
+        name = self.config.name
+        for kind, item in unit.drain():
+            if kind == "transition":
+                self.pub_transitions.publish(convert.transition(name, item))
+                self._publish_status(item)
+            elif kind == "status":
+                self._publish_status(item)
+            elif kind == "alarms":
+                self.pub_alarms.publish(convert.alarm_list(name, unit.now, unit.alarms))
+                self._publish_diagnostics()
+            elif kind == "admin":
+                self.pub_admin.publish(convert.admin(item))
+            elif kind == "log":
+                self._log(*item)
+        self._flush_inputs()
+
+    def _log(self, level: str, text: str) -> None:
+        # rclpy ties a severity to each call site: one call per level.
+        if level == "warn":
+            self.get_logger().warning(text)
+        else:
+            self.get_logger().info(text)
+
+    def _publish_status(self, mark: Transition | StatusMark) -> None:
+        msg = convert.status(self.unit.status_at(mark))
+        self._last_status = msg
+        self.pub_status.publish(msg)
+
+    def _publish_admin_now(self) -> None:
+        self.pub_admin.publish(convert.admin(self.unit.admin()))
+
+    def _publish_diagnostics(self) -> None:
+        unit = self.unit
+        view = unit.status()
+        self.pub_diagnostics.publish(
+            convert.diagnostics(self.config.name, self._hardware_id, unit.now, view, unit.alarms)
+        )
+
+    def _on_input(self, t: float, name: str, args: dict[str, Any]) -> None:
+        self._input_index += 1
+        self._inputs.append(
+            UnitInput(stamp=convert.stamp(t), index=self._input_index, unit=self.config.name, name=name,
+                      args_json=json.dumps(args, separators=(",", ":")))
+        )  # fmt: skip
+
+    def _flush_inputs(self) -> None:
+        """The input log goes out after the outputs, so it never delays a status."""
+        inputs, self._inputs = self._inputs, []
+        for msg in inputs:
+            self.pub_inputs.publish(msg)
+
+    def close(self) -> None:
+        """Final save; call before destroying the node."""
+        self.unit.close()
+
+
+def load_unit(cell_file: str, unit: str | None) -> UnitConfig:
+    """The configuration of ``unit`` in ``cell_file`` (the only unit if not given)."""
+    cell = load_cell(cell_file)
+    if unit is None:
+        if len(cell.units) != 1:
+            raise SystemExit(
+                f"{cell_file} has units {', '.join(cell.units)}: name one (unit_node <cell.yaml> <unit>)"
+            )
+        return next(iter(cell.units.values()))
+    if unit not in cell.units:
+        raise SystemExit(f"{cell_file} has no unit {unit!r} (units: {', '.join(cell.units)})")
+    return cell.units[unit]
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = run.init(argv)
+    if not args or args[0] in ("-h", "--help"):
+        print(__doc__)
+        return 0 if args else 2
+    try:
+        config = load_unit(args[0], args[1] if len(args) > 1 else None)
+    except Exception as exc:  # ConfigError and friends: one readable message, exit 2
+        print(f"unit_node: {exc}", file=sys.stderr)
+        return 2
+    node = UnitNode(config)
+    return run.spin([node], on_shutdown=node.close)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,90 @@
+"""Helpers for tests that run real nodes: a cell YAML per test (unique namespace), units and EMs
+in-process or as separate processes, and a client for a unit's services and topics."""
+
+from __future__ import annotations
+
+import itertools
+import os
+from pathlib import Path
+from typing import Any
+
+import yaml
+from packml_interfaces.msg import Admin, AlarmList, Status, TransitionEvent
+from packml_interfaces.srv import Command
+from std_srvs.srv import Trigger
+
+from packml_ros2 import qos
+from packml_ros2.core import Cmd, load_cell
+from packml_ros2.testing.harness import Collector, RosHarness
+from packml_ros2.testing.processes import NodeProcess, Processes
+
+_counter = itertools.count()
+
+
+def write_cell(
+    tmp_path: Path, units: dict[str, Any], coordinator: dict[str, Any] | None = None
+) -> tuple[Path, str]:
+    """A cell file with a namespace unique to this test; persistence goes under tmp_path."""
+    cell = f"t{os.getpid()}_{next(_counter)}"
+    for u in units.values():
+        u.setdefault("persistence", {"path": str(tmp_path / "{unit}.sqlite3")})
+    doc: dict[str, Any] = {"cell": cell, "units": units}
+    if coordinator is not None:
+        doc["coordinator"] = coordinator
+    path = tmp_path / "cell.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path, cell
+
+
+class UnitClient:
+    """Services and topics of one unit, seen from the test process."""
+
+    def __init__(self, ros: RosHarness, cell: str, unit: str) -> None:
+        self.ros = ros
+        self.base = f"/{cell}/{unit}"
+        self.status: Collector[Status] = ros.subscribe(Status, f"{self.base}/status", qos.STATUS)
+        self.transitions: Collector[TransitionEvent] = ros.subscribe(
+            TransitionEvent, f"{self.base}/transitions", qos.TRANSITIONS
+        )
+        self.admin: Collector[Admin] = ros.subscribe(Admin, f"{self.base}/admin", qos.ADMIN)
+        self.alarms: Collector[AlarmList] = ros.subscribe(
+            AlarmList, f"{self.base}/alarms", qos.ALARMS
+        )
+
+    def ready(self, timeout: float = 15.0) -> None:
+        self.ros.wait_for_service(Command, f"{self.base}/command", timeout)
+        self.status.wait_for(lambda m: True, timeout, "any status")
+
+    def call(self, srv_type: Any, name: str, timeout: float = 10.0, **fields: Any) -> Any:
+        return self.ros.call(srv_type, f"{self.base}/{name}", srv_type.Request(**fields), timeout)
+
+    def command(self, cmd: Cmd | int, source: str = "operator") -> Command.Response:
+        return self.call(Command, "command", command=int(cmd), source=source)
+
+    def trigger(self, name: str) -> Trigger.Response:
+        return self.call(Trigger, name)
+
+    def wait_state(self, state: str, timeout: float = 10.0) -> Status:
+        return self.status.wait_for(
+            lambda m: m.state_current_name == state, timeout, f"state {state}"
+        )
+
+    def wait_status(self, predicate: Any, timeout: float = 10.0, what: str = "") -> Status:
+        return self.status.wait_for(predicate, timeout, what)
+
+
+def start_unit_process(
+    processes: Processes, cell_file: Path, unit: str, *ros_args: str
+) -> NodeProcess:
+    args = [str(cell_file), unit]
+    if ros_args:
+        args += ["--ros-args", *ros_args]
+    return processes.module(f"unit_{unit}", "packml_ros2.unit_node", *args)
+
+
+def start_em_process(processes: Processes, cell_file: Path, unit: str, em: str) -> NodeProcess:
+    return processes.module(f"em_{unit}_{em}", "packml_ros2.sim_em", str(cell_file), unit, em)
+
+
+def unit_config_of(cell_file: Path, unit: str) -> Any:
+    return load_cell(cell_file).units[unit]
