@@ -269,6 +269,16 @@ class EquipmentModule(Node):
         """Say goodbye to the unit (it applies its lost-EM reaction at once) and stop the loop."""
         with contextlib.suppress(Exception):  # the context may already be shut down
             self._send(EmReport.KIND_LEAVE)
+        self._stop_loop()
+
+    def destroy_node(self) -> None:
+        """Stop the hooks' event loop too (without a goodbye: use :meth:`close` for that)."""
+        self._stop_loop()
+        super().destroy_node()
+
+    def _stop_loop(self) -> None:
+        if not self._loop.is_running():
+            return
         with contextlib.suppress(concurrent.futures.TimeoutError, RuntimeError):
             asyncio.run_coroutine_threadsafe(self._stop_tasks(), self._loop).result(timeout=5)
         self._loop.call_soon_threadsafe(self._loop.stop)

@@ -21,8 +21,9 @@ STATUS = LATCHED
 ADMIN = LATCHED
 ALARMS = LATCHED
 CELL_STATUS = LATCHED
-#: ``<unit>/transitions``: every transition, none dropped under bursts.
-TRANSITIONS = _profile(100, latched=False)
+#: ``<unit>/transitions``: every transition, none dropped under bursts; a late subscriber (an HMI,
+#: a restarted tool) gets the last 100 at once.
+TRANSITIONS = _profile(100, latched=True)
 #: ``<unit>/em_reports``: EM -> unit events (State Complete, counts, alarms, heartbeats).
 EM_REPORTS = _profile(200, latched=False)
 #: ``<unit>/input_log``: every input the unit's engine applied, for record/replay; latched deep

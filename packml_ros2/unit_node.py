@@ -84,10 +84,17 @@ class UnitNode(Node):
         )
         self.create_subscription(EmReport, "~/em_reports", self._on_report, qos.EM_REPORTS)
         self._create_services()
-        self.create_timer(ADVANCE_PERIOD, self._on_tick)
-        self.create_timer(DIAGNOSTICS_PERIOD, self._publish_diagnostics)
+        self._timers = [
+            self.create_timer(ADVANCE_PERIOD, self._on_tick),
+            self.create_timer(DIAGNOSTICS_PERIOD, self._publish_diagnostics),
+        ]
+        self._closed = False
         self.add_post_set_parameters_callback(self._on_parameters_set)
         self.add_on_set_parameters_callback(self._validate_parameters)
+        # Close the engine's start-up step before the first callback: the status published below is
+        # then the baseline, so a change by the first input (e.g. an EM's first heartbeat arriving
+        # before the first tick) is published too instead of being taken as already shown.
+        self.unit.advance()
         self._publish()
         self._publish_admin_now()
         self.get_logger().info(
@@ -388,8 +395,18 @@ class UnitNode(Node):
             self.pub_inputs.publish(msg)
 
     def close(self) -> None:
-        """Final save; call before destroying the node."""
+        """Stop the timers and save a last time (idempotent); destroy_node calls it too."""
+        if self._closed:
+            return
+        self._closed = True
+        for timer in self._timers:
+            self.destroy_timer(timer)
         self.unit.close()
+        self.unit.store = None  # a callback still running after this must not touch the file
+
+    def destroy_node(self) -> None:
+        self.close()
+        super().destroy_node()
 
 
 def load_unit(cell_file: str, unit: str | None) -> UnitConfig:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import threading
+import traceback
 import time
 from collections.abc import Callable
 from typing import Any, Generic, TypeVar
@@ -30,15 +31,22 @@ class Collector(Generic[M]):
             self.messages.append(msg)
             self._cond.notify_all()
 
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self.messages)
+
     @property
     def last(self) -> M:
         with self._cond:
             return self.messages[-1]
 
-    def wait_for(self, predicate: Callable[[M], bool], timeout: float = 10.0, what: str = "") -> M:
-        """The first message (already received or coming) for which ``predicate`` holds."""
+    def wait_for(
+        self, predicate: Callable[[M], bool], timeout: float = 10.0, what: str = "", start: int = 0
+    ) -> M:
+        """The first message (already received or coming) for which ``predicate`` holds, looking
+        at messages from index ``start`` on (``len(collector)`` before an action: only newer ones)."""
         deadline = time.monotonic() + timeout
-        seen = 0
+        seen = start
         with self._cond:
             while True:
                 for msg in self.messages[seen:]:
@@ -78,12 +86,21 @@ class RosHarness:
         self.node = Node(f"test_harness_{threading.get_ident() % 100000}", context=self.context)
         self.executor.add_node(self.node)
         self._nodes: list[Node] = [self.node]
+        self.errors: list[str] = []
         self._thread = threading.Thread(target=self._spin, name="ros-harness", daemon=True)
         self._thread.start()
 
     def _spin(self) -> None:
-        with contextlib.suppress(ExternalShutdownException, rclpy.executors.ShutdownException):
-            self.executor.spin()
+        """Spin until shutdown. A callback that raises would end ``spin()`` and silently stop
+        every node of the test: record the error (``errors``; checked at close) and go on."""
+        while self.context.ok():
+            try:
+                self.executor.spin()
+                return
+            except (ExternalShutdownException, rclpy.executors.ShutdownException):
+                return
+            except Exception as exc:  # noqa: BLE001 - reported by close()
+                self.errors.append("".join(traceback.format_exception(exc)))
 
     def add(self, node: Node) -> Node:
         """Spin ``node`` (created with ``context=harness.context``) until the test ends."""
@@ -120,8 +137,11 @@ class RosHarness:
             self.node.destroy_client(client)
 
     def close(self) -> None:
+        """Shut down; raises if a callback failed during the test."""
         self.executor.shutdown(timeout_sec=5)
         for node in self._nodes:
             node.destroy_node()
         rclpy.try_shutdown(context=self.context)
         self._thread.join(5)
+        if self.errors:
+            raise AssertionError("a callback raised during the test:\n" + "\n".join(self.errors))

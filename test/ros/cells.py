@@ -51,11 +51,14 @@ class UnitClient:
             AlarmList, f"{self.base}/alarms", qos.ALARMS
         )
 
+    _since = 0  # status count at the last call: waits skip older statuses
+
     def ready(self, timeout: float = 15.0) -> None:
         self.ros.wait_for_service(Command, f"{self.base}/command", timeout)
         self.status.wait_for(lambda m: True, timeout, "any status")
 
     def call(self, srv_type: Any, name: str, timeout: float = 10.0, **fields: Any) -> Any:
+        self._since = len(self.status)
         return self.ros.call(srv_type, f"{self.base}/{name}", srv_type.Request(**fields), timeout)
 
     def command(self, cmd: Cmd | int, source: str = "operator") -> Command.Response:
@@ -65,12 +68,12 @@ class UnitClient:
         return self.call(Trigger, name)
 
     def wait_state(self, state: str, timeout: float = 10.0) -> Status:
-        return self.status.wait_for(
-            lambda m: m.state_current_name == state, timeout, f"state {state}"
-        )
+        """The unit reaches ``state`` at or after the last call made through this client."""
+        return self.wait_status(lambda m: m.state_current_name == state, timeout, f"state {state}")
 
     def wait_status(self, predicate: Any, timeout: float = 10.0, what: str = "") -> Status:
-        return self.status.wait_for(predicate, timeout, what)
+        """A status for which ``predicate`` holds, from the last one before the last call on."""
+        return self.status.wait_for(predicate, timeout, what, max(0, self._since - 1))
 
 
 def start_unit_process(

@@ -1,0 +1,237 @@
+"""Issue 4: the EM base class integrators build on, against a real unit node over DDS."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from packml_ros2.core import Cmd
+from packml_ros2.equipment_module import EquipmentModule, StateContext
+from packml_ros2.unit_node import UnitNode
+from test.ros.cells import UnitClient, unit_config_of, write_cell
+
+
+class Recorder(EquipmentModule):
+    """Records what its hooks did, with times."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.events: list[tuple[str, float]] = []
+        self.lock = threading.Lock()
+
+    def note(self, what: str) -> None:
+        with self.lock:
+            self.events.append((what, time.monotonic()))
+
+    def names(self) -> list[str]:
+        with self.lock:
+            return [e for e, _ in self.events]
+
+    def when(self, what: str) -> float:
+        with self.lock:
+            return next(t for e, t in self.events if e == what)
+
+
+class Robot(Recorder):
+    async def on_starting(self, ctx: StateContext) -> None:  # a coroutine that takes time
+        self.note("starting")
+        await asyncio.sleep(0.3)
+        self.note("started")
+
+    async def execute(self, ctx: StateContext) -> None:
+        while True:
+            await ctx.finish(self.move())
+
+    async def move(self) -> None:
+        self.note("move begin")
+        await asyncio.sleep(0.4)
+        self.note("move end")
+        self.count("processed")
+
+    async def on_holding(self, ctx: StateContext) -> None:
+        self.note("holding")
+
+    def on_stopping(self, ctx: StateContext) -> None:  # a plain function, in a worker thread
+        self.note("stopping")
+        ctx.sleep(0.1)
+        self.note("stopped")
+
+    def on_completing(self, ctx: StateContext) -> None:  # runs until the unit leaves Completing
+        self.note("completing")
+        while ctx.sleep(0.02):
+            pass
+        self.note("completing cancelled")
+
+
+@pytest.fixture
+def cell(ros, tmp_path: Path):
+    cell_file, cell = write_cell(
+        tmp_path,
+        {"u": {"equipment_modules": {"robot": {}}, "em_lease": 2.0,
+               "alarms": [{"id": 500, "message": "vacuum low", "category": 6, "warning": True}]}},
+    )  # fmt: skip
+    unit = UnitNode(unit_config_of(cell_file, "u"), context=ros.context)
+    ros.add(unit)
+    client = UnitClient(ros, cell, "u")
+    client.ready()
+    return cell, client  # the harness destroys (and so closes) the unit after its executor stopped
+
+
+def em(ros, cls: type[EquipmentModule], cell: str, name: str = "robot", **kw) -> EquipmentModule:
+    node = cls(name, "u", cell, context=ros.context, **kw)
+    ros.add(node)
+    return node
+
+
+def wait_note(node: Recorder, what: str, timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while what not in node.names():
+        assert time.monotonic() < deadline, f"{what!r} never happened: {node.names()}"
+        time.sleep(0.01)
+
+
+def online(client: UnitClient, name: str = "robot") -> None:
+    client.wait_status(
+        lambda s: any(e.name == name and e.online for e in s.equipment_modules),
+        10,
+        f"{name} online",
+    )
+
+
+def test_state_complete_is_reported_when_the_hook_returns(ros, cell) -> None:
+    cell_name, client = cell
+    robot = em(ros, Robot, cell_name)
+    online(client)
+    client.trigger("reset")
+    client.wait_state("IDLE")  # no on_resetting: completed at once
+    client.trigger("start")
+    execute = client.wait_state("EXECUTE")
+    assert robot.names()[:2] == ["starting", "started"]
+    starting = next(t for t in client.transitions.messages if t.to_state_name == "EXECUTE")
+    assert starting.sequence == execute.sequence
+    client.admin.wait_for(lambda a: a.prod_processed_count[0].count >= 1, 5, "a counted move")
+
+
+def test_hold_in_the_middle_of_a_move_finishes_the_move_then_pauses(ros, cell) -> None:
+    cell_name, client = cell
+    robot = em(ros, Robot, cell_name)
+    online(client)
+    client.trigger("reset")
+    client.wait_state("IDLE")
+    client.trigger("start")
+    client.wait_state("EXECUTE")
+    deadline = time.monotonic() + 5
+    while (
+        robot.names().count("move begin") <= robot.names().count("move end")
+        and time.monotonic() < deadline
+    ):
+        time.sleep(0.01)  # polling the EM's own record: wait until a move is under way
+    hold_at = time.monotonic()
+    assert client.trigger("hold").success
+    client.wait_state("HELD", timeout=5)
+    held_at = time.monotonic()
+    names = robot.names()
+    last_begin = max(i for i, n in enumerate(names) if n == "move begin")
+    assert names[last_begin:] == ["move begin", "move end", "holding"]
+    assert robot.when("holding") >= hold_at and held_at >= robot.when("holding")
+
+
+def test_a_plain_hook_sees_cancellation_when_the_unit_leaves_its_state(ros, cell) -> None:
+    cell_name, client = cell
+    robot = em(ros, Robot, cell_name)
+    online(client)
+    client.trigger("reset")
+    client.wait_state("IDLE")
+    client.trigger("start")
+    client.wait_state("EXECUTE")
+    client.trigger("complete")
+    client.wait_state("COMPLETING")
+    wait_note(robot, "completing")  # the running move finishes first, then on_completing starts
+    assert client.trigger("stop").success  # Completing -> Stopping: the hook must give up
+    client.wait_state("STOPPED", timeout=5)
+    names = robot.names()
+    assert names.index("completing cancelled") < names.index("stopping") < names.index("stopped")
+
+
+def test_a_failing_hook_raises_the_fault_alarm(ros, cell) -> None:
+    class Broken(EquipmentModule):
+        async def on_starting(self, ctx: StateContext) -> None:
+            raise RuntimeError("servo not ready")
+
+    cell_name, client = cell
+    em(ros, Broken, cell_name)
+    online(client)
+    client.trigger("reset")
+    client.wait_state("IDLE")
+    client.trigger("start")
+    alarms = client.alarms.wait_for(lambda a: any(x.id == 9100 for x in a.alarms), 5, "fault alarm")
+    fault = next(x for x in alarms.alarms if x.id == 9100)
+    assert "servo not ready" in fault.message and fault.category == 2
+    client.wait_state("STOPPED", timeout=5)  # category 2: Stop
+
+
+def test_requests_counts_alarms_and_interlocks_reach_the_unit(ros, cell) -> None:
+    class Plain(EquipmentModule):
+        async def execute(self, ctx: StateContext) -> None:  # runs until the unit leaves Execute
+            await asyncio.Event().wait()
+
+    cell_name, client = cell
+    node = em(ros, Plain, cell_name)
+    online(client)
+    client.trigger("reset")
+    client.wait_state("IDLE")
+    client.trigger("start")
+    client.wait_state("EXECUTE")
+    node.count("processed", 3)
+    node.count("defective", 1)
+    admin = client.admin.wait_for(lambda a: a.prod_processed_count[0].count == 3, 5, "counts")
+    assert admin.prod_defective_count[0].count == 1
+    node.raise_alarm(500, message="")  # configured warning: listed, never acts
+    warnings = client.alarms.wait_for(
+        lambda a: any(w.id == 500 and w.trigger for w in a.warnings), 5
+    )
+    assert warnings.warnings[0].message == "vacuum low"
+    node.clear_alarm(500)
+    client.alarms.wait_for(lambda a: any(w.id == 500 and not w.trigger for w in a.warnings), 5)
+    assert client.status.last.state_current_name == "EXECUTE"
+    node.set_interlock(blocked=True)
+    client.wait_state("SUSPENDED")
+    assert client.status.last.equipment_interlock.blocked
+    node.set_interlock(blocked=False)
+    client.wait_state("EXECUTE")
+    node.request(Cmd.STOP)
+    stopping = client.transitions.wait_for(lambda t: t.to_state_name == "STOPPING", 5)
+    assert stopping.source == "em:robot"
+
+
+def test_an_em_that_restarts_rejoins_at_the_current_state_and_sequence(ros, cell) -> None:
+    class Slow(Recorder):
+        async def on_starting(self, ctx: StateContext) -> None:
+            self.note(f"starting {ctx.sequence}")
+            await asyncio.sleep(60)
+
+    class Quick(Recorder):
+        async def on_starting(self, ctx: StateContext) -> None:
+            self.note(f"starting {ctx.sequence}")
+
+    cell_name, client = cell
+    first = em(ros, Slow, cell_name)
+    online(client)
+    client.trigger("reset")
+    client.wait_state("IDLE")
+    client.trigger("start")
+    starting = client.wait_state("STARTING")
+    deadline = time.monotonic() + 5
+    while not first.names() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    # the EM process "crashes" (no goodbye) and a new instance comes up within the lease
+    ros.executor.remove_node(first)
+    first.destroy_node()
+    second = em(ros, Quick, cell_name)
+    client.wait_state("EXECUTE", timeout=5)
+    assert second.names() == [f"starting {starting.sequence}"]
+    assert not any(t.trigger_name == "EM_LOST" for t in client.transitions.messages)

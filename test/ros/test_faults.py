@@ -1,0 +1,228 @@
+"""Issue 4, faults: units and EMs as separate OS processes, killed for real."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+from packml_interfaces.msg import Admin, EmReport, Result, Status, TransitionEvent
+from packml_interfaces.srv import SetEmActive, SetMode
+
+from packml_ros2.core import Cmd, State
+from test.ros.cells import UnitClient, start_em_process, start_unit_process, write_cell
+
+FAST = {"durations": {"resetting": 0.05, "starting": 0.05, "completing": 0.05, "stopping": 0.05,
+                      "aborting": 0.05, "clearing": 0.05, "holding": 0.05, "unholding": 0.05}}  # fmt: skip
+
+
+def _em(extra: dict | None = None, **sim) -> dict:
+    return {"sim": {**FAST, "lease": 0.5, **sim, **(extra or {})}}
+
+
+def _online(status: Status, *names: str) -> bool:
+    ems = {e.name: e for e in status.equipment_modules}
+    return all(n in ems and ems[n].online for n in names)
+
+
+def test_full_production_cycles_with_three_em_processes(ros, processes, tmp_path: Path) -> None:
+    ems = {
+        "infeed": _em(cycle_time=0.05, counter="consumed", cycles_per_run=6),
+        "robot": _em(cycle_time=0.08, counter="processed", defect_rate=0.3, cycles_per_run=4),
+        "outfeed": _em(cycle_time=0.05, counter="none", cycles_per_run=5),
+    }
+    cell_file, cell = write_cell(
+        tmp_path,
+        {
+            "line": {
+                "equipment_modules": ems,
+                "counters": {"processed": [{"id": 1, "name": "good"}]},
+            }
+        },
+    )
+    unit = start_unit_process(processes, cell_file, "line")
+    for name in ems:
+        start_em_process(processes, cell_file, "line", name)
+    client = UnitClient(ros, cell, "line")
+    client.ready()
+    client.wait_status(lambda s: _online(s, *ems), 15, "three EMs online")
+
+    for cycle in range(2):
+        assert client.trigger("reset").success
+        client.wait_state("IDLE")
+        assert client.trigger("start").success
+        client.wait_state("EXECUTE")
+        # Execute completes when every EM finished its run; then Completing -> Complete
+        client.wait_state("COMPLETE", timeout=10)
+        runs = cycle + 1
+        admin = client.admin.wait_for(
+            lambda a, runs=runs: a.prod_processed_count[0].count >= 4 * runs, 5, "processed count"
+        )
+        assert admin.prod_consumed_count[0].count >= 6 * runs
+    seen = [
+        (t.from_state_name, t.to_state_name)
+        for t in client.transitions.messages
+        if t.from_state != t.to_state
+    ]
+    one_cycle = [("COMPLETE", "RESETTING"), ("RESETTING", "IDLE"), ("IDLE", "STARTING"), ("STARTING", "EXECUTE"),
+                 ("EXECUTE", "COMPLETING"), ("COMPLETING", "COMPLETE")]  # fmt: skip
+    assert seen[-6:] == one_cycle
+    # every acting state waited for all three EMs: State Complete carried the sequence of its state
+    for t in client.transitions.messages:
+        if t.trigger == TransitionEvent.TRIGGER_STATE_COMPLETE and t.from_state == State.STARTING:
+            assert t.source == "unit"
+    assert unit.stop() == 0, unit.output()
+
+
+@pytest.mark.parametrize("state", ["STARTING", "EXECUTE", "STOPPING"])
+def test_em_killed_in_an_acting_state_triggers_the_reaction(
+    ros, processes, tmp_path: Path, state: str
+) -> None:
+    lease = 0.5
+    slow = {"durations": {**FAST["durations"], state.lower(): 30.0}} if state != "EXECUTE" else {}
+    ems = {
+        "gripper": _em(slow, cycle_time=5.0, lease=lease),
+        "robot": _em(cycle_time=5.0, lease=lease),
+    }
+    cell_file, cell = write_cell(
+        tmp_path, {"cell_unit": {"equipment_modules": ems, "em_lease": lease}}
+    )
+    start_unit_process(processes, cell_file, "cell_unit")
+    gripper = start_em_process(processes, cell_file, "cell_unit", "gripper")
+    start_em_process(processes, cell_file, "cell_unit", "robot")
+    client = UnitClient(ros, cell, "cell_unit")
+    client.ready()
+    client.wait_status(lambda s: _online(s, "gripper", "robot"), 15, "EMs online")
+    client.trigger("reset")
+    client.wait_state("IDLE")
+    client.trigger("start")
+    if state == "STOPPING":
+        client.wait_state("EXECUTE")
+        client.trigger("stop")
+    client.wait_state(state)
+    killed_at = time.monotonic()
+    gripper.kill()
+    lost = client.transitions.wait_for(
+        lambda t: t.trigger == TransitionEvent.TRIGGER_EM_LOST, lease + 2.0, "EM lost reaction"
+    )
+    reaction_time = time.monotonic() - killed_at
+    assert reaction_time <= lease + 0.5, f"reaction after {reaction_time:.3f} s"
+    assert lost.from_state_name == state and lost.to_state_name == "ABORTING"
+    assert "gripper" in lost.detail
+    # the lost EM is excused while aborting; the unit settles in Aborted and says which EM is gone
+    status = client.wait_state("ABORTED")
+    gone = {e.name: e for e in status.equipment_modules}["gripper"]
+    assert not gone.online
+    alarms = client.alarms.wait_for(lambda a: any("gripper" in x.message for x in a.alarms), 5)
+    assert any(x.id == 9001 and x.em == "gripper" for x in alarms.alarms)
+    # commands while the EM is missing get a clear answer: the EM-lost alarm (reaction Abort) is
+    # still active, so even Clear is refused, naming the EM
+    refused = client.command(Cmd.CLEAR)
+    assert (
+        not refused.accepted
+        and refused.result == Result.ALARM_ACTIVE
+        and "gripper" in refused.message
+    )
+    # recovery without the gripper (PACKML.md 9): Maintenance, switch it inactive, Clear, Reset
+    assert client.call(SetMode, "set_mode", mode_name="maintenance").accepted
+    assert client.call(SetEmActive, "set_em_active", em="gripper", active=False).accepted
+    assert client.trigger("clear").success
+    client.wait_state("STOPPED")
+    assert client.trigger("reset").success
+    client.wait_state("IDLE")
+
+
+def test_unit_killed_and_restarted_keeps_its_admin_data(ros, processes, tmp_path: Path) -> None:
+    ems = {"robot": _em(cycle_time=0.05, counter="processed", defect_rate=0.2, lease=2.0)}
+    cell_file, cell = write_cell(tmp_path, {"packer": {"equipment_modules": ems, "em_lease": 2.0,
+                                                        "persistence": {"path": str(tmp_path / "packer.sqlite3"), "period": 0.5}}})  # fmt: skip
+    unit = start_unit_process(processes, cell_file, "packer")
+    start_em_process(processes, cell_file, "packer", "robot")
+    client = UnitClient(ros, cell, "packer")
+    client.ready()
+    client.wait_status(lambda s: _online(s, "robot"), 15, "robot online")
+    client.trigger("reset")
+    client.wait_state("IDLE")
+    client.trigger("start")
+    client.wait_state("EXECUTE")
+    client.admin.wait_for(lambda a: a.prod_processed_count[0].count >= 10, 10, "10 processed")
+    client.trigger("stop")
+    before_status = client.wait_state("STOPPED")
+    # the unit saved at the transition to Stopped: take the admin data published after it
+    before = client.admin.wait_for(
+        lambda a: (
+            a.stamp.sec * 10**9 + a.stamp.nanosec
+            >= before_status.stamp.sec * 10**9 + before_status.stamp.nanosec
+        ),
+        5,
+    )
+    unit.kill()
+    client.status.clear()
+    client.admin.clear()
+    start_unit_process(processes, cell_file, "packer")
+    after_status = client.wait_status(
+        lambda s: s.sequence > before_status.sequence, 15, "restarted unit"
+    )
+    assert after_status.state_current == State.STOPPED
+    restart = client.transitions.wait_for(lambda t: t.trigger == TransitionEvent.TRIGGER_RESTART, 5)
+    assert restart.detail == "unit restarted" and restart.sequence > before_status.sequence
+    after: Admin = client.admin.wait_for(lambda a: True, 5)
+    assert [c.count for c in after.prod_processed_count] == [
+        c.count for c in before.prod_processed_count
+    ]
+    assert [c.acc_count for c in after.prod_defective_count] == [
+        c.acc_count for c in before.prod_defective_count
+    ]
+    assert (
+        after.stop_reason == before.stop_reason and after.stop_reason.id == 33
+    )  # STOP by operator
+    assert any("unit restarted" in a.message for a in after.alarm_history)
+    old = [(a.id, a.message, a.stamp) for a in before.alarm_history]
+    assert (
+        [(a.id, a.message, a.stamp) for a in after.alarm_history[-len(old) :]] == old
+        if old
+        else True
+    )
+    # cumulative times of states the unit is not in are identical (whole seconds)
+    for index, value in enumerate(before.state_cumulative_time):
+        if index % 18 != State.STOPPED:
+            assert after.state_cumulative_time[index] == value, index
+    # the EM re-joins the restarted unit
+    client.wait_status(lambda s: _online(s, "robot"), 10, "robot re-joined")
+    assert client.trigger("reset").success
+
+
+def test_stale_state_complete_from_an_earlier_transition_is_ignored(
+    ros, processes, tmp_path: Path
+) -> None:
+    ems = {"gripper": {"sim": {}}}
+    cell_file, cell = write_cell(tmp_path, {"u": {"equipment_modules": ems, "em_lease": 5.0}})
+    start_unit_process(processes, cell_file, "u")
+    client = UnitClient(ros, cell, "u")
+    client.ready()
+    pub = ros.node.create_publisher(EmReport, f"/{cell}/u/em_reports", 100)
+    pub.publish(EmReport(em="gripper", kind=EmReport.KIND_HEARTBEAT, lease=5.0))
+    client.wait_status(lambda s: _online(s, "gripper"), 10)
+    client.command(Cmd.RESET)
+    resetting = client.wait_state("RESETTING")
+    pub.publish(
+        EmReport(
+            em="gripper",
+            kind=EmReport.KIND_STATE_COMPLETE,
+            state=State.RESETTING,
+            sequence=resetting.sequence - 1,
+        )
+    )
+    stale = client.wait_status(
+        lambda s: s.equipment_modules[0].stale_reports == 1, 5, "stale report counted"
+    )
+    assert stale.state_current == State.RESETTING
+    pub.publish(
+        EmReport(
+            em="gripper",
+            kind=EmReport.KIND_STATE_COMPLETE,
+            state=State.RESETTING,
+            sequence=resetting.sequence,
+        )
+    )
+    client.wait_state("IDLE")
