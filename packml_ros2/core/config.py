@@ -18,8 +18,8 @@ import yaml
 from . import schema as sc
 from .alarms import DEFAULT_REACTIONS, NUM_CATEGORIES, REACTIONS, AlarmDef
 from .counters import KINDS, CounterDef
-from .modes import GROUPS, ModeDef, default_modes, make_mode
-from .numbers import ACTING, MAX_MODE, WAIT, Cmd, Mode, State, parse_state
+from .modes import GROUPS, ModeDef, corrected_disabled, default_modes, make_mode
+from .numbers import ACTING, MANDATORY, MAX_MODE, WAIT, Cmd, Mode, State, parse_state
 from .schema import ConfigError, Node, invalid
 from .transitions import MODELS, TransitionTable, build_table
 
@@ -290,10 +290,20 @@ def _modes(n: Node) -> dict[int, ModeDef]:
         change = child.get(
             "mode_change_states", _states, base.change_allowed if base else frozenset()
         )
-        try:
-            modes[number] = make_mode(number, key.upper(), disabled, change)
-        except ValueError as exc:
-            child.error(str(exc))
+        # Both checks of make_mode, reported together and at their keys.
+        mandatory = corrected_disabled(disabled) & MANDATORY
+        if mandatory:
+            listed = ", ".join(s.name for s in sorted(mandatory))
+            child.child("disabled_states", None).error(f"{listed} can never be disabled")
+        not_wait = change - WAIT
+        if not_wait:
+            listed = ", ".join(s.name for s in sorted(not_wait))
+            child.child("mode_change_states", None).error(
+                f"mode changes can only be allowed in wait states, not in {listed}"
+            )
+        if mandatory or not_wait:
+            continue
+        modes[number] = make_mode(number, key.upper(), disabled, change)
     return modes
 
 
@@ -569,7 +579,7 @@ def parse_cell(data: Any, file: str = "<memory>", base_dir: Path | None = None) 
         root.child("defaults", defaults).error("expected a mapping")
         defaults = {}
     units_node = root.child("units", root.mapping().get("units"))
-    if not units_node.mapping() and not units_node.problems:
+    if units_node.value is None or units_node.value == {}:
         units_node.error("a cell needs at least one unit")
     units: dict[str, UnitConfig] = {}
     for uname, un in units_node.items():

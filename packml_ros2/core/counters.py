@@ -40,6 +40,7 @@ class Counters:
 
     def __init__(self, capacity: int, defs: dict[str, tuple[CounterDef, ...]]) -> None:
         self.capacity = capacity
+        self.version = 0  # +1 on every change
         self.arrays: dict[str, list[Counter]] = {}
         for kind in KINDS:
             configured = defs.get(kind, ())
@@ -55,12 +56,14 @@ class Counters:
         if not 0 <= index < len(array):
             return f"{kind} counter index {index} outside 0..{len(array) - 1}"
         c = array[index]
+        self.version += 1
         c.count = _wrap(c.count + increment)
         c.acc_count = _wrap(c.acc_count + increment)
         return None
 
     def reset(self) -> None:
         """``Count`` of every counter to 0; ``AccCount`` is lifetime and stays."""
+        self.version += 1
         for array in self.arrays.values():
             for c in array:
                 c.count = 0

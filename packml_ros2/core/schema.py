@@ -177,6 +177,7 @@ def via(fn: Callable[[Any], T]) -> Callable[[Node], T]:
         try:
             return fn(n.value)
         except (ValueError, KeyError, TypeError) as exc:
-            raise invalid(str(exc).strip("'\"")) from None
+            text = exc.args[0] if exc.args and isinstance(exc.args[0], str) else str(exc)
+            raise invalid(text) from None
 
     return parse

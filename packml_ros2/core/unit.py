@@ -64,6 +64,12 @@ OTHER_COMMANDS, MODE_REQUESTS, STATE_COMPLETE_REPORTS = 4, 5, 6
 #: Commands that start motion: refused while an active EM is missing, a reacting alarm is active
 #: or (Unsuspend) a line interlock still holds the unit.
 MOTION = frozenset({C.RESET, C.START, C.UNHOLD, C.UNSUSPEND})
+#: Commands refused while a reacting alarm is active: motion, and Clear while an alarm with the
+#: Abort reaction is (``alarms.BLOCKED_BY_REACTION`` decides per reaction).
+ALARM_GUARDED = MOTION | {C.CLEAR}
+#: Fault commands: valid from (nearly) every state, also while a mode change is in process (the
+#: change is then abandoned: PACKML.md 2, "Abort -> Aborting from every state ...").
+FAULT_COMMANDS = frozenset({C.ABORT, C.STOP})
 #: Fault-recovery states: EMs that went offline are excused from State Complete here.
 EXCUSE_OFFLINE = frozenset({S.STOPPING, S.ABORTING, S.CLEARING})
 #: Entering one of these records the StopReason (first event only) ...
@@ -103,9 +109,15 @@ ENTRY_FLAGS: dict[State, int] = {
     S.SUSPENDING: _STOP,
 }
 MODE_CHANGE_NOT_ALLOWED_SECONDS = 3.0
+#: Periodic deadlines (admin, save) missed by more than this many periods (the clock jumped, e.g.
+#: NTP after boot) are not replayed one by one: the next one is the last period point before now.
+MAX_CATCH_UP = 100
 #: Status changes that are not transitions (EM progress, alarms, speed) are published at most
 #: this often; transitions and mode events are published at once.
 STATUS_COALESCE = 0.05
+#: Admin is published periodically (admin_period) and after discrete changes (transitions, counts,
+#: alarms, resets), at most this often.
+ADMIN_COALESCE = 0.25
 _STATES = tuple(State)
 _CMDS = tuple(Cmd)
 _REPORT_OK = Answer(True, Reason.ACCEPTED, "State Complete accepted")
@@ -266,12 +278,15 @@ class Unit:
         self._out: list[tuple[str, Any]] = []
         self._deadlines: list[tuple[float, int, str, Any]] = []
         self._deadline_counter = 0
+        self._advance_to = now  # the time _advance is bringing the unit to
         self._internal: list[_Cmd] = []
         self._valid_cache: dict[tuple[Any, ...], tuple[Cmd, ...]] = {}
         self._missing_cache: tuple[int, list[EquipmentModule]] = (-1, [])
         self._rev = 0  # +1 on status-relevant changes not covered by other version counters
         self._status_key: tuple[int, ...] = ()
         self._status_flush_due = False
+        self._admin_key: tuple[int, ...] = ()
+        self._admin_flush_due = False
         self._alarms_seen = -1
         self._step_winner: tuple[int, str] | None = None
         self._restart_detail = "unit started"
@@ -429,7 +444,8 @@ class Unit:
             return Answer.no(Reason.NOTHING_TO_DO, f"EM {name!r} is not online")
         em.online = False
         self.equipment.changed_roster()
-        reaction = self._lost_reaction(em)
+        # Inactive EMs are ignored (PACKML.md 4): switched off for diagnosis, losing them is no fault.
+        reaction = self._lost_reaction(em) if em.active else 0
         if self.state in EXCUSE_OFFLINE or not reaction:
             self.equipment.excuse(name)
         why = f" ({detail})" if detail else ""
@@ -530,6 +546,9 @@ class Unit:
         else:
             self.equipment.excuse(name)
             self.flags.interlocks.pop(f"em:{name}", None)
+            # An inactive EM is no longer missing: its "EM lost" alarm goes inactive (latched), so
+            # Clear and Reset recover without it (PACKML.md 9).
+            self.alarms.clear(self.config.system_alarms.em_lost, em.index, self._t)
         return Answer.ok(f"EM {name} {word}")
 
     # -- alarms ----------------------------------------------------------------------------------------
@@ -856,14 +875,15 @@ class Unit:
             return Reason.UNKNOWN_COMMAND, None, (), ""
         if not self.remote_enabled and source.startswith("remote"):
             return Reason.REMOTE_DISABLED, None, (), ""
-        if self.mode_change_in_process:
+        if self.mode_change_in_process and cmd not in FAULT_COMMANDS:
             return Reason.MODE_CHANGE_IN_PROCESS, None, (), ""
         reason, final, skipped, _ = self._resolved[(self.state, self.mode, cmd)]
-        if reason is not _ACCEPTED or cmd not in MOTION:
+        if reason is not _ACCEPTED or cmd not in ALARM_GUARDED:
             return reason, final, skipped, ""
-        missing = self.missing_ems()
-        if missing:
-            return Reason.EM_MISSING, final, skipped, ", ".join(em.name for em in missing)
+        if cmd in MOTION:
+            missing = self.missing_ems()
+            if missing:
+                return Reason.EM_MISSING, final, skipped, ", ".join(em.name for em in missing)
         if self.alarms.current:
             blocker = self.alarms.blocking(cmd)
             if blocker is not None:
@@ -881,7 +901,10 @@ class Unit:
         valid = names_of(self.valid_commands()) or "none"
         where = f"{state_name(self.state)} in {self.mode_def.name} mode"
         if reason is Reason.UNKNOWN_COMMAND:
-            text = f"command {cmd} is not a PackML command (1..10: {names_of(range(1, 11))})"
+            text = (
+                f"command {cmd} is not a PackML command (1..10: {names_of(range(1, 11))}); "
+                f"now {where}"
+            )
         elif reason is Reason.REMOTE_DISABLED:
             text = (
                 f"{name} from {source} refused: remote commands are disabled on {self.config.name} "
@@ -890,7 +913,7 @@ class Unit:
         elif reason is Reason.MODE_CHANGE_IN_PROCESS:
             waiting = ", ".join(sorted(self.equipment.pending)) or "none"
             text = (
-                f"{name} refused: mode change {self.mode_def.name} -> "
+                f"{name} refused in {where}: mode change {self.mode_def.name} -> "
                 f"{self._mode_name(self.mode_requested)} in process (waiting for EMs: {waiting})"
             )
         elif reason is Reason.STATE_DISABLED:
@@ -918,7 +941,7 @@ class Unit:
             entry is not None
             and entry[0] is _ACCEPTED
             and (
-                cmd not in MOTION
+                cmd not in ALARM_GUARDED
                 or not (self.equipment.modules or self.alarms.current or self.flags.interlocks)
             )
             and not self.mode_change_in_process
@@ -930,6 +953,8 @@ class Unit:
             if reason is not _ACCEPTED or final_or_none is None:
                 return self._reject(cmd, source, start_state, cause, reason, final_or_none, detail)
             answer = self._resolved[(self.state, self.mode, cmd)][3]
+            if self.mode_change_in_process:  # only Abort and Stop pass _check then
+                self._abandon_mode_change(f"{command_name(cmd)} from {source}")
         final = cast(State, final_or_none)  # accepted entries always have a final state
         self.stats.commands_accepted += 1
         self.cntrl_cmd = cmd
@@ -1238,6 +1263,17 @@ class Unit:
         self._capture_status()
         return Answer.ok(f"mode change {self.mode_def.name} -> {target.name} accepted")
 
+    def _abandon_mode_change(self, why: str) -> None:
+        """A fault command arrived while a mode change was in process: the mode stays."""
+        target = self.mode_requested
+        self.mode_requested = self.mode
+        self.mode_change_in_process = False
+        self._rev += 1
+        self._log(
+            "warn",
+            f"mode change {self.mode_def.name} -> {self._mode_name(target)} abandoned: {why}",
+        )
+
     def _find_mode(self, mode: int | str) -> ModeDef | None:
         if isinstance(mode, str) and not mode.strip().isdigit():
             return self.config.mode_by_name(mode)
@@ -1290,7 +1326,11 @@ class Unit:
         heapq.heappush(self._deadlines, (when, self._deadline_counter, kind, data))
 
     def _every(self, kind: str, period: float) -> None:
-        self._at(self._t + period, kind, period)
+        when = self._t + period
+        behind = self._advance_to - when
+        if behind > MAX_CATCH_UP * period:  # the clock jumped: do not replay every missed period
+            when += period * math.floor(behind / period)
+        self._at(when, kind, period)
 
     def _advance(self, now: float) -> None:
         handlers: dict[str, Callable[[Any], None]] = {
@@ -1298,9 +1338,11 @@ class Unit:
             "dwell": self._on_dwell,
             "mode_timeout": self._on_mode_timeout,
             "status": self._on_status,
+            "admin_change": self._on_admin_change,
             "save": self._on_save,
             "admin": self._on_admin,
         }
+        self._advance_to = now
         while self._deadlines and self._deadlines[0][0] <= now:
             when, _, kind, data = heapq.heappop(self._deadlines)
             self._t = max(self._t, when)
@@ -1352,11 +1394,20 @@ class Unit:
         if self._key() != self._status_key:
             self._capture_status()
 
+    def _on_admin_change(self, _: Any) -> None:
+        self._admin_flush_due = False
+        self._admin_key = self._admin_state()
+        self._out.append(("admin", build_admin(self, self._t)))
+
+    def _admin_state(self) -> tuple[int, ...]:
+        return (self.sequence, self.counters.version, self.alarms.version, self._rev)
+
     def _on_save(self, period: float) -> None:
         self._save()
         self._every("save", period)
 
     def _on_admin(self, period: float) -> None:
+        self._admin_key = self._admin_state()
         self._out.append(("admin", build_admin(self, self._t)))
         self._every("admin", period)
 
@@ -1382,6 +1433,9 @@ class Unit:
         if self.alarms.version != self._alarms_seen:
             self._alarms_seen = self.alarms.version
             self._out.append(("alarms", self.alarms.version))
+        if not self._admin_flush_due and self._admin_state() != self._admin_key:
+            self._admin_flush_due = True
+            self._at(self._t + ADMIN_COALESCE, "admin_change", None)
 
     def _log(self, level: str, text: str) -> None:
         self._out.append(("log", (level, text)))

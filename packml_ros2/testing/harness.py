@@ -3,10 +3,9 @@ in a background thread, and helpers that wait on conditions instead of sleeping.
 
 from __future__ import annotations
 
-import contextlib
 import threading
-import traceback
 import time
+import traceback
 from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
@@ -99,7 +98,7 @@ class RosHarness:
                 return
             except (ExternalShutdownException, rclpy.executors.ShutdownException):
                 return
-            except Exception as exc:  # noqa: BLE001 - reported by close()
+            except Exception as exc:
                 self.errors.append("".join(traceback.format_exception(exc)))
 
     def add(self, node: Node) -> Node:

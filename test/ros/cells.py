@@ -57,6 +57,12 @@ class UnitClient:
         self.ros.wait_for_service(Command, f"{self.base}/command", timeout)
         self.status.wait_for(lambda m: True, timeout, "any status")
 
+    def forget(self) -> None:
+        """Drop everything received so far (e.g. before restarting the unit)."""
+        for collector in (self.status, self.transitions, self.admin, self.alarms):
+            collector.clear()
+        self._since = 0
+
     def call(self, srv_type: Any, name: str, timeout: float = 10.0, **fields: Any) -> Any:
         self._since = len(self.status)
         return self.ros.call(srv_type, f"{self.base}/{name}", srv_type.Request(**fields), timeout)

@@ -157,8 +157,7 @@ def test_unit_killed_and_restarted_keeps_its_admin_data(ros, processes, tmp_path
         5,
     )
     unit.kill()
-    client.status.clear()
-    client.admin.clear()
+    client.forget()
     start_unit_process(processes, cell_file, "packer")
     after_status = client.wait_status(
         lambda s: s.sequence > before_status.sequence, 15, "restarted unit"
