@@ -20,8 +20,9 @@ Hook names: ``on_resetting``, ``on_starting``, ``execute``, ``on_completing``, `
 ``on_clearing``, and ``on_mode_change`` (during a unit mode change). When a hook returns, the base
 class reports State Complete for that (state, sequence); states without a hook are reported
 complete at once. When the unit leaves the state, the running hook is cancelled: a coroutine gets
-``CancelledError`` at its next ``await`` (``ctx.finish(aw)`` lets one step complete first), a plain
-function sees ``ctx.cancelled`` set (``ctx.sleep(s)`` returns False). The next state's hook starts
+``CancelledError`` at its next ``await`` (``ctx.finish(aw)`` lets one step complete first, except
+when the unit aborts), a plain function sees ``ctx.cancelled`` set (``ctx.sleep(s)`` returns
+False; ``ctx.next_state`` tells where the unit went). The next state's hook starts
 only after the previous one has ended. An exception in a hook raises the EM's fault alarm.
 
 Heartbeats keep the EM's lease alive at the unit; an EM that restarts re-joins at the unit's current
@@ -75,6 +76,7 @@ class StateContext:
     sequence: int
     mode: int
     cancelled: threading.Event = field(default_factory=threading.Event)
+    next_state: State = State.UNDEFINED  # set when the unit leaves the state
 
     def sleep(self, seconds: float) -> bool:
         """For plain-function hooks: wait ``seconds``; False (early) if the state was left."""
@@ -82,12 +84,14 @@ class StateContext:
 
     async def finish(self, aw: Awaitable[T]) -> T:
         """Run ``aw`` to its end even if the unit leaves the state meanwhile (finish the move),
-        then let the cancellation proceed."""
+        then let the cancellation proceed; when the unit aborts, ``aw`` is cancelled at once."""
         task = asyncio.ensure_future(aw)
         try:
             return await asyncio.shield(task)
         except asyncio.CancelledError:
-            await task
+            if self.next_state is State.ABORTING:
+                task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
             raise
 
 
@@ -113,9 +117,11 @@ class EquipmentModule(Node):
             target=self._loop.run_forever, name=f"em-{name}", daemon=True
         )
         self._thread.start()
-        self._latest: tuple[Status, bool] | None = None
-        self._wakeup = asyncio.Event()
-        self._driver = asyncio.run_coroutine_threadsafe(self._drive(), self._loop)
+        self._lock = threading.Lock()
+        self._running = False  # a hook task is in flight (started or finishing)
+        self._pending: Status | None = None  # newest status that arrived while it was
+        self._task: asyncio.Task[None] | None = None
+        self._ctx: StateContext | None = None
         self._heartbeat()
 
     # -- what integrators call -------------------------------------------------------------------------
@@ -188,48 +194,74 @@ class EquipmentModule(Node):
     def _heartbeat(self) -> None:
         self._send(EmReport.KIND_HEARTBEAT)
 
-    def _on_status(self, msg: Status) -> None:
-        """Executor thread: remember the newest status and wake the driver."""
-        mine = next((e for e in msg.equipment_modules if e.name == self.em_name), None)
-        self.active = mine.active if mine is not None else True
-        already_done = mine is not None and mine.state_complete
-        self.unit_status = msg
-        self._latest = (msg, already_done)
-        self._loop.call_soon_threadsafe(self._wakeup.set)
+    def hook_for(self, state: State) -> Callable[[StateContext], Any] | None:
+        """The hook for an acting state (None: nothing to do, complete at once). Override to
+        choose hooks at run time."""
+        return getattr(self, HOOKS[state], None)
 
-    async def _drive(self) -> None:
-        """The asyncio thread: one hook at a time, always for the newest (state, sequence)."""
-        task: asyncio.Task[None] | None = None
-        ctx: StateContext | None = None
-        while True:
-            await self._wakeup.wait()
-            self._wakeup.clear()
-            if self._latest is None:
-                continue
-            msg, already_done = self._latest
-            key = (msg.state_current, msg.sequence)
-            if key == self._key:
-                continue
-            if task is not None and not task.done():
-                assert ctx is not None
-                ctx.cancelled.set()
-                task.cancel()
-                await asyncio.gather(task, return_exceptions=True)
-            self._key = key
-            task, ctx = None, None
-            if already_done or not self.active:
-                continue
-            state = (
-                State(msg.state_current)
-                if msg.state_current in State._value2member_map_
-                else State.UNDEFINED
-            )
-            if msg.unit_mode_change_in_process:
-                ctx = StateContext(state, msg.sequence, msg.unit_mode_requested)
-                task = self._loop.create_task(self._run(getattr(self, "on_mode_change", None), ctx))
-            elif state in ACTING:
-                ctx = StateContext(state, msg.sequence, msg.unit_mode_current)
-                task = self._loop.create_task(self._run(getattr(self, HOOKS[state], None), ctx))
+    def _on_status(self, msg: Status) -> None:
+        """Executor thread. With no hook in flight the decision is taken right here (a state
+        without a hook is reported complete at once); otherwise the running hook is cancelled
+        first and the newest status handled when it has ended."""
+        with self._lock:
+            self.unit_status = msg
+            mine = next((e for e in msg.equipment_modules if e.name == self.em_name), None)
+            self.active = mine.active if mine is not None else True
+            if (msg.state_current, msg.sequence) == self._key:
+                return
+            if self._running:
+                self._pending = msg
+                self._loop.call_soon_threadsafe(self._cancel_running)
+                return
+            self._dispatch(msg)
+
+    def _dispatch(self, msg: Status) -> None:
+        """Under the lock: start the hook for ``msg``'s (state, sequence), or report at once."""
+        self._key = (msg.state_current, msg.sequence)
+        mine = next((e for e in msg.equipment_modules if e.name == self.em_name), None)
+        if (mine is not None and mine.state_complete) or not self.active:
+            return  # already reported (an EM that restarted) or switched inactive
+        state = (
+            State(msg.state_current)
+            if msg.state_current in State._value2member_map_
+            else State.UNDEFINED
+        )
+        if msg.unit_mode_change_in_process:
+            ctx = StateContext(state, msg.sequence, msg.unit_mode_requested)
+            hook = getattr(self, "on_mode_change", None)
+        elif state in ACTING:
+            ctx = StateContext(state, msg.sequence, msg.unit_mode_current)
+            hook = self.hook_for(state)
+        else:
+            return
+        if hook is None:
+            self.report_complete(ctx.state, ctx.sequence)
+            return
+        self._running = True
+        self._loop.call_soon_threadsafe(self._start, hook, ctx)
+
+    def _start(self, hook: Callable[[StateContext], Any], ctx: StateContext) -> None:
+        self._ctx = ctx
+        self._task = self._loop.create_task(self._run(hook, ctx))
+        self._task.add_done_callback(self._finished)
+
+    def _cancel_running(self) -> None:
+        if self._task is not None and not self._task.done() and self._ctx is not None:
+            with self._lock:
+                pending = self._pending
+            if pending is not None and pending.state_current in State._value2member_map_:
+                self._ctx.next_state = State(pending.state_current)
+            self._ctx.cancelled.set()
+            self._task.cancel()
+
+    def _finished(self, _: asyncio.Task[None]) -> None:
+        """Loop thread: the hook ended; handle a status that arrived meanwhile."""
+        with self._lock:
+            self._task, self._ctx = None, None
+            self._running = False
+            pending, self._pending = self._pending, None
+            if pending is not None and (pending.state_current, pending.sequence) != self._key:
+                self._dispatch(pending)
 
     async def _run(self, hook: Callable[[StateContext], Any] | None, ctx: StateContext) -> None:
         try:

@@ -87,7 +87,7 @@ def parse_sim(data: Mapping[str, Any], path: str = "sim", file: str = "<memory>"
         )
     cfg = SimConfig(
         durations=durations,
-        cycle_time=n.get("cycle_time", sc.number(positive=True), 1.0),
+        cycle_time=n.get("cycle_time", sc.number(lo=0), 1.0),
         counter=n.get(
             "counter",
             sc.choice({k: k for k in ("processed", "consumed", "defective", "none")}),
@@ -121,15 +121,20 @@ class SimulatedEm(EquipmentModule):
             self.create_service(SetBool, f"~/fault/{fault.name}", partial(self._srv_fault, fault))
 
     # -- acting states: wait for the configured duration --------------------------------------------------
-    async def _work(self, ctx: StateContext) -> None:
-        await asyncio.sleep(self.sim.durations.get(ctx.state, 0.0))
+    def hook_for(self, state: State):  # type: ignore[no-untyped-def]
+        """Execute cycles; other acting states take their configured duration (none: at once)."""
+        if state is State.EXECUTE:
+            return self.execute
+        return self._work if self.sim.durations.get(state) else None
 
-    on_resetting = on_starting = on_completing = on_holding = on_unholding = _work
-    on_suspending = on_unsuspending = on_stopping = on_aborting = on_clearing = _work
+    async def _work(self, ctx: StateContext) -> None:
+        await asyncio.sleep(self.sim.durations[ctx.state])
 
     async def execute(self, ctx: StateContext) -> None:
         """Cycle: each cycle produces one product (possibly defective); Hold or Stop in the middle
-        of a cycle lets the cycle finish first."""
+        of a cycle lets the cycle finish first. ``cycle_time: 0``: no cycles, just stay."""
+        if not self.sim.cycle_time:
+            await asyncio.Event().wait()
         cycles = 0
         while not self.sim.cycles_per_run or cycles < self.sim.cycles_per_run:
             await ctx.finish(asyncio.sleep(self.sim.cycle_time))

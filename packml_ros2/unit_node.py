@@ -338,6 +338,7 @@ class UnitNode(Node):
             self.unit.em_lost(name, f"no report for {lease:g} s")
         self.unit.advance()
         self._publish()
+        self._flush_inputs()
 
     # -- publishing ------------------------------------------------------------------------------------
     def _publish(self) -> None:
@@ -357,7 +358,8 @@ class UnitNode(Node):
                 self.pub_admin.publish(convert.admin(item))
             elif kind == "log":
                 self._log(*item)
-        self._flush_inputs()
+        if len(self._inputs) >= 200:
+            self._flush_inputs()
 
     def _log(self, level: str, text: str) -> None:
         # rclpy ties a severity to each call site: one call per level.
@@ -389,7 +391,8 @@ class UnitNode(Node):
         )  # fmt: skip
 
     def _flush_inputs(self) -> None:
-        """The input log goes out after the outputs, so it never delays a status."""
+        """The input log goes out in batches (every tick, 50 ms), never delaying a status; the
+        order is kept and every message carries its index."""
         inputs, self._inputs = self._inputs, []
         for msg in inputs:
             self.pub_inputs.publish(msg)
@@ -401,6 +404,7 @@ class UnitNode(Node):
         self._closed = True
         for timer in self._timers:
             self.destroy_timer(timer)
+        self._flush_inputs()
         self.unit.close()
         self.unit.store = None  # a callback still running after this must not touch the file
 

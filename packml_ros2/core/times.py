@@ -42,6 +42,7 @@ class ModeStateTimes:
         self._mode = mode
         self._state = state
         self._planned = False
+        self.modes_used: set[int] = {mode}  # only these modes can hold non-zero times
         self._since = now
 
     # -- accumulation ------------------------------------------------------------------------------
@@ -76,6 +77,7 @@ class ModeStateTimes:
             self._since = now
         if mode != self._mode:
             self.mode_current[mode] = 0.0
+            self.modes_used.add(mode)
         self.state_current[mode * NUM_STATES + state] = 0.0
         self._mode = mode
         self._state = state
@@ -147,18 +149,28 @@ class ModeStateTimes:
 
     # -- persistence -----------------------------------------------------------------------------------
     def to_dict(self, now: float) -> dict[str, Any]:
-        """Sparse: only non-zero entries, keyed by index (most (mode, state) pairs never occur)."""
-        mc, mcum, sc, scum, acc = self.live(now)
+        """Sparse: only non-zero entries of the modes ever used, keyed by index. This runs at
+        every transition (persistence), so it touches 18 entries per used mode, not 576."""
+        dt = max(0.0, now - self._since)
+        cur_mode, cur_index = self._mode, self._mode * NUM_STATES + self._state
+        indices = [m * NUM_STATES + s for m in sorted(self.modes_used) for s in range(NUM_STATES)]
 
-        def sparse(values: list[float]) -> dict[str, float]:
-            return {str(i): v for i, v in enumerate(values) if v}
+        def sparse_states(values: list[float]) -> dict[str, float]:
+            out = {str(i): values[i] for i in indices if values[i]}
+            out[str(cur_index)] = values[cur_index] + dt
+            return out
+
+        def sparse_modes(values: list[float]) -> dict[str, float]:
+            out = {str(m): values[m] for m in self.modes_used if values[m]}
+            out[str(cur_mode)] = values[cur_mode] + dt
+            return out
 
         return {
-            "mode_current": sparse(mc),
-            "mode_cumulative": sparse(mcum),
-            "state_current": sparse(sc),
-            "state_cumulative": sparse(scum),
-            "acc_time_since_reset": acc,
+            "mode_current": sparse_modes(self.mode_current),
+            "mode_cumulative": sparse_modes(self.mode_cumulative),
+            "state_current": sparse_states(self.state_current),
+            "state_cumulative": sparse_states(self.state_cumulative),
+            "acc_time_since_reset": self.acc_time_since_reset + dt,
             "planned_stop": self.planned_stop_at(now),
         }
 
@@ -169,6 +181,10 @@ class ModeStateTimes:
             for index, value in data.get(key, {}).items():
                 if 0 <= int(index) < len(target):
                     target[int(index)] = float(value)
+                    if key.startswith("mode"):
+                        self.modes_used.add(int(index))
+                    else:
+                        self.modes_used.add(int(index) // NUM_STATES)
         self.acc_time_since_reset = float(data.get("acc_time_since_reset", 0.0))
         self.planned_stop = float(data.get("planned_stop", 0.0))
         self._since = now

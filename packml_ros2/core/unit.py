@@ -292,6 +292,7 @@ class Unit:
         self._restart_detail = "unit started"
         self._restore(now)
         self._transition(S.STOPPED, Trigger.RESTART, source="unit", detail=self._restart_detail)
+        self._status_key = self._key()  # the start-up status is the baseline for later changes
         if store is not None:
             self._every("save", config.persistence_period)
         self._every("admin", config.admin_period)
@@ -1224,7 +1225,8 @@ class Unit:
             configured = ", ".join(f"{n} {m.name}" for n, m in sorted(self.config.modes.items()))
             return Answer.no(
                 Reason.MODE_UNKNOWN,
-                f"mode {r.mode!r} is not configured on {self.config.name} (configured: {configured})",
+                f"mode {r.mode!r} is not configured on {self.config.name} (now {state_name(self.state)} "
+                f"in {self.mode_def.name} mode; configured: {configured})",
             )
         if r.source.startswith("remote") and not self.remote_enabled:
             return Answer.no(
@@ -1243,7 +1245,7 @@ class Unit:
         why = mode_change_refusal(self.mode_def, target, self.state)
         if why is not None:
             self.flags.mode_change_not_allowed_until = self._t + MODE_CHANGE_NOT_ALLOWED_SECONDS
-            self._at(self.flags.mode_change_not_allowed_until, "status", None)
+            self._at(self.flags.mode_change_not_allowed_until, "lamp_off", None)
             self._rev += 1
             self._capture_status()
             return Answer.no(
@@ -1338,6 +1340,7 @@ class Unit:
             "dwell": self._on_dwell,
             "mode_timeout": self._on_mode_timeout,
             "status": self._on_status,
+            "lamp_off": self._on_lamp_off,
             "admin_change": self._on_admin_change,
             "save": self._on_save,
             "admin": self._on_admin,
@@ -1388,6 +1391,12 @@ class Unit:
         self.alarms.clear(d.id, d.value, self._t)
         self._rev += 1
         self._capture_status()
+
+    def _on_lamp_off(self, _: Any) -> None:
+        """``mode_change_not_allowed`` went out (3 s after the refusal): publish that."""
+        if not self.mode_change_not_allowed:
+            self._rev += 1
+            self._capture_status()
 
     def _on_status(self, _: Any) -> None:
         self._status_flush_due = False

@@ -341,11 +341,6 @@ def test_mode_rejections_unknown_and_not_allowed_with_its_lamp(make_unit) -> Non
     assert not lamp.unit_mode_change_in_process
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="engine: Unit._on_status publishes only when _key() changed; the lamp going out "
-    "(mode_change_not_allowed true -> false after 3 s) changes no key, so no status shows it",
-)
 def test_the_mode_change_not_allowed_lamp_goes_out_after_3_s(make_unit) -> None:
     unit = make_unit()
     unit.drive("reset", "start")
@@ -363,11 +358,6 @@ def test_the_mode_change_not_allowed_lamp_goes_out_after_3_s(make_unit) -> None:
     assert (out.state_current, out.sequence) == (State.EXECUTE, lamp.sequence)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="engine: the MODE_UNKNOWN refusal (Unit._apply_mode) lists the configured modes but "
-    "not the unit's current state and mode, unlike the command refusals",
-)
 def test_mode_unknown_names_the_current_state_and_mode(make_unit) -> None:
     unit = make_unit()
     resp = unit.call(SetMode, "set_mode", mode_name="turbo")

@@ -1,0 +1,260 @@
+"""ROS latency benchmark: time from a ``start`` call in Idle until ``status`` shows Execute, and from
+``stop`` until Stopped, with 0, 1, 4 and 8 EMs in separate processes; side by side with the rclpy
+floor measured in the same run (a Trigger call whose handler publishes a Status, until that Status
+arrives: one request hop plus one pub/sub hop); RSS of a unit and of an EM process. Prints JSON.
+
+    python bench/ros_latency.py [--cycles 200] [--ems 0,1,4,8]
+
+Everything stays on this machine (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) in a domain of its own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import yaml
+
+from packml_ros2.testing.environment import allocate_domain, localhost_environment
+from packml_ros2.testing.processes import Processes
+
+FLOOR_SERVER = """
+import sys, rclpy
+from rclpy.node import Node
+from std_srvs.srv import Trigger
+from packml_interfaces.msg import Status
+from packml_ros2 import qos, run
+run.init()
+node = Node("floor_server")
+pub = node.create_publisher(Status, "/bench_floor/status", qos.STATUS)
+seq = [0]
+def handle(req, resp):
+    seq[0] += 1
+    pub.publish(Status(unit="floor", sequence=seq[0], state_current=6, state_current_name="EXECUTE"))
+    resp.success = True
+    return resp
+node.create_service(Trigger, "/bench_floor/trigger", handle)
+sys.exit(run.spin([node]))  # the executor the packml nodes use: a fair floor
+"""
+
+
+def percentile(values: list[float], p: float) -> float:
+    ordered = sorted(values)
+    k = (len(ordered) - 1) * p / 100
+    lo, hi = int(k), min(int(k) + 1, len(ordered) - 1)
+    return ordered[lo] + (ordered[hi] - ordered[lo]) * (k - lo)
+
+
+def summary_ms(samples: list[float]) -> dict[str, float]:
+    return {
+        "p50_ms": round(statistics.median(samples) * 1e3, 3),
+        "p99_ms": round(percentile(samples, 99) * 1e3, 3),
+        "mean_ms": round(statistics.fmean(samples) * 1e3, 3),
+        "n": len(samples),
+    }
+
+
+def rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return round(int(line.split()[1]) / 1024, 1)
+    return 0.0
+
+
+class Client:
+    """The bench's rclpy side: Trigger clients and a status subscription with arrival times."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from packml_interfaces.msg import Status
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+
+        from packml_ros2 import qos
+
+        rclpy.init()
+        self.node = Node("latency_bench")
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self._cond = threading.Condition()
+        self._latest: dict[str, tuple[object, float]] = {}
+        self._qos = qos.STATUS
+        self._status_type = Status
+        self._subs: dict[str, object] = {}
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        import rclpy
+
+        while rclpy.ok():
+            self.executor.spin_once(timeout_sec=0.1)
+
+    def watch(self, topic: str) -> None:
+        def on_status(msg: object, topic: str = topic) -> None:
+            now = time.perf_counter()
+            with self._cond:
+                self._latest[topic] = (msg, now)
+                self._cond.notify_all()
+
+        self._subs[topic] = self.node.create_subscription(
+            self._status_type, topic, on_status, self._qos
+        )
+
+    def wait(self, topic: str, predicate, timeout: float = 10.0) -> tuple[object, float]:  # type: ignore[no-untyped-def]
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                got = self._latest.get(topic)
+                if got is not None and predicate(got[0]):
+                    return got
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise TimeoutError(
+                        f"{topic}: condition not met in {timeout} s (last {got and got[0]})"
+                    )
+                self._cond.wait(remaining)
+
+    def trigger(self, service: str):  # type: ignore[no-untyped-def]
+        from std_srvs.srv import Trigger
+
+        client = self.node.create_client(Trigger, service)
+        if not client.wait_for_service(timeout_sec=15):
+            raise TimeoutError(f"service {service} not available")
+        return client
+
+    @staticmethod
+    def call(client) -> float:  # type: ignore[no-untyped-def]
+        """Send the request; returns the time it was sent (the response is not waited for)."""
+        from std_srvs.srv import Trigger
+
+        t0 = time.perf_counter()
+        client.call_async(Trigger.Request())
+        return t0
+
+    def close(self) -> None:
+        import rclpy
+
+        rclpy.try_shutdown()
+        self._thread.join(2)
+
+
+def measure_floor(client: Client, procs: Processes, cycles: int) -> list[float]:
+    procs.start("floor_server", "-c", FLOOR_SERVER)
+    client.watch("/bench_floor/status")
+    trig = client.trigger("/bench_floor/trigger")
+    samples = []
+    for i in range(cycles + 10):
+        t0 = client.call(trig)
+        _, t1 = client.wait("/bench_floor/status", lambda m, i=i: m.sequence == i + 1)
+        if i >= 10:  # warm-up
+            samples.append(t1 - t0)
+    return samples
+
+
+def measure_unit(
+    client: Client, procs: Processes, workdir: Path, ems: int, cycles: int
+) -> dict[str, object]:
+    cell = f"bench{ems}"
+    em_names = [f"em{i}" for i in range(ems)]
+    doc = {
+        "cell": cell,
+        "units": {
+            "unit": {
+                "persistence": {"path": str(workdir / f"{cell}.sqlite3")},
+                "equipment_modules": {
+                    n: {"sim": {"cycle_time": 0, "counter": "none", "lease": 2.0}} for n in em_names
+                },
+            }
+        },
+    }
+    cell_file = workdir / f"{cell}.yaml"
+    cell_file.write_text(yaml.safe_dump(doc))
+    unit = procs.module(f"unit_{cell}", "packml_ros2.unit_node", str(cell_file), "unit")
+    em_procs = [
+        procs.module(f"{cell}_{n}", "packml_ros2.sim_em", str(cell_file), "unit", n)
+        for n in em_names
+    ]
+    topic = f"/{cell}/unit/status"
+    client.watch(topic)
+    client.wait(topic, lambda m: sum(e.online for e in m.equipment_modules) == ems, 30)
+    start, stop, reset = (
+        client.trigger(f"/{cell}/unit/{name}") for name in ("start", "stop", "reset")
+    )
+    client.call(reset)
+    client.wait(topic, lambda m: m.state_current_name == "IDLE")
+    to_execute, to_stopped = [], []
+    for i in range(cycles + 10):
+        t0 = client.call(start)
+        _, t1 = client.wait(topic, lambda m: m.state_current_name == "EXECUTE")
+        t2 = client.call(stop)
+        _, t3 = client.wait(topic, lambda m: m.state_current_name == "STOPPED")
+        client.call(reset)
+        client.wait(topic, lambda m: m.state_current_name == "IDLE")
+        if i >= 10:
+            to_execute.append(t1 - t0)
+            to_stopped.append(t3 - t2)
+    result: dict[str, object] = {
+        "idle_to_execute": summary_ms(to_execute),
+        "stop_to_stopped": summary_ms(to_stopped),
+        "unit_rss_mb": rss_mb(unit.pid),
+    }
+    if em_procs:
+        result["em_rss_mb"] = rss_mb(em_procs[0].pid)
+    for proc in [*em_procs, unit]:
+        proc.stop()
+    return result
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cycles", type=int, default=200)
+    parser.add_argument("--ems", default="0,1,4,8")
+    args = parser.parse_args()
+    localhost_environment()
+    os.environ["ROS_DOMAIN_ID"] = str(allocate_domain())
+    em_counts = [int(x) for x in args.ems.split(",")]
+
+    with tempfile.TemporaryDirectory(prefix="packml_latency_") as tmp:
+        workdir = Path(tmp)
+        procs = Processes(workdir)
+        client = Client()
+        try:
+            floor = measure_floor(client, procs, args.cycles)
+            units = {
+                str(n): measure_unit(client, procs, workdir, n, args.cycles) for n in em_counts
+            }
+        finally:
+            client.close()
+            procs.close()
+    floor_p50 = statistics.median(floor)
+    result: dict[str, object] = {
+        "benchmark": "ros_latency",
+        "cycles": args.cycles,
+        "floor": {"trigger_call_to_published_status": summary_ms(floor)},
+        "units_by_em_count": units,
+    }
+    for n, data in units.items():
+        ex = data["idle_to_execute"]  # type: ignore[index]
+        data["idle_to_execute_over_floor"] = round(ex["p50_ms"] / (floor_p50 * 1e3), 2)  # type: ignore[index]
+    if "8" in units:
+        ex8 = units["8"]["idle_to_execute"]  # type: ignore[index]
+        result["targets_8_ems"] = {
+            "p50_ms<=3": ex8["p50_ms"] <= 3.0,
+            "p50<=3x_floor": units["8"]["idle_to_execute_over_floor"] <= 3.0,  # type: ignore[index]
+            "p99_ms<=15": ex8["p99_ms"] <= 15.0,
+        }
+    json.dump(result, sys.stdout, indent=2)
+    print()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

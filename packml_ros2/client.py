@@ -1,0 +1,283 @@
+"""Talking to PackML units from other programs: the ``packml`` command line, the cell coordinator,
+the HMI backend and the OPC UA bridge all use :class:`UnitProxy` / :class:`CellProxy`.
+
+A proxy subscribes to a unit's latched topics (status, admin, alarms) and calls its services
+asynchronously. It never blocks an executor thread: ``call`` returns a future, ``call_sync`` waits
+on it from a thread that is not spinning the node.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterable
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Any
+
+from packml_interfaces.msg import Admin, AlarmList, CellStatus, Status, TransitionEvent
+from packml_interfaces.srv import (
+    AckAlarms,
+    Command,
+    QueryAlarms,
+    ResetAlarms,
+    ResetCounters,
+    ResetTimes,
+    SetAlarm,
+    SetEmActive,
+    SetInterlock,
+    SetMachSpeed,
+    SetMode,
+    SetProduct,
+    SetUnitParameters,
+)
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.node import Node
+
+from . import qos
+from .core.numbers import Cmd, parse_command
+
+#: The unit services a proxy can call: name -> type.
+SERVICES: dict[str, Any] = {
+    "command": Command,
+    "set_mode": SetMode,
+    "reset_times": ResetTimes,
+    "reset_counters": ResetCounters,
+    "ack_alarms": AckAlarms,
+    "reset_alarms": ResetAlarms,
+    "query_alarms": QueryAlarms,
+    "set_alarm": SetAlarm,
+    "set_mach_speed": SetMachSpeed,
+    "set_unit_parameters": SetUnitParameters,
+    "set_product": SetProduct,
+    "set_em_active": SetEmActive,
+    "set_interlock": SetInterlock,
+}
+
+
+class Unavailable(RuntimeError):
+    """The unit (or cell) did not answer in time."""
+
+
+def resolve_unit(name: str, cell: str | None = None) -> str:
+    """``/cell/unit`` from ``unit`` (with ``cell``), ``cell/unit`` or ``/cell/unit``."""
+    name = name.strip()
+    if name.startswith("/"):
+        return name.rstrip("/")
+    if "/" in name:
+        return "/" + name.rstrip("/")
+    if not cell:
+        raise ValueError(f"unit {name!r} needs a cell: give cell/{name} or --cell")
+    return f"/{cell}/{name}"
+
+
+@dataclass
+class UnitProxy:
+    """One unit (``path`` = ``/cell/unit``) seen from ``node``."""
+
+    node: Node
+    path: str
+    on_change: Callable[[str, str, Any], None] | None = None  # (unit path, topic, msg)
+    status: Status | None = None
+    admin: Admin | None = None
+    alarms: AlarmList | None = None
+    status_received_at: float = 0.0
+    transitions: list[TransitionEvent] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.name = self.path.rsplit("/", 1)[-1]
+        self._group = ReentrantCallbackGroup()
+        self._cond = threading.Condition()
+        self._clients: dict[str, Any] = {}
+        self._subs = [
+            self.node.create_subscription(Status, f"{self.path}/status", self._on_status, qos.STATUS, callback_group=self._group),
+            self.node.create_subscription(Admin, f"{self.path}/admin", self._on("admin"), qos.ADMIN, callback_group=self._group),
+            self.node.create_subscription(AlarmList, f"{self.path}/alarms", self._on("alarms"), qos.ALARMS, callback_group=self._group),
+            self.node.create_subscription(TransitionEvent, f"{self.path}/transitions", self._on_transition, qos.TRANSITIONS, callback_group=self._group),
+        ]  # fmt: skip
+
+    # -- topics ------------------------------------------------------------------------------------------
+    def _on_status(self, msg: Status) -> None:
+        with self._cond:
+            self.status = msg
+            self.status_received_at = time.monotonic()
+            self._cond.notify_all()
+        if self.on_change:
+            self.on_change(self.path, "status", msg)
+
+    def _on(self, attr: str) -> Callable[[Any], None]:
+        def callback(msg: Any) -> None:
+            with self._cond:
+                setattr(self, attr, msg)
+                self._cond.notify_all()
+            if self.on_change:
+                self.on_change(self.path, attr, msg)
+
+        return callback
+
+    def _on_transition(self, msg: TransitionEvent) -> None:
+        with self._cond:
+            self.transitions.append(msg)
+            del self.transitions[:-100]
+            self._cond.notify_all()
+        if self.on_change:
+            self.on_change(self.path, "transitions", msg)
+
+    def wait_status(
+        self, predicate: Callable[[Status], bool] = lambda s: True, timeout: float = 10.0
+    ) -> Status:
+        """Block (not in an executor thread) until the unit's status satisfies ``predicate``."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while self.status is None or not predicate(self.status):
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    state = self.status.state_current_name if self.status else "no status"
+                    raise Unavailable(
+                        f"{self.path}: condition not met within {timeout:g} s (now {state})"
+                    )
+                self._cond.wait(remaining)
+            return self.status
+
+    # -- services ----------------------------------------------------------------------------------------
+    def client(self, service: str) -> Any:
+        if service not in self._clients:
+            self._clients[service] = self.node.create_client(
+                SERVICES[service], f"{self.path}/{service}", callback_group=self._group
+            )
+        return self._clients[service]
+
+    def call(self, service: str, **fields: Any) -> Future[Any]:
+        """Call ``service`` with request ``fields``; a concurrent.futures.Future of the response."""
+        client = self.client(service)
+        result: Future[Any] = Future()
+        if not client.service_is_ready():
+            result.set_exception(Unavailable(f"{self.path}/{service} is not available"))
+            return result
+        ros_future = client.call_async(SERVICES[service].Request(**fields))
+
+        def done(f: Any) -> None:
+            exc = f.exception()
+            if exc is not None:
+                result.set_exception(exc)
+            else:
+                result.set_result(f.result())
+
+        ros_future.add_done_callback(done)
+        return result
+
+    def call_sync(self, service: str, timeout: float = 10.0, **fields: Any) -> Any:
+        """Wait for the service to appear, call it and wait for the answer (not from an executor
+        thread of ``node``)."""
+        client = self.client(service)
+        if not client.wait_for_service(timeout_sec=timeout):
+            raise Unavailable(f"{self.path}/{service} did not appear within {timeout:g} s")
+        try:
+            return self.call(service, **fields).result(timeout)
+        except TimeoutError:
+            raise Unavailable(
+                f"{self.path}/{service} did not answer within {timeout:g} s"
+            ) from None
+
+    def command(
+        self, cmd: int | str, source: str = "operator", timeout: float = 10.0
+    ) -> Command.Response:
+        number = int(parse_command(cmd)) if isinstance(cmd, str) else int(cmd)
+        return self.call_sync("command", timeout, command=number, source=source)
+
+    def set_mode(
+        self, mode: int | str, source: str = "operator", timeout: float = 10.0
+    ) -> SetMode.Response:
+        if isinstance(mode, str) and not mode.isdigit():
+            return self.call_sync("set_mode", timeout, mode_name=mode, source=source)
+        return self.call_sync("set_mode", timeout, mode=int(mode), source=source)
+
+    def destroy(self) -> None:
+        for sub in self._subs:
+            self.node.destroy_subscription(sub)
+        for client in self._clients.values():
+            self.node.destroy_client(client)
+
+
+class CellProxy:
+    """All units of a cell: from the configuration, or discovered on the ROS graph."""
+
+    def __init__(
+        self,
+        node: Node,
+        cell: str,
+        units: Iterable[str] = (),
+        on_change: Callable[[str, str, Any], None] | None = None,
+    ) -> None:
+        self.node = node
+        self.cell = cell
+        self.on_change = on_change
+        self.units: dict[str, UnitProxy] = {}
+        self.cell_status: CellStatus | None = None
+        for unit in units:
+            self.add(unit)
+        self._cell_sub = node.create_subscription(
+            CellStatus, f"/{cell}/coordinator/status", self._on_cell, qos.CELL_STATUS
+        )
+
+    def _on_cell(self, msg: CellStatus) -> None:
+        self.cell_status = msg
+        if self.on_change:
+            self.on_change(f"/{self.cell}/coordinator", "cell_status", msg)
+
+    def add(self, unit: str) -> UnitProxy:
+        path = resolve_unit(unit, self.cell)
+        name = path.rsplit("/", 1)[-1]
+        if name not in self.units:
+            self.units[name] = UnitProxy(self.node, path, self.on_change)
+        return self.units[name]
+
+    def discover(self, timeout: float = 3.0, expect: int = 0) -> list[str]:
+        """Add the units whose status topic appears on the graph within ``timeout`` (stops early
+        once ``expect`` units are known)."""
+        deadline = time.monotonic() + timeout
+        prefix = f"/{self.cell}/"
+        while True:
+            for topic, types in self.node.get_topic_names_and_types():
+                if (
+                    topic.startswith(prefix)
+                    and topic.endswith("/status")
+                    and "packml_interfaces/msg/Status" in types
+                ):
+                    rest = topic[len(prefix) : -len("/status")]
+                    if rest and "/" not in rest:
+                        self.add(rest)
+            if (expect and len(self.units) >= expect) or time.monotonic() >= deadline:
+                return sorted(self.units)
+            time.sleep(0.05)
+
+    def unit(self, name: str) -> UnitProxy:
+        path = resolve_unit(name, self.cell)
+        key = path.rsplit("/", 1)[-1]
+        if key not in self.units or self.units[key].path != path:
+            return self.add(path)
+        return self.units[key]
+
+
+def discover_cells(node: Node, timeout: float = 3.0) -> dict[str, list[str]]:
+    """Cells and their units visible on the graph: ``{cell: [unit, ...]}``."""
+    deadline = time.monotonic() + timeout
+    found: dict[str, set[str]] = {}
+    while True:
+        for topic, types in node.get_topic_names_and_types():
+            parts = topic.strip("/").split("/")
+            if len(parts) == 3 and parts[2] == "status" and "packml_interfaces/msg/Status" in types:
+                found.setdefault(parts[0], set()).add(parts[1])
+        if found or time.monotonic() >= deadline:
+            return {cell: sorted(units) for cell, units in sorted(found.items())}
+        time.sleep(0.05)
+
+
+def command_number(text: str) -> int:
+    """A command from a name (``start``) or a number (``2``); ValueError names the valid ones."""
+    try:
+        return int(parse_command(text))
+    except ValueError as exc:
+        raise ValueError(
+            f"{exc} (commands: {', '.join(c.name.lower() for c in Cmd if c)})"
+        ) from None
