@@ -16,7 +16,8 @@ import json
 import sys
 from collections.abc import Callable, Sequence
 from functools import partial
-from typing import Any
+from pathlib import Path
+from typing import Any, TypeVar
 
 from diagnostic_msgs.msg import DiagnosticArray
 from packml_interfaces.msg import Admin, AlarmList, EmReport, Status, TransitionEvent, UnitInput
@@ -38,14 +39,16 @@ from packml_interfaces.srv import (
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from . import convert, qos, run
-from .core import Cmd, Store, Unit, UnitConfig, load_cell, state_name
+from .core import CellConfig, Cmd, Store, Unit, UnitConfig, load_cell, state_name
 from .core.counters import KINDS
 from .core.liveliness import Liveliness
-from .core.unit import StatusMark, Transition
+from .driver import FrozenClock, UnitDriver
 
+T = TypeVar("T")
 SORTS = {QueryAlarms.Request.SORT_TIME: "time", QueryAlarms.Request.SORT_CATEGORY_TIME: "category",
          QueryAlarms.Request.SORT_TIME_NEWEST: "newest"}  # fmt: skip
 ADVANCE_PERIOD = 0.05  # s: deadlines (timeouts, dwell, admin) and EM leases are checked this often
@@ -56,21 +59,23 @@ class UnitNode(Node):
     """One PackML unit. ``UnitNode(config)`` names itself ``config.name`` in ``/<config.cell>``."""
 
     def __init__(self, config: UnitConfig, *, context: Any = None, store_path: str | None = None,
-                 **node_kwargs: Any) -> None:  # fmt: skip
+                 source: str | None = None, **node_kwargs: Any) -> None:  # fmt: skip
         namespace = node_kwargs.pop("namespace", f"/{config.cell}" if config.cell else "/")
         super().__init__(config.name, namespace=namespace, context=context, **node_kwargs)
         self.config = config
         self._declare_parameters(config, store_path)
         path = self.get_parameter("persistence_path").value
         self.store = Store(path, config.name) if path else None
-        self.unit = Unit(config, clock=self._now, store=self.store)
+        self.clock = FrozenClock(self._now)
+        self.unit = Unit(config, clock=self.clock, store=self.store)
+        self.driver = UnitDriver(self.unit, self.clock, self._emit)
         self.liveliness = Liveliness(config.em_lease)
         self._inputs: list[UnitInput] = []
         self._input_index = 0
         self._record = bool(self.get_parameter("record_inputs").value)
         self.unit.on_input = self._on_input if self._record else None
-        self._last_status: Status | None = None
         self._hardware_id = f"{config.cell}/{config.name}" if config.cell else config.name
+        self.source = source
 
         self.pub_status = self.create_publisher(Status, "~/status", qos.STATUS)
         self.pub_transitions = self.create_publisher(
@@ -82,6 +87,13 @@ class UnitNode(Node):
         self.pub_diagnostics = self.create_publisher(
             DiagnosticArray, "/diagnostics", qos.DIAGNOSTICS
         )
+        self.pub_config = self.create_publisher(String, "~/config", qos.LATCHED)
+        self._outputs = {
+            "status": self.pub_status,
+            "transitions": self.pub_transitions,
+            "admin": self.pub_admin,
+            "alarms": self.pub_alarms,
+        }
         self.create_subscription(EmReport, "~/em_reports", self._on_report, qos.EM_REPORTS)
         self._create_services()
         self._timers = [
@@ -91,12 +103,7 @@ class UnitNode(Node):
         self._closed = False
         self.add_post_set_parameters_callback(self._on_parameters_set)
         self.add_on_set_parameters_callback(self._validate_parameters)
-        # Close the engine's start-up step before the first callback: the status published below is
-        # then the baseline, so a change by the first input (e.g. an EM's first heartbeat arriving
-        # before the first tick) is published too instead of being taken as already shown.
-        self.unit.advance()
-        self._publish()
-        self._publish_admin_now()
+        self._publish_start()
         self.get_logger().info(
             f"PackML unit {self.get_fully_qualified_name()} up: {state_name(self.unit.state)} in "
             f"{self.unit.mode_def.name}, {len(config.equipment_modules)} EM(s) configured"
@@ -136,8 +143,7 @@ class UnitNode(Node):
     def _on_parameters_set(self, params: list[Parameter]) -> None:
         for p in params:
             if p.name == "remote_commands_enabled":
-                self.unit.set_remote_enabled(bool(p.value))
-                self._publish()
+                self._run(self.unit.set_remote_enabled, bool(p.value))
 
     # -- clock ----------------------------------------------------------------------------------------
     def _now(self) -> float:
@@ -174,8 +180,7 @@ class UnitNode(Node):
         return resp
 
     def _srv_command(self, req: Command.Request, resp: Command.Response) -> Command.Response:
-        answer = self.unit.command(req.command, req.source or "operator")
-        self._publish()
+        answer = self._run(self.unit.command, req.command, req.source or "operator")
         self._answer(resp, answer)
         resp.state_current = int(self.unit.state)
         resp.state_requested = int(self.unit.state_requested())
@@ -184,8 +189,7 @@ class UnitNode(Node):
     def _srv_trigger(
         self, cmd: Cmd, req: Trigger.Request, resp: Trigger.Response
     ) -> Trigger.Response:
-        answer = self.unit.command(cmd, "operator")
-        self._publish()
+        answer = self._run(self.unit.command, cmd, "operator")
         resp.success = answer.accepted
         resp.message = answer.message
         if answer.accepted and not answer.message.endswith(state_name(self.unit.state)):
@@ -194,8 +198,7 @@ class UnitNode(Node):
 
     def _srv_set_mode(self, req: SetMode.Request, resp: SetMode.Response) -> SetMode.Response:
         mode: int | str = req.mode_name if req.mode_name else req.mode
-        self._answer(resp, self.unit.set_mode(mode, req.source or "operator"))
-        self._publish()
+        self._answer(resp, self._run(self.unit.set_mode, mode, req.source or "operator"))
         resp.mode_current = self.unit.mode
         return resp
 
@@ -206,27 +209,26 @@ class UnitNode(Node):
             resp.accepted, resp.result = False, 13
             resp.message = f"scope {req.scope} is neither SCOPE_CURRENT_MODE (0) nor SCOPE_ALL (1)"
             return resp
-        answer = self.unit.reset_times(
-            req.scope == ResetTimes.Request.SCOPE_ALL, req.source or "operator"
+        answer = self._run(
+            self.unit.reset_times,
+            req.scope == ResetTimes.Request.SCOPE_ALL,
+            req.source or "operator",
         )
-        self._publish()
         return self._answer(resp, answer)
 
     def _srv_reset_counters(
         self, req: ResetCounters.Request, resp: ResetCounters.Response
     ) -> ResetCounters.Response:
-        answer = self.unit.reset_counters(req.source or "operator")
-        self._publish()
+        answer = self._run(self.unit.reset_counters, req.source or "operator")
         return self._answer(resp, answer)
 
     def _srv_ack_alarms(
         self, req: AckAlarms.Request, resp: AckAlarms.Response
     ) -> AckAlarms.Response:
         before = self.unit.alarms.unacknowledged_count()
-        answer = self.unit.ack_alarms(
-            None if req.all else req.id, req.value, req.source or "operator"
+        answer = self._run(
+            self.unit.ack_alarms, None if req.all else req.id, req.value, req.source or "operator"
         )
-        self._publish()
         resp.acknowledged = before - self.unit.alarms.unacknowledged_count()
         return self._answer(resp, answer)
 
@@ -234,8 +236,7 @@ class UnitNode(Node):
         self, req: ResetAlarms.Request, resp: ResetAlarms.Response
     ) -> ResetAlarms.Response:
         before = len(self.unit.alarms.current)
-        answer = self.unit.reset_alarms(req.clear_first_out, req.source or "operator")
-        self._publish()
+        answer = self._run(self.unit.reset_alarms, req.clear_first_out, req.source or "operator")
         resp.cleared = before - len(self.unit.alarms.current)
         return self._answer(resp, answer)
 
@@ -254,112 +255,110 @@ class UnitNode(Node):
         return resp
 
     def _srv_set_alarm(self, req: SetAlarm.Request, resp: SetAlarm.Response) -> SetAlarm.Response:
-        answer = self.unit.set_alarm(req.id, req.value, req.active, req.source or "operator", "",
+        answer = self._run(self.unit.set_alarm, req.id, req.value, req.active, req.source or "operator", "",
                                      req.warning or None, req.category, req.message)  # fmt: skip
-        self._publish()
         return self._answer(resp, answer, "message_out")
 
     def _srv_set_mach_speed(
         self, req: SetMachSpeed.Request, resp: SetMachSpeed.Response
     ) -> SetMachSpeed.Response:
-        answer = self.unit.set_mach_speed(req.mach_speed, req.source or "operator")
-        self._publish()
+        answer = self._run(self.unit.set_mach_speed, req.mach_speed, req.source or "operator")
         resp.mach_speed = self.unit.mach_speed
         return self._answer(resp, answer)
 
     def _srv_set_parameters(
         self, req: SetUnitParameters.Request, resp: SetUnitParameters.Response
     ) -> SetUnitParameters.Response:
-        answer = self.unit.set_parameters(
-            [convert.descriptor_in(d) for d in req.parameter], req.source or "operator"
+        answer = self._run(
+            self.unit.set_parameters,
+            [convert.descriptor_in(d) for d in req.parameter],
+            req.source or "operator",
         )
-        self._publish()
         return self._answer(resp, answer)
 
     def _srv_set_product(
         self, req: SetProduct.Request, resp: SetProduct.Response
     ) -> SetProduct.Response:
-        answer = self.unit.set_product(
-            [convert.product_in(p) for p in req.product], req.source or "operator"
+        answer = self._run(
+            self.unit.set_product,
+            [convert.product_in(p) for p in req.product],
+            req.source or "operator",
         )
-        self._publish()
         return self._answer(resp, answer)
 
     def _srv_set_em_active(
         self, req: SetEmActive.Request, resp: SetEmActive.Response
     ) -> SetEmActive.Response:
-        answer = self.unit.set_em_active(req.em, req.active, req.source or "operator")
-        self._publish()
+        answer = self._run(self.unit.set_em_active, req.em, req.active, req.source or "operator")
         return self._answer(resp, answer)
 
     def _srv_set_interlock(
         self, req: SetInterlock.Request, resp: SetInterlock.Response
     ) -> SetInterlock.Response:
-        answer = self.unit.set_interlock(req.active, req.reason, req.source or "remote")
-        self._publish()
+        answer = self._run(self.unit.set_interlock, req.active, req.reason, req.source or "remote")
         return self._answer(resp, answer)
 
     # -- equipment modules ---------------------------------------------------------------------------
     def _on_report(self, msg: EmReport) -> None:
+        now = self._now()
         name = msg.em
-        unit = self.unit
+        unit, run = self.unit, self.driver.call
         if msg.kind == EmReport.KIND_LEAVE:
             if self.liveliness.left(name):
-                unit.em_lost(name, "left")
-            self._publish()
+                run(now, unit.em_lost, name, "left")
             return
-        if self.liveliness.seen(name, self._now(), msg.lease):
-            unit.em_seen(name)
+        if self.liveliness.seen(name, now, msg.lease):
+            run(now, unit.em_seen, name)
         kind = msg.kind
         if kind == EmReport.KIND_STATE_COMPLETE:
-            unit.em_complete(name, msg.state, msg.sequence)
+            run(now, unit.em_complete, name, msg.state, msg.sequence)
         elif kind == EmReport.KIND_COMMAND_REQUEST:
-            unit.em_request(name, msg.command)
+            run(now, unit.em_request, name, msg.command)
         elif kind == EmReport.KIND_INTERLOCK:
-            unit.em_interlock(name, msg.blocked, msg.starved, msg.material_interlock)
+            run(now, unit.em_interlock, name, msg.blocked, msg.starved, msg.material_interlock)
         elif kind == EmReport.KIND_COUNT:
             if msg.counter < len(KINDS):
-                unit.em_count(name, KINDS[msg.counter], msg.counter_index, msg.increment)
+                run(now, unit.em_count, name, KINDS[msg.counter], msg.counter_index, msg.increment)
         elif kind == EmReport.KIND_ALARM:
-            unit.em_alarm(
-                name,
-                msg.alarm_id,
-                msg.alarm_value,
-                msg.alarm_active,
-                msg.warning,
-                msg.category,
-                msg.message,
-            )
-        self._publish()
+            run(now, unit.em_alarm, name, msg.alarm_id, msg.alarm_value, msg.alarm_active,
+                msg.warning, msg.category, msg.message)  # fmt: skip
 
     def _on_tick(self) -> None:
         now = self._now()
         for name, lease in self.liveliness.expired(now):
-            self.unit.em_lost(name, f"no report for {lease:g} s")
-        self.unit.advance()
-        self._publish()
+            self.driver.call(now, self.unit.em_lost, name, f"no report for {lease:g} s")
+        self.driver.catch_up(now)
         self._flush_inputs()
 
     # -- publishing ------------------------------------------------------------------------------------
-    def _publish(self) -> None:
-        """Publish everything the engine produced: transitions with their status first."""
-        unit = self.unit
-        name = self.config.name
-        for kind, item in unit.drain():
-            if kind == "transition":
-                self.pub_transitions.publish(convert.transition(name, item))
-                self._publish_status(item)
-            elif kind == "status":
-                self._publish_status(item)
-            elif kind == "alarms":
-                self.pub_alarms.publish(convert.alarm_list(name, unit.now, unit.alarms))
-                self._publish_diagnostics()
-            elif kind == "admin":
-                self.pub_admin.publish(convert.admin(item))
-            elif kind == "log":
-                self._log(*item)
+    def _run(self, fn: Callable[..., T], *args: Any) -> T:
+        """An input from a service or parameter callback, at the node's time now."""
+        return self.driver.call(self._now(), fn, *args)
+
+    def _emit(self, topic: str, msg: Any) -> None:
+        if topic == "log":
+            self._log(*msg)
+            return
+        self._outputs[topic].publish(msg)
+        if topic == "alarms":
+            self._publish_diagnostics()
         if len(self._inputs) >= 200:
             self._flush_inputs()
+
+    def _publish_start(self) -> None:
+        """What a recording needs to replay this unit: the cell configuration (latched ~/config)
+        and a first input ``start`` with the admin data the unit restored; then the start-up
+        outputs (the RESTART transition and its status, the admin data)."""
+        if self.source is not None:
+            self.pub_config.publish(
+                String(data=json.dumps({"unit": self.config.name, "cell_yaml": self.source}))
+            )
+        if self._record:
+            self._on_input(
+                self.unit.now, "start", {"document": self.unit.restored, "time": self.unit.now}
+            )
+        self.driver.flush()
+        self.pub_admin.publish(convert.admin(self.unit.admin()))
 
     def _log(self, level: str, text: str) -> None:
         # rclpy ties a severity to each call site: one call per level.
@@ -367,14 +366,6 @@ class UnitNode(Node):
             self.get_logger().warning(text)
         else:
             self.get_logger().info(text)
-
-    def _publish_status(self, mark: Transition | StatusMark) -> None:
-        msg = convert.status(self.unit.status_at(mark))
-        self._last_status = msg
-        self.pub_status.publish(msg)
-
-    def _publish_admin_now(self) -> None:
-        self.pub_admin.publish(convert.admin(self.unit.admin()))
 
     def _publish_diagnostics(self) -> None:
         unit = self.unit
@@ -416,6 +407,10 @@ class UnitNode(Node):
 def load_unit(cell_file: str, unit: str | None) -> UnitConfig:
     """The configuration of ``unit`` in ``cell_file`` (the only unit if not given)."""
     cell = load_cell(cell_file)
+    return pick_unit(cell, cell_file, unit)
+
+
+def pick_unit(cell: CellConfig, cell_file: str, unit: str | None) -> UnitConfig:
     if unit is None:
         if len(cell.units) != 1:
             raise SystemExit(
@@ -434,10 +429,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0 if args else 2
     try:
         config = load_unit(args[0], args[1] if len(args) > 1 else None)
+        source = Path(args[0]).read_text(encoding="utf-8")
     except Exception as exc:  # ConfigError and friends: one readable message, exit 2
         print(f"unit_node: {exc}", file=sys.stderr)
         return 2
-    node = UnitNode(config)
+    node = UnitNode(config, source=source)
     return run.spin([node], on_shutdown=node.close)
 
 

@@ -20,7 +20,7 @@ from enum import IntEnum
 from typing import Any, NamedTuple, cast
 
 from .alarms import AlarmDef, AlarmEvent, AlarmManager, Kind
-from .config import Descriptor, Product, UnitConfig
+from .config import Descriptor, Ingredient, Product, UnitConfig
 from .counters import Counters
 from .equipment import Equipment, EquipmentModule
 from .modes import ModeDef, mode_change_refusal, resolve
@@ -792,6 +792,40 @@ class Unit:
         self._enter()
         self._leave()
 
+    def next_deadline(self) -> float | None:
+        """When the engine has something to do next on its own (a timeout, a periodic admin...)."""
+        return self._deadlines[0][0] if self._deadlines else None
+
+    def fire_next(self, until: float) -> bool:
+        """Fire the earliest deadline if it is due by ``until``; False when none is. Driving the
+        engine one deadline at a time (and publishing after each) is what makes a live node and a
+        replay produce the same messages (see packml_ros2.driver)."""
+        if not self._deadlines or self._deadlines[0][0] > until:
+            return False
+        self._advance_to = until
+        when, _, kind, data = heapq.heappop(self._deadlines)
+        self._t = max(self._t, when)
+        self._handlers()[kind](data)
+        self._settle()
+        self._flush_status()
+        return True
+
+    def apply_input(self, name: str, args: dict[str, Any]) -> Answer | None:
+        """Apply a logged input (``on_input``'s name and arguments) again: the replay entry."""
+        if name not in INPUTS:
+            raise ValueError(
+                f"{name!r} is not an engine input (inputs: {', '.join(sorted(INPUTS))})"
+            )
+        args = dict(args)
+        if name == "step":
+            return self.step([request_from_dict(r) for r in args["requests"]])  # type: ignore[return-value]
+        if name == "set_parameters":
+            args["parameters"] = [Descriptor(**d) for d in args["parameters"]]
+        elif name == "set_product":
+            args["products"] = [product_from_dict(p) for p in args["products"]]
+        result: Answer | None = getattr(self, name)(**args)
+        return result
+
     # ================================================================================================
     # Outputs and views
     # ================================================================================================
@@ -1334,8 +1368,8 @@ class Unit:
             when += period * math.floor(behind / period)
         self._at(when, kind, period)
 
-    def _advance(self, now: float) -> None:
-        handlers: dict[str, Callable[[Any], None]] = {
+    def _handlers(self) -> dict[str, Callable[[Any], None]]:
+        return {
             "timeout": self._on_timeout,
             "dwell": self._on_dwell,
             "mode_timeout": self._on_mode_timeout,
@@ -1345,6 +1379,9 @@ class Unit:
             "save": self._on_save,
             "admin": self._on_admin,
         }
+
+    def _advance(self, now: float) -> None:
+        handlers = self._handlers()
         self._advance_to = now
         while self._deadlines and self._deadlines[0][0] <= now:
             when, _, kind, data = heapq.heappop(self._deadlines)
@@ -1468,6 +1505,7 @@ class Unit:
 
     def _restore(self, now: float) -> None:
         data = self.store.load() if self.store is not None else None
+        self.restored: dict[str, Any] | None = data
         if data is None:
             return
         self.sequence = int(data.get("sequence", 0))
@@ -1503,6 +1541,25 @@ def request_from_dict(d: dict[str, Any]) -> Request:
     if kind == "mode":
         return ModeRequest(d["mode"], d["source"])
     return CompleteReport(d["em"], int(d["state"]), int(d["sequence"]))
+
+
+#: Every input method of Unit (what ``on_input`` reports and ``apply_input`` accepts).
+INPUTS = frozenset({
+    "command", "set_mode", "step", "em_complete", "em_seen", "em_lost", "em_interlock", "em_count",
+    "set_em_active", "set_alarm", "ack_alarms", "reset_alarms", "reset_times", "reset_counters",
+    "set_mach_speed", "set_parameters", "set_product", "set_remote_enabled", "set_interlock", "advance",
+})  # fmt: skip
+
+
+def product_from_dict(d: dict[str, Any]) -> Product:
+    return Product(
+        d["product_id"],
+        tuple(Descriptor(**v) for v in d.get("process_variables", [])),
+        tuple(
+            Ingredient(i["ingredient_id"], tuple(Descriptor(**v) for v in i.get("parameter", [])))
+            for i in d.get("ingredients", [])
+        ),
+    )
 
 
 def product_to_dict(p: Product) -> dict[str, Any]:

@@ -1,0 +1,1 @@
+"""The ``packml`` command line: ``packml <verb> --help`` for each verb."""

@@ -1,0 +1,127 @@
+"""A short-lived ROS session for command-line verbs: rclpy on its own context, one node spun in
+a background thread, unit and cell lookup by name, and answers turned into exit codes."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager, suppress
+from typing import Any
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+
+from .. import run
+from ..client import CellProxy, Unavailable, UnitProxy, discover_cells
+
+
+class Session:
+    def __init__(self, args: argparse.Namespace) -> None:
+        self.args = args
+        self.timeout: float = getattr(args, "timeout", 5.0)
+        self.context = Context()
+        run.default_environment()
+        rclpy.init(
+            context=self.context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO
+        )
+        self.node = Node(f"packml_cli_{os.getpid()}", context=self.context)
+        self.executor = MultiThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+        self._cells: dict[str, CellProxy] = {}
+
+    def _spin(self) -> None:
+        with suppress(ExternalShutdownException, rclpy.executors.ShutdownException):
+            self.executor.spin()
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=2)
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+        self._thread.join(2)
+
+    # -- finding things ----------------------------------------------------------------------------------
+    def cells(self) -> dict[str, list[str]]:
+        wanted = getattr(self.args, "cell", None)
+        found = discover_cells(self.node, self.timeout)
+        if wanted:
+            return {wanted: found.get(wanted, [])}
+        return found
+
+    def cell(self, name: str | None = None) -> CellProxy:
+        """The cell ``name`` (or --cell, or the only cell on the graph), with its units."""
+        name = name or getattr(self.args, "cell", None)
+        if name is None:
+            cells = discover_cells(self.node, self.timeout)
+            if not cells:
+                raise Unavailable("no PackML unit found (is a cell running? same ROS_DOMAIN_ID?)")
+            if len(cells) > 1:
+                raise LookupError(
+                    f"several cells are running ({', '.join(cells)}): choose one with --cell"
+                )
+            name = next(iter(cells))
+        if name not in self._cells:
+            proxy = CellProxy(self.node, name)
+            proxy.discover(self.timeout)
+            self._cells[name] = proxy
+        return self._cells[name]
+
+    def unit(self, name: str) -> UnitProxy:
+        """A unit by ``unit``, ``cell/unit`` or ``/cell/unit``."""
+        if "/" in name.strip("/"):
+            cell, unit = name.strip("/").split("/", 1)
+            return self.cell(cell).unit(unit)
+        cell_name = getattr(self.args, "cell", None)
+        if cell_name is None:
+            cells = discover_cells(self.node, self.timeout)
+            owners = [c for c, units in cells.items() if name in units]
+            if not owners:
+                known = ", ".join(f"{c}/{u}" for c, units in cells.items() for u in units) or "none"
+                raise LookupError(f"no unit {name!r} found (units: {known})")
+            if len(owners) > 1:
+                raise LookupError(
+                    f"unit {name!r} exists in cells {', '.join(owners)}: write cell/{name}"
+                )
+            cell_name = owners[0]
+        return self.cell(cell_name).unit(name)
+
+    def is_cell(self, name: str) -> bool:
+        """Whether ``name`` is a running cell rather than a unit."""
+        if "/" in name.strip("/"):
+            return False
+        cells = discover_cells(self.node, self.timeout)
+        return name in cells and not any(name in units for units in cells.values())
+
+
+@contextmanager
+def session(args: argparse.Namespace) -> Iterator[Session]:
+    s = Session(args)
+    try:
+        yield s
+    finally:
+        s.close()
+
+
+def add_common(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--cell", help="cell namespace (default: the only cell running)")
+    parser.add_argument(
+        "--timeout",
+        type=float,
+        default=5.0,
+        help="seconds to wait for discovery and answers (default 5)",
+    )
+
+
+def fail(message: str, code: int) -> int:
+    print(f"packml: {message}", file=sys.stderr)
+    return code
+
+
+def describe(resp: Any) -> str:
+    return getattr(resp, "message", "") or getattr(resp, "message_out", "")

@@ -1,0 +1,77 @@
+"""Driving a :class:`~packml_ros2.core.Unit` and turning its outputs into messages — the one place
+that does it, used by the unit node (live) and by ``packml replay`` (offline), so both produce the
+same messages in the same order:
+
+1. before an input at time t, every deadline due by t is fired and published one at a time;
+2. the input is applied with the engine's clock frozen at t (the time the input log records);
+3. its outputs are published.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+from . import convert
+from .core import Unit
+from .core.unit import StatusMark, Transition
+
+T = TypeVar("T")
+#: emit(topic, message): topic is "status", "transitions", "admin", "alarms" or "log".
+Emit = Callable[[str, Any], None]
+
+
+class FrozenClock:
+    """The engine's clock: the node's (or bag's) time, frozen while an input is applied."""
+
+    def __init__(self, source: Callable[[], float]) -> None:
+        self.source = source
+        self.frozen: float | None = None
+
+    def __call__(self) -> float:
+        return self.frozen if self.frozen is not None else self.source()
+
+
+class UnitDriver:
+    def __init__(self, unit: Unit, clock: FrozenClock, emit: Emit) -> None:
+        self.unit = unit
+        self.clock = clock
+        self.emit = emit
+        self.name = unit.config.name
+
+    def catch_up(self, now: float) -> None:
+        """Fire the deadlines due by ``now``, publishing after each."""
+        while self.unit.fire_next(now):
+            self.flush()
+
+    def call(self, now: float, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
+        """Apply an input (a Unit method) at time ``now`` and publish what it caused."""
+        self.catch_up(now)
+        self.clock.frozen = now
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            self.flush()
+            self.clock.frozen = None
+
+    def replay(self, now: float, name: str, args: dict[str, Any]) -> Any:
+        """Apply a logged input again (name and arguments as ``Unit.on_input`` reported them)."""
+        return self.call(now, self.unit.apply_input, name, args)
+
+    def flush(self) -> None:
+        unit = self.unit
+        for kind, item in unit.drain():
+            if kind == "transition":
+                self.emit("transitions", convert.transition(self.name, item))
+                self.emit("status", self.status_message(item))
+            elif kind == "status":
+                self.emit("status", self.status_message(item))
+            elif kind == "alarms":
+                self.emit("alarms", convert.alarm_list(self.name, unit.now, unit.alarms))
+            elif kind == "admin":
+                self.emit("admin", convert.admin(item))
+            else:
+                self.emit("log", item)
+
+    def status_message(self, mark: Transition | StatusMark) -> Any:
+        return convert.status(self.unit.status_at(mark))
