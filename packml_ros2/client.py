@@ -89,12 +89,31 @@ class UnitProxy:
         self._group = ReentrantCallbackGroup()
         self._cond = threading.Condition()
         self._clients: dict[str, Any] = {}
-        self._subs = [
-            self.node.create_subscription(Status, f"{self.path}/status", self._on_status, qos.STATUS, callback_group=self._group),
-            self.node.create_subscription(Admin, f"{self.path}/admin", self._on("admin"), qos.ADMIN, callback_group=self._group),
-            self.node.create_subscription(AlarmList, f"{self.path}/alarms", self._on("alarms"), qos.ALARMS, callback_group=self._group),
-            self.node.create_subscription(TransitionEvent, f"{self.path}/transitions", self._on_transition, qos.TRANSITIONS, callback_group=self._group),
-        ]  # fmt: skip
+        self._topics: dict[str, tuple[Any, Callable[[Any], None], Any]] = {
+            "status": (Status, self._on_status, qos.STATUS),
+            "admin": (Admin, self._on("admin"), qos.ADMIN),
+            "alarms": (AlarmList, self._on("alarms"), qos.ALARMS),
+            "transitions": (TransitionEvent, self._on_transition, qos.TRANSITIONS),
+        }
+        self._subs = {topic: self._subscribe(topic) for topic in self._topics}
+
+    def _subscribe(self, topic: str) -> Any:
+        msg_type, callback, profile = self._topics[topic]
+        return self.node.create_subscription(
+            msg_type, f"{self.path}/{topic}", callback, profile, callback_group=self._group
+        )
+
+    def resubscribe(self, *topics: str) -> None:
+        """Subscribe again to latched topics (``status``, ``admin``, ``alarms``, ``transitions``;
+        default: all): a new subscription receives the latest samples as soon as it is matched.
+        Useful when a unit comes back after a network partition: the old subscription would get
+        what it missed only by reliable repair, at the writer's next heartbeat (seconds).
+        ``transitions`` then delivers its history again (up to 100 already seen ones)."""
+        for topic in topics or tuple(self._topics):
+            old = self._subs.get(topic)
+            self._subs[topic] = self._subscribe(topic)
+            if old is not None:
+                self.node.destroy_subscription(old)
 
     # -- topics ------------------------------------------------------------------------------------------
     def _on_status(self, msg: Status) -> None:
@@ -193,7 +212,7 @@ class UnitProxy:
         return self.call_sync("set_mode", timeout, mode=int(mode), source=source)
 
     def destroy(self) -> None:
-        for sub in self._subs:
+        for sub in self._subs.values():
             self.node.destroy_subscription(sub)
         for client in self._clients.values():
             self.node.destroy_client(client)

@@ -31,10 +31,14 @@ def default_environment() -> None:
 def spin(
     nodes: Sequence[Node], threads: int = 0, on_shutdown: Callable[[], None] | None = None
 ) -> int:
-    """Spin ``nodes`` until Ctrl-C or SIGTERM, then shut down in order; returns the exit code."""
+    """Spin ``nodes`` until Ctrl-C or SIGTERM, then shut down in order; returns the exit code.
+
+    ``threads``: 0 = one thread for a single node, a multi-threaded executor (one thread per
+    core) for several; 1 = single-threaded; more = a multi-threaded executor with that many
+    threads, also for a single node (e.g. one whose service handlers wait for other nodes)."""
     executor: Executor = (
         MultiThreadedExecutor(num_threads=threads or None)
-        if threads != 1 and len(nodes) > 1
+        if threads > 1 or (threads == 0 and len(nodes) > 1)
         else SingleThreadedExecutor()
     )
     for node in nodes:

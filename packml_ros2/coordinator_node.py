@@ -1,0 +1,857 @@
+"""The cell coordinator: the ISA-88 "procedure" level above the units of a cell (PACKML.md section 4).
+
+Node ``/<cell>/coordinator``. Services: ``command`` (packml_interfaces/Command), ``set_mode``
+(SetMode) and the Trigger shortcuts ``reset`` ... ``complete``, all fanned out to the units through
+their remote path (source ``remote:coordinator``: a unit accepts it only while its parameter
+``remote_commands_enabled`` is true). Topic: ``status`` (CellStatus, latched), published on every
+change.
+
+Sequencing: start-like commands (RESET, START, UNHOLD, UNSUSPEND, CLEAR) go to the units in
+``start_order``, stop-like ones (STOP, HOLD, SUSPEND, COMPLETE) in ``stop_order``; units that are
+not listed follow in configuration order. Each step waits until the unit reached the state its
+answer names as ``state_requested`` before the next unit is commanded. A unit already in (or on
+its way to) the command's target state is skipped. A refusal, a step that takes longer than
+``step_timeout`` or a lost unit ends the sequence; the answer names the unit and quotes its reason.
+ABORT goes to every unit at once (safety) and, like STOP, cancels a running sequence; any other
+command is refused while a sequence runs. The service handlers block while a sequence runs: spin
+the node with a MultiThreadedExecutor (``main`` does).
+
+Cell state (``CellStatus.state_current``): the online units' common state, otherwise the most
+severe by :data:`SEVERITY`: Aborting > Aborted > Stopping > Clearing > Stopped > Holding > Held >
+Suspending > Suspended > Unholding > Unsuspending > Resetting > Starting > Completing > Idle >
+Complete > Execute (acting before wait states in each group: the cell is still moving; the cell is
+in Execute only when every online unit is).
+
+Lost units: a unit is online (once its latched status arrived) while anything of it arrives
+(status, transitions, admin, alarms, or its ``packml: <unit>`` entry with hardware_id
+``<cell>/<unit>`` on ``/diagnostics``, which every unit publishes once per second).
+Nothing for ``unit_lease`` seconds: it is lost (``lost_units``, health ``offline``, a warning in
+the log), and back online with its next status (the status held from before a network partition
+may be stale: when anything else of a lost unit arrives first, the coordinator subscribes to its
+status and transitions again, which delivers the latest ones at once). A unit never heard of since the coordinator
+started is reported lost after ``unit_lease`` as well. ``unit_lease`` should exceed the 1 s
+diagnostics period: detection takes between ``unit_lease - 1`` and ``unit_lease`` (+0.1 s) seconds.
+
+Interlocks (``propagate_interlocks``): while a rule's unit reports ``blocked`` / ``starved``, the
+coordinator holds an interlock (``set_interlock``, source ``coordinator``, reason ``"<unit>
+blocked"``) on each unit of the rule's ``suspend`` list; the unit suspends itself and unsuspends
+when it is cleared. One interlock per target unit combines every rule that holds it (the unit
+keeps one interlock per source). Requests go out on changes only, and again to a unit that comes
+back online (and once at first contact: it clears an interlock a previous coordinator left). A
+unit's condition is what its active EMs report (``Status.equipment_modules[].blocked/starved``):
+its EquipmentInterlock flag also rises with external interlocks, the coordinator's own among them,
+and propagating those would cascade and could lock two units into each other. A lost unit keeps
+its last known condition.
+
+Run: ``coordinator <cell.yaml>`` or ``python -m packml_ros2.coordinator_node <cell.yaml>``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any
+
+from diagnostic_msgs.msg import DiagnosticArray
+from packml_interfaces.msg import CellStatus, Result, Status, TransitionEvent, UnitSummary
+from packml_interfaces.srv import Command, SetMode
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from std_srvs.srv import Trigger
+
+from . import qos, run
+from .client import Unavailable, UnitProxy
+from .core import WAIT, CellConfig, Cmd, State, load_cell, state_name
+
+#: Source of the unit commands the coordinator sends (the units' remote path).
+SOURCE = "remote:coordinator"
+#: Source of the interlocks it sets (``<unit>/set_interlock``).
+INTERLOCK_SOURCE = "coordinator"
+START_LIKE = frozenset({Cmd.RESET, Cmd.START, Cmd.UNHOLD, Cmd.UNSUSPEND, Cmd.CLEAR})
+STOP_LIKE = frozenset({Cmd.STOP, Cmd.HOLD, Cmd.SUSPEND, Cmd.COMPLETE})
+#: The wait state each command leads to; a unit whose StateRequested is already this is skipped.
+TARGET: dict[Cmd, State] = {
+    Cmd.RESET: State.IDLE,
+    Cmd.START: State.EXECUTE,
+    Cmd.UNHOLD: State.EXECUTE,
+    Cmd.UNSUSPEND: State.EXECUTE,
+    Cmd.CLEAR: State.STOPPED,
+    Cmd.STOP: State.STOPPED,
+    Cmd.HOLD: State.HELD,
+    Cmd.SUSPEND: State.SUSPENDED,
+    Cmd.COMPLETE: State.COMPLETE,
+    Cmd.ABORT: State.ABORTED,
+}
+#: Aggregate cell state when the units disagree: the first of these that any online unit is in.
+SEVERITY: tuple[State, ...] = (
+    State.ABORTING, State.ABORTED,
+    State.STOPPING, State.CLEARING, State.STOPPED,
+    State.HOLDING, State.HELD,
+    State.SUSPENDING, State.SUSPENDED,
+    State.UNHOLDING, State.UNSUSPENDING, State.RESETTING, State.STARTING, State.COMPLETING,
+    State.IDLE, State.COMPLETE, State.EXECUTE,
+)  # fmt: skip
+_RANK = {s: i for i, s in enumerate(SEVERITY)}
+TICK = 0.1  # s: lease checks and interlock retries
+INTERLOCK_RETRY = 0.5  # s between attempts when set_interlock failed
+THREADS = 8  # executor threads of main(): sequences block one each, callbacks need the rest
+
+
+def _ns(stamp: Any) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def aggregate_state(states: Sequence[int]) -> int:
+    """The common state, or the most severe one (:data:`SEVERITY`); 0 for no state."""
+    if not states:
+        return int(State.UNDEFINED)
+    if len(set(states)) == 1:
+        return int(states[0])
+    return int(min(states, key=lambda s: _RANK.get(s, len(SEVERITY))))
+
+
+@dataclass
+class _Unit:
+    """What the coordinator knows about one unit."""
+
+    name: str
+    proxy: UnitProxy
+    last_seen: float
+    online: bool = False
+    lost: bool = False  # reported lost (went silent, or never seen within unit_lease of start)
+    status: Status | None = None
+    # (sequence, to_state, command, source, trigger) of recent transitions
+    transitions: list[tuple[int, int, int, str, int]] = field(default_factory=list)
+    interlock_sent: bool | None = None  # what the unit holds from us (None: unknown)
+    interlock_reason: str = ""
+    interlock_pending: bool = False
+    interlock_retry_at: float = 0.0
+    interlock_error: str = ""
+    resubscribed: bool = False  # since it was lost
+    resubscribe_due: bool = False
+
+    def sequence(self) -> int:
+        seqs = [self.status.sequence] if self.status else []
+        if self.transitions:
+            seqs.append(self.transitions[-1][0])
+        return max(seqs, default=0)
+
+
+class _Failed(Exception):
+    """A sequence step failed: result code and message."""
+
+    def __init__(self, result: int, message: str) -> None:
+        super().__init__(message)
+        self.result = result
+        self.message = message
+
+
+class CoordinatorNode(Node):
+    """The coordinator of ``cell``: node ``coordinator`` in ``/<cell>``."""
+
+    def __init__(self, cell: CellConfig, **node_kwargs: Any) -> None:
+        namespace = node_kwargs.pop("namespace", f"/{cell.cell}")
+        super().__init__("coordinator", namespace=namespace, **node_kwargs)
+        self.cell = cell
+        self.config = cell.coordinator
+        names = list(cell.units)
+        self.start_order = [*self.config.start_order, *(n for n in names if n not in self.config.start_order)]  # fmt: skip
+        self.stop_order = [*self.config.stop_order, *(n for n in names if n not in self.config.stop_order)]  # fmt: skip
+        self._cond = threading.Condition(threading.RLock())
+        self._group = ReentrantCallbackGroup()
+        self._started = time.monotonic()
+        self._units: dict[str, _Unit] = {
+            name: _Unit(name, UnitProxy(self, f"/{cell.cell}/{name}", self._on_unit), self._started)
+            for name in names
+        }
+        self._hardware_ids = {f"{cell.cell}/{name}": name for name in names}
+        self._seq_lock = threading.Lock()
+        self._run_ids = itertools.count(1)
+        self._runs: dict[int, str] = {}  # running sequences: id -> what they wait for
+        self._cancelled: dict[int, str] = {}  # id -> by which command
+        self._aborts: set[int] = set()  # ids of ABORT runs
+        self._last_result = ""
+        self._last_msg: CellStatus | None = None
+        self._closed = False
+
+        self.pub_status = self.create_publisher(CellStatus, "~/status", qos.CELL_STATUS)
+        self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics,
+                                 qos.DIAGNOSTICS, callback_group=self._group)  # fmt: skip
+        self.create_service(Command, "~/command", self._srv_command, callback_group=self._group)
+        self.create_service(SetMode, "~/set_mode", self._srv_set_mode, callback_group=self._group)
+        for cmd in Cmd:
+            if cmd:
+                self.create_service(Trigger, f"~/{cmd.name.lower()}",
+                                    partial(self._srv_trigger, cmd), callback_group=self._group)  # fmt: skip
+        self._timer = self.create_timer(TICK, self._on_tick, callback_group=self._group)
+        if self.config.unit_lease <= 1.0:
+            self.get_logger().warning(
+                f"unit_lease {self.config.unit_lease:g} s is not longer than the units' 1 s "
+                "diagnostics period: idle units will flap between online and lost"
+            )
+        with self._cond:
+            self._publish()
+        self.get_logger().info(
+            f"coordinator of {cell.cell} up: units {', '.join(names)}; start order "
+            f"{' > '.join(self.start_order)}, stop order {' > '.join(self.stop_order)}; "
+            f"unit lease {self.config.unit_lease:g} s, step timeout {self.config.step_timeout:g} s"
+        )
+
+    # ================================================================================================
+    # Units: what arrives, liveliness
+    # ================================================================================================
+    def _on_unit(self, path: str, topic: str, msg: Any) -> None:
+        name = path.rsplit("/", 1)[-1]
+        with self._cond:
+            unit = self._units.get(name)
+            if unit is None or self._closed:
+                return
+            fresh = topic == "status"
+            if fresh and unit.status is not None and _ns(msg.stamp) < _ns(unit.status.stamp):
+                fresh = False  # older than the one held (a resubscription's race): ignored
+            elif fresh:
+                if unit.status is not None and msg.sequence < unit.status.sequence:
+                    # restarted without its admin data: sequence numbers start again
+                    unit.transitions = [t for t in unit.transitions if t[0] <= msg.sequence]
+                unit.status = msg
+            self._seen(unit, fresh)
+            if topic == "transitions":
+                assert isinstance(msg, TransitionEvent)
+                entry = (msg.sequence, msg.to_state, msg.command, msg.source, msg.trigger)
+                if unit.transitions and msg.sequence <= unit.transitions[-1][0]:
+                    if entry in unit.transitions:  # the latched history, delivered again
+                        return
+                    unit.transitions = [t for t in unit.transitions if t[0] < msg.sequence]
+                unit.transitions.append(entry)
+                del unit.transitions[:-200]
+            self._cond.notify_all()
+            self._reconcile_interlocks()
+            self._publish()
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        with self._cond:
+            if self._closed:
+                return
+            changed = False
+            for entry in msg.status:
+                name = self._hardware_ids.get(entry.hardware_id)
+                if name is not None and entry.name == f"packml: {name}":
+                    unit = self._units[name]
+                    was_online = unit.online
+                    self._seen(unit, fresh=False)
+                    changed |= unit.online != was_online
+            if changed:
+                self._cond.notify_all()
+                self._reconcile_interlocks()
+                self._publish()
+
+    def _seen(self, unit: _Unit, fresh: bool) -> None:
+        """Something of the unit arrived: it is alive. It is online (again) with a status that
+        arrived now (``fresh``): after a partition, the status it had before may be stale."""
+        unit.last_seen = time.monotonic()
+        if unit.online:
+            return
+        if not fresh:
+            if unit.lost and not unit.resubscribed:
+                # Back after a partition: its latest status would come by reliable repair at the
+                # writer's next heartbeat; a new subscription gets it at once (see _on_tick).
+                unit.resubscribed = unit.resubscribe_due = True
+            return
+        unit.online, unit.resubscribed = True, False
+        if unit.lost:
+            self.get_logger().info(f"unit {unit.name} online again")
+        else:
+            self.get_logger().info(f"unit {unit.name} online")
+        unit.lost = False
+
+    def _on_tick(self) -> None:
+        now = time.monotonic()
+        lease = self.config.unit_lease
+        with self._cond:
+            if self._closed:
+                return
+            again = [u for u in self._units.values() if u.resubscribe_due]
+            for unit in again:
+                unit.resubscribe_due = False
+        for unit in again:  # outside the lock: creating subscriptions takes the node's locks
+            unit.proxy.resubscribe("status", "transitions")
+        with self._cond:
+            for unit in self._units.values():
+                if unit.online and now - unit.last_seen > lease:
+                    unit.online, unit.lost = False, True
+                    unit.interlock_sent = None  # unknown until it is back: send again
+                    last = unit.status.state_current_name if unit.status else "no status"
+                    self.get_logger().warning(
+                        f"unit {unit.name} lost: no status or diagnostics for {lease:g} s "
+                        f"(last seen in {last})"
+                    )
+                    self._cond.notify_all()
+                elif not unit.online and not unit.lost and now - self._started > lease:
+                    unit.lost = True
+                    self.get_logger().warning(
+                        f"unit {unit.name} not seen within {lease:g} s of the coordinator's start"
+                    )
+            self._reconcile_interlocks()
+            self._publish()
+
+    # ================================================================================================
+    # Interlocks
+    # ================================================================================================
+    @staticmethod
+    def _condition(unit: _Unit, condition: str) -> bool:
+        """Whether the unit itself is blocked / starved: one of its active EMs says so. Its status
+        flag (EquipmentInterlock) also rises with external interlocks, the coordinator's own
+        among them; propagating those would cascade and could lock two units into each other."""
+        status = unit.status
+        return status is not None and any(
+            getattr(em, condition) for em in status.equipment_modules if em.active
+        )
+
+    def _desired_interlocks(self) -> dict[str, list[str]]:
+        desired: dict[str, list[str]] = {}
+        for rule in self.config.interlocks:
+            source = self._units.get(rule.unit)
+            if source is not None and self._condition(source, rule.condition):
+                for target in rule.suspend:
+                    reasons = desired.setdefault(target, [])
+                    if f"{rule.unit} {rule.condition}" not in reasons:
+                        reasons.append(f"{rule.unit} {rule.condition}")
+        return desired
+
+    def _reconcile_interlocks(self) -> None:
+        """Send what changed (called with the lock held)."""
+        if not self.config.propagate_interlocks or self._closed:
+            return
+        desired = self._desired_interlocks()
+        now = time.monotonic()
+        for unit in self._units.values():
+            reasons = desired.get(unit.name, [])
+            want, reason = bool(reasons), "; ".join(reasons)
+            if not unit.online or unit.interlock_pending or now < unit.interlock_retry_at:
+                continue
+            if unit.interlock_sent is want and (not want or reason == unit.interlock_reason):
+                continue
+            if not unit.proxy.client("set_interlock").service_is_ready():
+                continue  # not discovered yet (or gone): the next tick tries again
+            unit.interlock_pending = True
+            future = unit.proxy.call(
+                "set_interlock",
+                active=want,
+                reason=reason if want else (unit.interlock_reason or "cleared"),
+                source=INTERLOCK_SOURCE,
+            )
+            future.add_done_callback(partial(self._interlock_done, unit, want, reason))
+
+    def _interlock_done(self, unit: _Unit, want: bool, reason: str, future: Future[Any]) -> None:
+        with self._cond:
+            unit.interlock_pending = False
+            what = f"interlock on {unit.name} ({reason})" if want else f"clearing the interlock on {unit.name}"  # fmt: skip
+            exc = future.exception()
+            if exc is not None or not future.result().accepted:
+                why = str(exc) if exc is not None else future.result().message
+                unit.interlock_retry_at = time.monotonic() + INTERLOCK_RETRY
+                if why != unit.interlock_error:  # once per distinct problem, not every retry
+                    unit.interlock_error = why
+                    self.get_logger().warning(f"{what} failed: {why}; retrying")
+            else:
+                previous = unit.interlock_sent
+                unit.interlock_error = ""
+                unit.interlock_sent, unit.interlock_reason = want, reason if want else ""
+                if want or previous:
+                    self.get_logger().info(
+                        f"interlock set on {unit.name}: {reason}" if want
+                        else f"interlock cleared on {unit.name}"
+                    )  # fmt: skip
+            self._reconcile_interlocks()
+            self._publish()
+
+    # ================================================================================================
+    # Cell status
+    # ================================================================================================
+    def _summary(self, unit: _Unit) -> UnitSummary:
+        s = unit.status
+        out = UnitSummary(name=unit.name, online=unit.online)
+        if s is not None:
+            ems = s.equipment_modules
+            out.state_current = s.state_current
+            out.state_current_name = s.state_current_name
+            out.unit_mode_current = s.unit_mode_current
+            out.unit_mode_current_name = s.unit_mode_current_name
+            out.sequence = s.sequence
+            out.remote_commands_enabled = s.remote_commands_enabled
+            out.em_total = len(ems)
+            out.em_online = sum(1 for e in ems if e.online)
+            out.active_alarms = s.active_alarms
+            out.alarm_banner = s.alarm_banner
+            out.blocked = s.equipment_interlock.blocked
+            out.starved = s.equipment_interlock.starved
+            out.interlock_suspended = bool(unit.interlock_sent) and s.state_current in (
+                State.SUSPENDING,
+                State.SUSPENDED,
+            )
+        else:
+            out.state_current_name = state_name(State.UNDEFINED)
+        if not unit.online:
+            out.health = "offline"
+        elif s is not None and any(e.active and not e.online for e in s.equipment_modules):
+            out.health = "em lost"
+        elif s is not None and s.active_alarms:
+            out.health = "alarm"
+        else:
+            out.health = "ok"
+        return out
+
+    def _publish(self) -> None:
+        """Publish the cell status if anything but the stamp changed (lock held)."""
+        units = list(self._units.values())
+        present = [u for u in units if u.online and u.status is not None]
+        state = aggregate_state([u.status.state_current for u in present if u.status])
+        modes = {u.status.unit_mode_current for u in present if u.status}
+        lost = [u.name for u in units if u.lost]
+        detail = []
+        if not present:
+            detail.append("no unit online")
+        elif len({u.status.state_current for u in present if u.status}) > 1:
+            detail.append(
+                "mixed: " + ", ".join(f"{u.name} {u.status.state_current_name}" for u in present if u.status)
+            )  # fmt: skip
+        if lost:
+            detail.append(f"lost: {', '.join(lost)}")
+        held = [f"{u.name} ({u.interlock_reason})" for u in units if u.interlock_sent]
+        if held:
+            detail.append(f"interlock on {', '.join(held)}")
+        if self._last_result:
+            detail.append(f"last: {self._last_result}")
+        msg = CellStatus(
+            cell=self.cell.cell,
+            units=[self._summary(u) for u in units],
+            state_current=state,
+            state_current_name=state_name(state),
+            unit_mode_current=modes.pop() if len(modes) == 1 else 0,
+            all_online=all(u.online for u in units),
+            busy=bool(self._runs),
+            sequence_step=next(reversed(self._runs.values()), ""),
+            lost_units=lost,
+            detail="; ".join(detail),
+        )
+        previous = self._last_msg
+        if previous is not None:
+            msg.stamp = previous.stamp
+            if msg == previous:
+                return
+        msg.stamp = self.get_clock().now().to_msg()
+        self._last_msg = msg
+        self.pub_status.publish(msg)
+
+    @property
+    def cell_status(self) -> CellStatus | None:
+        """The last published cell status."""
+        with self._cond:
+            return self._last_msg
+
+    # ================================================================================================
+    # Services
+    # ================================================================================================
+    def _srv_command(self, req: Command.Request, resp: Command.Response) -> Command.Response:
+        resp.accepted, resp.result, resp.message = self.cell_command(
+            req.command, req.source or "operator"
+        )
+        with self._cond:
+            resp.state_current = self._last_msg.state_current if self._last_msg else 0
+        resp.state_requested = (
+            int(TARGET.get(Cmd(req.command), 0)) if resp.accepted else resp.state_current
+        )
+        return resp
+
+    def _srv_trigger(self, cmd: Cmd, req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:  # fmt: skip
+        resp.success, _, resp.message = self.cell_command(cmd, "operator")
+        return resp
+
+    def _srv_set_mode(self, req: SetMode.Request, resp: SetMode.Response) -> SetMode.Response:
+        resp.accepted, resp.result, resp.message, resp.mode_current = self.cell_set_mode(
+            req.mode, req.mode_name, req.source or "operator"
+        )
+        return resp
+
+    def _not_blocking_executor(self) -> str:
+        """Why the handlers may not block here ('' = they may)."""
+        if isinstance(self.executor, MultiThreadedExecutor):
+            return ""
+        return (
+            "the coordinator must be spun by a MultiThreadedExecutor (its services wait for the "
+            "units while their status keeps arriving)"
+        )
+
+    # -- cell commands --------------------------------------------------------------------------------------
+    def cell_command(self, cmd: int, caller: str = "operator") -> tuple[bool, int, str]:
+        """Run cell command ``cmd`` (blocks until the sequence ended): (accepted, result, message)."""
+        if not 1 <= cmd <= 10:
+            return False, Result.UNKNOWN_COMMAND, f"command {cmd} is not a PackML command (1..10)"
+        problem = self._not_blocking_executor()
+        if problem:
+            return False, Result.UNIT_UNAVAILABLE, problem
+        command = Cmd(cmd)
+        started = time.monotonic()
+        if command is Cmd.ABORT:
+            ok, result, message = self._abort()
+        else:
+            ok, result, message = self._sequence(command)
+        text = f"{command.name} from {caller}: {message}"
+        if ok:  # rclpy ties a severity to each call site: one call per level
+            self.get_logger().info(text)
+        else:
+            self.get_logger().warning(text)
+        with self._cond:
+            self._last_result = f"{command.name} {'done' if ok else 'failed'} ({time.monotonic() - started:.1f} s)"  # fmt: skip
+            self._publish()
+        return ok, result, message
+
+    def _register(self, what: str) -> int:
+        with self._cond:
+            run_id = next(self._run_ids)
+            self._runs[run_id] = what
+            self._publish()
+            return run_id
+
+    def _step_text(self, run_id: int, text: str) -> None:
+        with self._cond:
+            if run_id in self._runs:
+                self._runs[run_id] = text
+                self._publish()
+
+    def _unregister(self, run_id: int) -> None:
+        with self._cond:
+            self._runs.pop(run_id, None)
+            self._cancelled.pop(run_id, None)
+            self._aborts.discard(run_id)
+            self._publish()
+
+    def _cancel_all(self, by: str) -> None:
+        """End running sequences and mode fan-outs (an ABORT in progress is never cancelled)."""
+        with self._cond:
+            for run_id in self._runs:
+                if run_id not in self._aborts:
+                    self._cancelled.setdefault(run_id, by)
+            self._cond.notify_all()
+
+    def _check_cancelled(self, run_id: int, where: str) -> None:
+        by = self._cancelled.get(run_id)
+        if by is not None:
+            raise _Failed(Result.SUPERSEDED, f"cancelled at {where} by {by}")
+
+    def _sequence(self, cmd: Cmd) -> tuple[bool, int, str]:
+        name = cmd.name
+        if cmd is Cmd.STOP:  # cancels what runs, and whatever sneaks in before it got the lock
+            give_up = time.monotonic() + self.config.step_timeout + 5.0
+            acquired = False
+            while not acquired and time.monotonic() < give_up:
+                self._cancel_all("STOP")
+                acquired = self._seq_lock.acquire(timeout=0.1)
+        else:
+            acquired = self._seq_lock.acquire(blocking=False)
+        if not acquired:
+            with self._cond:
+                running = next(reversed(self._runs.values()), "a sequence")
+            return False, Result.COMMAND_NOT_ALLOWED, f"{name} refused: busy ({running})"
+        order = self.start_order if cmd in START_LIKE else self.stop_order
+        run_id = self._register(f"{name}: starting")
+        done: list[str] = []
+        skipped: list[str] = []
+        try:
+            for index, unit_name in enumerate(order, 1):
+                where = f"{unit_name} (step {index}/{len(order)})"
+                try:
+                    outcome, text = self._step(
+                        run_id, cmd, self._units[unit_name], index, len(order)
+                    )
+                except _Failed as failure:
+                    parts = [f"{name} stopped at {where}: {failure.message}"]
+                    if done:
+                        parts.append(f"done before: {', '.join(done)}")
+                    if skipped:
+                        parts.append(f"skipped: {', '.join(skipped)}")
+                    rest = order[index:]
+                    if rest:
+                        parts.append(f"not commanded: {', '.join(rest)}")
+                    return False, failure.result, "; ".join(parts)
+                (done if outcome == "done" else skipped).append(text)
+            parts = [f"{name} done in order {' > '.join(order)}"]
+            if done:
+                parts.append(", ".join(done))
+            if skipped:
+                parts.append(f"skipped: {', '.join(skipped)}")
+            return True, Result.ACCEPTED, "; ".join(parts)
+        finally:
+            self._unregister(run_id)
+            self._seq_lock.release()
+
+    def _step(self, run_id: int, cmd: Cmd, unit: _Unit, index: int, total: int) -> tuple[str, str]:
+        """Command one unit and wait for it: ('done' | 'skipped', text), or raise _Failed."""
+        started = time.monotonic()
+        deadline = started + self.config.step_timeout
+        target = TARGET[cmd]
+        step = f"{cmd.name} {index}/{total}: {unit.name}"
+        with self._cond:
+            self._check_cancelled(run_id, unit.name)
+            self._require_online(unit)
+            status = unit.status
+            assert status is not None  # online units have sent something; status is latched
+            seq0 = unit.sequence()
+            if status.state_requested == target:
+                if status.state_current == target:
+                    return "skipped", f"{unit.name} (already {state_name(target)})"
+                self._runs[run_id] = f"{step} on its way to {state_name(target)}"
+                self._publish()
+                self._wait_reached(run_id, unit, None, seq0, target, deadline)
+                return "done", f"{unit.name} -> {state_name(target)} (was on its way)"
+        self._step_text(run_id, f"{step}: sending {cmd.name}")
+        resp = self._call(run_id, unit, "command", deadline, command=int(cmd), source=SOURCE)
+        if not resp.accepted:
+            raise _Failed(resp.result, f"{unit.name} refused {cmd.name}: {resp.message}")
+        requested = resp.state_requested
+        if resp.state_current != requested:
+            self._step_text(run_id, f"{step}: waiting for {state_name(requested)}")
+            with self._cond:
+                self._wait_reached(run_id, unit, cmd, seq0, requested, deadline)
+        return (
+            "done",
+            f"{unit.name} -> {state_name(requested)} ({time.monotonic() - started:.2f} s)",
+        )
+
+    def _require_online(self, unit: _Unit) -> None:
+        if not unit.online or unit.status is None:
+            since = time.monotonic() - unit.last_seen
+            raise _Failed(
+                Result.UNIT_UNAVAILABLE,
+                f"{unit.name} is offline (no status or diagnostics for {since:.1f} s)",
+            )
+
+    def _wait_reached(self, run_id: int, unit: _Unit, cmd: Cmd | None, seq0: int, target: int,
+                      deadline: float) -> None:  # fmt: skip
+        """Wait (lock held) until ``unit`` reached ``target`` after sequence ``seq0``."""
+        while True:
+            progress = self._progress(unit, cmd, seq0, target)
+            if progress == "reached":
+                return
+            if progress:
+                raise _Failed(
+                    Result.COMMAND_NOT_ALLOWED,
+                    f"{unit.name} went to {progress} instead of {state_name(target)}",
+                )
+            self._check_cancelled(run_id, unit.name)
+            if not unit.online:
+                raise _Failed(
+                    Result.UNIT_UNAVAILABLE,
+                    f"{unit.name} was lost while going to {state_name(target)}",
+                )
+            now = time.monotonic()
+            if now >= deadline:
+                current = unit.status.state_current_name if unit.status else "no status"
+                raise _Failed(
+                    Result.UNIT_UNAVAILABLE,
+                    f"{unit.name} did not reach {state_name(target)} within "
+                    f"{self.config.step_timeout:g} s (step_timeout; now {current})",
+                )
+            self._cond.wait(min(deadline - now, 0.5))
+
+    @staticmethod
+    def _progress(unit: _Unit, cmd: Cmd | None, seq0: int, target: int) -> str:
+        """'reached', the name of the wait state the unit settled in instead, or ''."""
+        later = [t for t in unit.transitions if t[0] > seq0]
+        if cmd is not None:
+            # From the command's own transition on (older ones may still be in flight).
+            mine = next((t[0] for t in later if t[2] == cmd and t[3] == SOURCE), None)
+            later = [t for t in later if mine is not None and t[0] >= mine]
+        for _, to_state, _, _, trigger in later:
+            if to_state == target:
+                return "reached"
+            if to_state in WAIT and trigger != TransitionEvent.TRIGGER_MODE:
+                return state_name(to_state)
+        status = unit.status
+        if status is not None and status.state_current == target and status.sequence > seq0:
+            return "reached"
+        if cmd is None and status is not None and status.state_current == target:
+            return "reached"
+        return ""
+
+    def _call(self, run_id: int, unit: _Unit, service: str, deadline: float, **fields: Any) -> Any:
+        """Call a unit service from a handler thread: waits for it to appear and answer, gives up
+        at ``deadline``, when the unit is lost or the sequence is cancelled."""
+        client = unit.proxy.client(service)
+        future: Future[Any] | None = None
+        while True:
+            with self._cond:
+                self._check_cancelled(run_id, unit.name)
+                self._require_online(unit)
+            if future is None and client.service_is_ready():
+                future = unit.proxy.call(service, **fields)
+            if future is not None:
+                try:
+                    return future.result(timeout=0.05)
+                except TimeoutError:
+                    pass
+                except Unavailable as exc:
+                    raise _Failed(Result.UNIT_UNAVAILABLE, str(exc)) from None
+            else:
+                time.sleep(0.02)
+            if time.monotonic() >= deadline:
+                what = "did not answer" if future is not None else "is not available"
+                raise _Failed(
+                    Result.UNIT_UNAVAILABLE,
+                    f"{unit.name}/{service} {what} within {self.config.step_timeout:g} s",
+                )
+
+    # -- abort: everyone at once ------------------------------------------------------------------------------
+    def _abort(self) -> tuple[bool, int, str]:
+        self._cancel_all("ABORT")
+        run_id = self._register("ABORT: sending to every unit")
+        with self._cond:
+            self._aborts.add(run_id)
+        started = time.monotonic()
+        deadline = started + self.config.step_timeout
+        target = TARGET[Cmd.ABORT]
+        futures: dict[str, tuple[Future[Any], int]] = {}
+        results: dict[str, str] = {}
+        failed: list[tuple[int, str]] = []
+        try:
+            with self._cond:
+                for unit in self._units.values():
+                    status = unit.status
+                    if status is not None and status.state_requested == target and unit.online:
+                        results[unit.name] = f"{unit.name} already {status.state_current_name}"
+                        continue
+                    client = unit.proxy.client("command")
+                    if not client.service_is_ready():  # lost units too: try whoever is there
+                        results[unit.name] = f"{unit.name} unreachable"
+                        failed.append((Result.UNIT_UNAVAILABLE, results[unit.name]))
+                        continue
+                    seq0 = unit.sequence()
+                    futures[unit.name] = (
+                        unit.proxy.call("command", command=int(Cmd.ABORT), source=SOURCE),
+                        seq0,
+                    )
+            self._step_text(run_id, f"ABORT: waiting for {', '.join(futures) or 'nobody'}")
+            for name, (future, seq0) in futures.items():
+                unit = self._units[name]
+                try:
+                    resp = future.result(timeout=max(0.0, deadline - time.monotonic()))
+                except Exception as exc:  # TimeoutError, Unavailable
+                    results[name] = f"{name} did not answer ({str(exc) or 'timeout'})"
+                    failed.append((Result.UNIT_UNAVAILABLE, results[name]))
+                    continue
+                if not resp.accepted:
+                    results[name] = f"{name} refused ABORT: {resp.message}"
+                    failed.append((resp.result, results[name]))
+                    continue
+                try:
+                    with self._cond:
+                        if resp.state_current != resp.state_requested:
+                            self._wait_reached(
+                                run_id, unit, Cmd.ABORT, seq0, resp.state_requested, deadline
+                            )
+                    results[name] = f"{name} -> {state_name(resp.state_requested)}"
+                except _Failed as failure:
+                    results[name] = failure.message
+                    failed.append((failure.result, failure.message))
+        finally:
+            self._unregister(run_id)
+        listed = "; ".join(results[n] for n in self._units if n in results)
+        if failed:
+            return False, failed[0][0], f"ABORT sent to every unit at once, not all aborted: {listed}"  # fmt: skip
+        return True, Result.ACCEPTED, f"ABORT sent to every unit at once: {listed}"
+
+    # -- modes --------------------------------------------------------------------------------------------------
+    def cell_set_mode(self, mode: int, mode_name: str = "", caller: str = "operator") -> tuple[bool, int, str, int]:  # fmt: skip
+        """Fan a mode change out to every unit (start order): (accepted, result, message, mode)."""
+        wanted = mode_name or str(mode)
+        problem = self._not_blocking_executor()
+        if problem:
+            return False, Result.UNIT_UNAVAILABLE, problem, 0
+        if not self._seq_lock.acquire(blocking=False):
+            with self._cond:
+                running = next(reversed(self._runs.values()), "a sequence")
+            return False, Result.COMMAND_NOT_ALLOWED, f"mode {wanted} refused: busy ({running})", 0
+        run_id = self._register(f"SET_MODE {wanted}")
+        lines: list[str] = []
+        modes: set[int] = set()
+        result = Result.ACCEPTED
+        try:
+            for unit_name in self.start_order:
+                unit = self._units[unit_name]
+                self._step_text(run_id, f"SET_MODE {wanted}: {unit_name}")
+                deadline = time.monotonic() + self.config.step_timeout
+                try:
+                    resp = self._call(run_id, unit, "set_mode", deadline, mode=int(mode),
+                                      mode_name=mode_name, source=SOURCE)  # fmt: skip
+                except _Failed as failure:
+                    lines.append(f"{unit_name}: {failure.message}")
+                    result = result or failure.result
+                    modes.add(-1)
+                    continue
+                modes.add(resp.mode_current)
+                if resp.accepted:
+                    lines.append(f"{unit_name}: accepted ({resp.message})")
+                else:
+                    lines.append(f"{unit_name}: refused: {resp.message}")
+                    result = result or resp.result
+        finally:
+            self._unregister(run_id)
+            self._seq_lock.release()
+        ok = result == Result.ACCEPTED
+        message = f"mode {wanted} {'set on every unit' if ok else 'not set on every unit'}: " + "; ".join(lines)  # fmt: skip
+        if ok:
+            self.get_logger().info(f"from {caller}: {message}")
+        else:
+            self.get_logger().warning(f"from {caller}: {message}")
+        common = next(iter(modes)) if len(modes) == 1 else 0
+        return ok, result, message, max(common, 0)
+
+    # ================================================================================================
+    def close(self) -> None:
+        """Stop the timer and end running sequences (idempotent); destroy_node calls it too."""
+        with self._cond:
+            if self._closed:
+                return
+            self._closed = True
+        self._cancel_all("shutdown")
+        self.destroy_timer(self._timer)
+
+    def destroy_node(self) -> None:
+        self.close()
+        for unit in self._units.values():
+            unit.proxy.destroy()
+        super().destroy_node()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    import rclpy
+
+    args = run.init(argv)
+    if not args or args[0] in ("-h", "--help"):
+        print(__doc__)
+        rclpy.try_shutdown()
+        return 0 if args else 2
+    try:
+        cell = load_cell(args[0])
+    except Exception as exc:  # ConfigError and friends: one readable message, exit 2
+        print(f"coordinator: {exc}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    if not cell.coordinator.enabled:
+        print(f"coordinator: disabled in {args[0]} (coordinator.enabled: false)", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 0
+    node = CoordinatorNode(cell)
+    on_shutdown: Callable[[], None] = node.close
+    return run.spin([node], threads=THREADS, on_shutdown=on_shutdown)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,330 @@
+"""The cell coordinator over real DDS: cell commands sequenced across real unit nodes in the
+configured orders, refusals naming the unit, ABORT to every unit at once, mode fan-out, the
+aggregate cell state, line-interlock propagation from a simulated EM's fault, and a unit process
+killed and restarted.
+
+Units run in-process (``UnitNode`` on the harness's Context) or as processes where they are
+killed; every wait is on a condition, never a fixed sleep."""
+
+from __future__ import annotations
+
+import itertools
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from packml_interfaces.msg import CellStatus, Result, TransitionEvent
+from packml_interfaces.srv import Command, SetMode
+from std_srvs.srv import SetBool, Trigger
+
+from packml_ros2 import qos
+from packml_ros2.coordinator_node import SEVERITY, CoordinatorNode, aggregate_state
+from packml_ros2.core import Cmd, State, load_cell
+from packml_ros2.sim_em import SimulatedEm, parse_sim
+from packml_ros2.testing.harness import Collector
+from packml_ros2.unit_node import UnitNode
+from test.ros.cells import UnitClient, start_unit_process, write_cell
+
+pytestmark = pytest.mark.ros
+
+#: Acting states take this long (no EMs: the minimum dwell decides), so a coordinator that did not
+#: wait for each unit would command the next one while the previous is still moving.
+DWELL = {"resetting": 0.15, "starting": 0.15, "stopping": 0.15, "clearing": 0.1, "aborting": 0.3}
+
+
+def _unit(**extra: Any) -> dict[str, Any]:
+    return {"remote_commands_enabled": True, "min_dwell": dict(DWELL), **extra}
+
+
+def _ns(stamp: Any) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+class Cell:
+    """A cell started in-process: its units, the coordinator and the test's view of both."""
+
+    def __init__(self, ros: Any, tmp_path: Path, units: dict[str, Any], coordinator: dict[str, Any]) -> None:  # fmt: skip
+        cell_file, self.name = write_cell(tmp_path, units, coordinator)
+        self.ros = ros
+        self.config = load_cell(cell_file)
+        for unit in self.config.units.values():
+            ros.add(UnitNode(unit, context=ros.context))
+        self.coordinator = ros.add(CoordinatorNode(self.config, context=ros.context))
+        self.units = {n: UnitClient(ros, self.name, n) for n in self.config.units}
+        self.status: Collector[CellStatus] = ros.subscribe(
+            CellStatus, f"/{self.name}/coordinator/status", qos.CELL_STATUS
+        )
+        for client in self.units.values():
+            client.ready()
+        self.status.wait_for(lambda m: m.all_online, 10, "every unit online at the coordinator")
+        ros.wait_for_service(Trigger, f"/{self.name}/coordinator/reset")
+
+    def trigger(self, name: str, timeout: float = 20.0) -> Trigger.Response:
+        return self.ros.call(Trigger, f"/{self.name}/coordinator/{name}", timeout=timeout)
+
+    def command(self, cmd: Cmd, timeout: float = 20.0) -> Command.Response:
+        return self.ros.call(Command, f"/{self.name}/coordinator/command",
+                             Command.Request(command=int(cmd), source="test"), timeout)  # fmt: skip
+
+    def marks(self) -> dict[str, int]:
+        return {n: len(c.transitions) for n, c in self.units.items()}
+
+    def reached(self, unit: str, state: str, since: dict[str, int], timeout: float = 5.0) -> TransitionEvent:  # fmt: skip
+        """The unit's transition into ``state`` after the mark ``since``."""
+        return self.units[unit].transitions.wait_for(
+            lambda t: t.to_state_name == state, timeout, f"{unit} -> {state}", since[unit]
+        )
+
+    def assert_order(self, order: list[str], acting: str, final: str, since: dict[str, int]) -> None:  # fmt: skip
+        """Each unit entered ``acting`` only after the previous one had reached ``final``."""
+        for previous, following in itertools.pairwise(order):
+            done = self.reached(previous, final, since)
+            began = self.reached(following, acting, since)
+            assert _ns(began.stamp) >= _ns(done.stamp), (
+                f"{following} entered {acting} before {previous} reached {final}"
+            )
+        for unit in order:
+            assert self.reached(unit, acting, since).source == "remote:coordinator"
+
+    def wait(self, predicate: Any, what: str, timeout: float = 10.0) -> CellStatus:
+        return self.status.wait_for(predicate, timeout, what)
+
+    def summary(self, msg: CellStatus, unit: str) -> Any:
+        return next(u for u in msg.units if u.name == unit)
+
+
+def test_aggregate_state_order() -> None:
+    assert aggregate_state([]) == State.UNDEFINED
+    assert aggregate_state([State.EXECUTE] * 3) == State.EXECUTE
+    assert aggregate_state([State.EXECUTE, State.ABORTED, State.STOPPING]) == State.ABORTED
+    assert aggregate_state([State.HELD, State.STOPPED, State.SUSPENDED]) == State.STOPPED
+    assert aggregate_state([State.EXECUTE, State.SUSPENDED, State.HOLDING]) == State.HOLDING
+    assert aggregate_state([State.EXECUTE, State.SUSPENDED]) == State.SUSPENDED
+    assert aggregate_state([State.EXECUTE, State.IDLE]) == State.IDLE
+    assert aggregate_state([State.EXECUTE, State.STARTING]) == State.STARTING
+    assert set(SEVERITY) == set(State) - {State.UNDEFINED}
+
+
+def test_cell_commands_follow_start_and_stop_order(ros, tmp_path: Path) -> None:
+    start_order, stop_order = ["capper", "filler", "infeed"], ["infeed", "filler", "capper"]
+    cell = Cell(ros, tmp_path, {n: _unit() for n in ("infeed", "filler", "capper")},
+                {"start_order": start_order, "stop_order": stop_order, "step_timeout": 5.0})  # fmt: skip
+    first = cell.wait(lambda m: m.all_online, "online")
+    assert [u.name for u in first.units] == ["infeed", "filler", "capper"]
+    assert first.state_current_name == "STOPPED" and first.unit_mode_current == 1
+    assert all(u.health == "ok" and u.remote_commands_enabled for u in first.units)
+
+    since = cell.marks()
+    answer = cell.trigger("reset")
+    assert answer.success, answer.message
+    assert "capper > filler > infeed" in answer.message
+    cell.assert_order(start_order, "RESETTING", "IDLE", since)
+
+    since, seen = cell.marks(), len(cell.status)
+    answer = cell.trigger("start")
+    assert answer.success, answer.message
+    cell.assert_order(start_order, "STARTING", "EXECUTE", since)
+    # while the sequence ran, the cell said so, and was not in Execute before every unit was
+    during = cell.status.messages[seen:]
+    assert any(m.busy and m.sequence_step.startswith("START") for m in during)
+    mixed = [m for m in during if len({u.state_current for u in m.units}) > 1]
+    assert mixed and all(m.state_current_name != "EXECUTE" for m in mixed)
+    running = cell.wait(
+        lambda m: m.state_current_name == "EXECUTE" and not m.busy, "cell in Execute"
+    )
+    assert {u.state_current_name for u in running.units} == {"EXECUTE"}
+
+    # a unit already in the target state is skipped, and the answer says so
+    since = cell.marks()
+    answer = cell.trigger("start")
+    assert answer.success and "skipped" in answer.message and "already EXECUTE" in answer.message
+    assert cell.marks() == since
+
+    since = cell.marks()
+    answer = cell.trigger("stop")
+    assert answer.success, answer.message
+    cell.assert_order(stop_order, "STOPPING", "STOPPED", since)
+    cell.wait(lambda m: m.state_current_name == "STOPPED" and not m.busy, "cell stopped")
+
+    # set_mode goes to every unit; the answer lists each unit's result
+    answer = ros.call(SetMode, f"/{cell.name}/coordinator/set_mode",
+                      SetMode.Request(mode_name="maintenance", source="test"), 10)  # fmt: skip
+    assert answer.accepted and answer.mode_current == 2, answer.message
+    assert all(f"{u}: accepted" in answer.message for u in start_order)
+    cell.wait(lambda m: m.unit_mode_current == 2, "cell in Maintenance")
+    for client in cell.units.values():
+        client.wait_status(lambda s: s.unit_mode_current_name == "MAINTENANCE", 5)
+
+
+def test_refusal_names_the_unit_and_ends_the_sequence(ros, tmp_path: Path) -> None:
+    units = {"a": _unit(), "b": _unit(remote_commands_enabled=False), "c": _unit()}
+    cell = Cell(ros, tmp_path, units, {"start_order": ["a", "b", "c"]})
+    since = cell.marks()
+    answer = cell.command(Cmd.RESET)
+    assert not answer.accepted
+    assert answer.result == Result.REMOTE_DISABLED and answer.state_current == State.STOPPED
+    assert "stopped at b (step 2/3)" in answer.message
+    assert "b refused RESET: RESET from remote:coordinator refused: remote commands are disabled on b" in answer.message  # fmt: skip
+    assert "not commanded: c" in answer.message
+    cell.reached("a", "IDLE", since)
+    # c was never commanded; b refused: both still Stopped. The cell: the most severe state.
+    status = cell.wait(
+        lambda m: [u.state_current_name for u in m.units] == ["IDLE", "STOPPED", "STOPPED"],
+        "a Idle, b and c Stopped",
+    )
+    assert status.state_current_name == "STOPPED" and "mixed" in status.detail
+    assert not status.units[1].remote_commands_enabled
+    assert all(t.to_state_name != "RESETTING" for t in cell.units["c"].transitions.messages)
+
+    # set_mode reaches every unit even when one refuses; the answer lists each result
+    answer = ros.call(SetMode, f"/{cell.name}/coordinator/set_mode",
+                      SetMode.Request(mode=2, source="test"), 10)  # fmt: skip
+    assert not answer.accepted and answer.result == Result.REMOTE_DISABLED
+    assert answer.mode_current == 0  # mixed
+    lines = answer.message.split(": ", 1)[1].split("; ")
+    assert [line.split(":")[0] for line in lines] == ["a", "b", "c"]
+    assert lines[0].startswith("a: accepted") and lines[2].startswith("c: accepted")
+    assert lines[1].startswith("b: refused: mode change to MAINTENANCE from remote:coordinator")
+    mixed = cell.wait(lambda m: [u.unit_mode_current for u in m.units] == [2, 1, 2], "modes")
+    assert mixed.unit_mode_current == 0
+
+
+def test_abort_reaches_every_unit_at_once_and_cancels_a_running_start(ros, tmp_path: Path) -> None:
+    units = {"infeed": _unit(), "filler": _unit(),
+             "capper": _unit(min_dwell={**DWELL, "starting": 20.0})}  # fmt: skip
+    cell = Cell(ros, tmp_path, units, {"start_order": ["capper", "filler", "infeed"],
+                                       "step_timeout": 25.0})  # fmt: skip
+    assert cell.trigger("reset").success
+    start_answer: list[Trigger.Response] = []
+    starter = threading.Thread(target=lambda: start_answer.append(cell.trigger("start", 30)))
+    starter.start()
+    cell.wait(lambda m: m.busy and "capper" in m.sequence_step and "EXECUTE" in m.sequence_step,
+              "START waiting for the capper")  # fmt: skip
+    busy = cell.trigger("reset")  # other commands wait for no sequence: refused
+    assert not busy.success and busy.message.startswith("RESET refused: busy (START 1/3: capper")
+    since = cell.marks()
+    answer = cell.trigger("abort")
+    assert answer.success, answer.message
+    assert answer.message.startswith("ABORT sent to every unit at once")
+    starter.join(10)
+    assert start_answer and not start_answer[0].success
+    assert "cancelled at capper by ABORT" in start_answer[0].message
+    aborting = [cell.reached(n, "ABORTING", since) for n in units]
+    for unit in units:
+        cell.reached(unit, "ABORTED", since)
+    stamps = [_ns(t.stamp) for t in aborting]
+    # sequential, each unit would have waited for the previous one's 0.3 s in Aborting
+    assert max(stamps) - min(stamps) < 0.2e9, [t.from_state_name for t in aborting]
+    assert [t.from_state_name for t in aborting] == ["IDLE", "IDLE", "STARTING"]
+    cell.wait(lambda m: m.state_current_name == "ABORTED" and not m.busy, "cell aborted")
+    # clear: start order again, back to Stopped
+    since = cell.marks()
+    assert cell.trigger("clear").success
+    cell.assert_order(["capper", "filler", "infeed"], "CLEARING", "STOPPED", since)
+
+
+def test_interlock_of_one_unit_suspends_its_neighbour(ros, tmp_path: Path) -> None:
+    """capper's outfeed jams (blocked) -> the coordinator suspends filler; cleared -> both run.
+    The second rule closes a loop: filler's own status shows 'blocked' because of the interlock
+    the coordinator set, which must not be propagated back to capper."""
+    sim = {"cycle_time": 0.1, "counter": "none", "faults": {"jam": {"kind": "blocked"}}}
+    units = {"filler": _unit(),
+             "capper": _unit(equipment_modules={"outfeed": {"sim": sim}})}  # fmt: skip
+    rules = [{"unit": "capper", "when": "blocked", "suspend": ["filler"]},
+             {"unit": "filler", "when": "blocked", "suspend": ["capper"]}]  # fmt: skip
+    cell = Cell(ros, tmp_path, units, {"start_order": ["capper", "filler"], "interlocks": rules})
+    ros.add(SimulatedEm("outfeed", "capper", cell.name, parse_sim(sim), context=ros.context))
+    cell.wait(lambda m: cell.summary(m, "capper").em_online == 1, "outfeed online")
+    assert cell.trigger("reset").success
+    answer = cell.trigger("start")
+    assert answer.success, answer.message
+    cell.wait(lambda m: m.state_current_name == "EXECUTE", "cell in Execute")
+
+    since = cell.marks()
+    jam = f"/{cell.name}/capper/outfeed/fault/jam"
+    assert ros.call(SetBool, jam, SetBool.Request(data=True)).success
+    status = cell.wait(
+        lambda m: (
+            cell.summary(m, "filler").interlock_suspended
+            and cell.summary(m, "filler").state_current_name == "SUSPENDED"
+        ),
+        "filler suspended by the coordinator",
+    )
+    assert cell.summary(status, "capper").blocked
+    cell.wait(lambda m: m.state_current_name == "SUSPENDED", "cell Suspended")
+    suspended = cell.reached("filler", "SUSPENDING", since)
+    assert suspended.trigger == TransitionEvent.TRIGGER_INTERLOCK and suspended.detail == "capper blocked"  # fmt: skip
+    cell.reached("capper", "SUSPENDED", since)  # by its own EM's interlock
+
+    since = cell.marks()
+    assert ros.call(SetBool, jam, SetBool.Request(data=False)).success
+    cell.reached("filler", "EXECUTE", since)
+    cell.reached("capper", "EXECUTE", since)
+    status = cell.wait(
+        lambda m: (
+            m.state_current_name == "EXECUTE"
+            and not any(u.interlock_suspended or u.blocked for u in m.units)
+        ),
+        "both back in Execute, no interlock",
+    )
+    capper_suspensions = [t for t in cell.units["capper"].transitions.messages
+                          if t.trigger == TransitionEvent.TRIGGER_INTERLOCK and "filler" in t.detail]  # fmt: skip
+    assert not capper_suspensions, "the interlock the coordinator set was propagated back"
+
+
+def test_killed_unit_is_reported_lost_and_back_online(ros, processes, tmp_path: Path) -> None:
+    """b runs without persistence: restarted, its sequence numbers start again, which the
+    coordinator must notice to follow its transitions."""
+    lease = 1.5
+    cell_file, cell = write_cell(tmp_path, {"a": {"remote_commands_enabled": True},
+                                            "b": {"remote_commands_enabled": True, "persistence": False,
+                                                  "min_dwell": {"resetting": 0.5}}},
+                                 {"start_order": ["a", "b"], "unit_lease": lease, "step_timeout": 5.0})  # fmt: skip
+    start_unit_process(processes, cell_file, "a")
+    b = start_unit_process(processes, cell_file, "b")
+    coordinator = processes.module("coordinator", "packml_ros2.coordinator_node", str(cell_file))
+    status: Collector[CellStatus] = ros.subscribe(
+        CellStatus, f"/{cell}/coordinator/status", qos.CELL_STATUS
+    )
+
+    def trigger(name: str) -> Trigger.Response:
+        return ros.call(Trigger, f"/{cell}/coordinator/{name}", timeout=15)
+
+    status.wait_for(lambda m: m.all_online, 20, "both units online")
+    answer = trigger("reset")
+    assert answer.success, answer.message
+    before = status.wait_for(lambda m: m.state_current_name == "IDLE", 5, "cell Idle")
+
+    killed_at, mark = time.monotonic(), len(status)
+    b.kill()
+    lost = status.wait_for(lambda m: "b" in m.lost_units, lease + 2.0, "b lost", mark)
+    detected = time.monotonic() - killed_at
+    assert detected <= lease + 1.0, f"lost after {detected:.2f} s"
+    assert not lost.all_online and lost.lost_units == ["b"]
+    assert [(u.name, u.online, u.health) for u in lost.units] == [("a", True, "ok"), ("b", False, "offline")]  # fmt: skip
+    assert lost.state_current_name == "IDLE"  # the cell state is that of the units online
+
+    # a sequence that reaches the lost unit ends there, naming it
+    answer = trigger("start")
+    assert not answer.success
+    assert "stopped at b (step 2/2): b is offline" in answer.message and "a -> EXECUTE" in answer.message  # fmt: skip
+
+    mark, b_transitions = len(status), UnitClient(ros, cell, "b").transitions
+    start_unit_process(processes, cell_file, "b")
+    back = status.wait_for(lambda m: m.all_online and not m.lost_units, 20, "b back", mark)
+    assert back.units[1].health == "ok" and back.units[1].state_current_name == "STOPPED"
+    assert back.units[1].sequence < before.units[1].sequence  # started again from scratch
+    answer = trigger("stop")
+    assert answer.success and "b (already STOPPED)" in answer.message, answer.message
+    answer = trigger("reset")
+    answered_at = time.time()
+    assert answer.success, answer.message
+    # the answer came after b had reached Idle, not on its transitions from before the restart
+    idle = b_transitions.wait_for(lambda t: t.to_state_name == "IDLE", 5, "b Idle")
+    assert _ns(idle.stamp) <= answered_at * 1e9
+    status.wait_for(lambda m: m.state_current_name == "IDLE", 5, "cell Idle", mark)
+    assert coordinator.running()
+    assert coordinator.stop() == 0, coordinator.output()
+    assert "unit b lost" in coordinator.output() and "unit b online again" in coordinator.output()
