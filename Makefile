@@ -11,7 +11,7 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 export FASTDDS_DEFAULT_PROFILES_FILE ?= $(CURDIR)/config/fastdds_localhost.xml
 export AMENT_PREFIX_PATH := $(CURDIR)/$(VENV)$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH))
 
-.PHONY: setup demo test lint format typecheck pytest bench clean
+.PHONY: setup setup-test demo test lint format typecheck pytest bench clean
 
 setup:
 	@tools/setup.sh
@@ -19,7 +19,10 @@ setup:
 demo: setup
 	$(BIN)/packml launch $(CELL)
 
-test: setup lint typecheck pytest
+test: setup-test lint typecheck pytest
+
+setup-test:
+	@tools/setup.sh --test
 
 lint:
 	$(BIN)/ruff check .

@@ -20,7 +20,14 @@ setup(
         (f"share/{package_name}/config", glob("config/*.yaml") + glob("config/*.xml")),
         (f"share/{package_name}/launch", glob("launch/*.py")),
     ],
-    install_requires=["setuptools", "PyYAML>=6", "rosbags>=0.10"],
+    install_requires=[
+        "setuptools",
+        "PyYAML>=6",
+        "rosbags>=0.10",
+        "fastapi>=0.110",  # packml hmi
+        "uvicorn>=0.30",
+        "asyncua>=1.1",  # packml opcua
+    ],
     zip_safe=False,
     entry_points={
         "console_scripts": [

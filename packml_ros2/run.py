@@ -28,6 +28,20 @@ def default_environment() -> None:
         os.environ.setdefault("FASTDDS_DEFAULT_PROFILES_FILE", str(profile))
 
 
+def make_executor(nodes: int, threads: int = 0) -> Executor:
+    """Several nodes, or ``threads`` > 1: a multi-threaded executor (one node's long callback
+    does not hold up the others). One node: rclpy's C++ EventsExecutor, which halves the latency
+    of a hop compared with the Python executors (bench/ros_latency.py measures it);
+    ``PACKML_EXECUTOR=single`` selects the SingleThreadedExecutor instead."""
+    if threads > 1 or (threads == 0 and nodes > 1):
+        return MultiThreadedExecutor(num_threads=threads or None)
+    if os.environ.get("PACKML_EXECUTOR", "events") == "events":
+        from rclpy.experimental import EventsExecutor
+
+        return EventsExecutor()
+    return SingleThreadedExecutor()
+
+
 def spin(
     nodes: Sequence[Node], threads: int = 0, on_shutdown: Callable[[], None] | None = None
 ) -> int:
@@ -36,16 +50,15 @@ def spin(
     ``threads``: 0 = one thread for a single node, a multi-threaded executor (one thread per
     core) for several; 1 = single-threaded; more = a multi-threaded executor with that many
     threads, also for a single node (e.g. one whose service handlers wait for other nodes)."""
-    executor: Executor = (
-        MultiThreadedExecutor(num_threads=threads or None)
-        if threads > 1 or (threads == 0 and len(nodes) > 1)
-        else SingleThreadedExecutor()
-    )
+    executor = make_executor(len(nodes), threads)
     for node in nodes:
         executor.add_node(node)
     signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
     try:
-        executor.spin()
+        # spin_once in a loop, not spin(): the EventsExecutor's spin() does not return on
+        # shutdown (see the notes); this loop does, for every executor.
+        while rclpy.ok():
+            executor.spin_once(timeout_sec=0.2)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

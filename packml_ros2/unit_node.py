@@ -339,6 +339,8 @@ class UnitNode(Node):
         if topic == "log":
             self._log(*msg)
             return
+        if not self.context.ok():
+            return  # Ctrl-C arrived while a callback ran: the publishers are gone
         self._outputs[topic].publish(msg)
         if topic == "alarms":
             self._publish_diagnostics()
@@ -347,16 +349,19 @@ class UnitNode(Node):
 
     def _publish_start(self) -> None:
         """What a recording needs to replay this unit: the cell configuration (latched ~/config)
-        and a first input ``start`` with the admin data the unit restored; then the start-up
+        and a first input ``start`` with the admin data the unit restored, its start time and
+        whether it has a persistence store; then the start-up
         outputs (the RESTART transition and its status, the admin data)."""
         if self.source is not None:
             self.pub_config.publish(
                 String(data=json.dumps({"unit": self.config.name, "cell_yaml": self.source}))
             )
         if self._record:
-            self._on_input(
-                self.unit.now, "start", {"document": self.unit.restored, "time": self.unit.now}
-            )
+            # "persistence": whether the unit has a store (its periodic saves are deadlines too,
+            # so replay needs one exactly when the node had one)
+            start = {"document": self.unit.restored, "time": self.unit.now,
+                     "persistence": self.store is not None}  # fmt: skip
+            self._on_input(self.unit.now, "start", start)
         self.driver.flush()
         self.pub_admin.publish(convert.admin(self.unit.admin()))
 
@@ -385,6 +390,8 @@ class UnitNode(Node):
         """The input log goes out in batches (every tick, 50 ms), never delaying a status; the
         order is kept and every message carries its index."""
         inputs, self._inputs = self._inputs, []
+        if not self.context.ok():
+            return  # shutting down: nobody can receive them any more
         for msg in inputs:
             self.pub_inputs.publish(msg)
 

@@ -3,9 +3,13 @@
 #   1. apt prerequisites, only if missing (cmake, g++, ninja, Python headers and venv, iproute2);
 #   2. .venv with the pinned ROS 2 Kilted wheels, the interface build tools and the dev tools;
 #   3. the packml_interfaces wheel, built from msg_defs/ once and kept in .cache/wheels/;
-#   4. packml_ros2 itself, editable.
+#   4. packml_ros2 itself, editable;
+#   5. with --test: what only the tests need (Debian's chromium for the HMI browser tests, the npm
+#      packages of the independent OPC UA client in test/opcua_client/).
 # Each step is skipped when its inputs did not change, so a second run takes seconds.
 set -euo pipefail
+for_tests=0
+[ "${1:-}" = "--test" ] && for_tests=1
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
 VENV=${VENV:-.venv}
@@ -20,6 +24,11 @@ command -v cmake >/dev/null || missing+=(cmake)
 command -v g++ >/dev/null || missing+=(g++)
 command -v ninja >/dev/null || missing+=(ninja-build)
 command -v ip >/dev/null || missing+=(iproute2)
+if ((for_tests)); then
+  command -v chromium >/dev/null || missing+=(chromium)
+  command -v node >/dev/null || missing+=(nodejs)
+  command -v npm >/dev/null || missing+=(npm)
+fi
 if command -v "$PYTHON" >/dev/null; then
   "$PYTHON" - <<'PY' || missing+=(python3-dev)
 import os, sys, sysconfig
@@ -75,5 +84,14 @@ if [ "$(cat "$VENV/.packml-self" 2>/dev/null)" != "$deps_key" ]; then
   say "installing packml_ros2 (editable)"
   "${pip[@]}" install --no-build-isolation -e .
   echo "$deps_key" > "$VENV/.packml-self"
+fi
+# --- 5. test-only pieces ------------------------------------------------------------------------------
+if ((for_tests)) && [ -f test/opcua_client/package-lock.json ]; then
+  npm_key=$(digest test/opcua_client/package.json test/opcua_client/package-lock.json)
+  if [ "$(cat test/opcua_client/node_modules/.packml-npm 2>/dev/null)" != "$npm_key" ]; then
+    say "installing the OPC UA test client (npm ci in test/opcua_client)"
+    (cd test/opcua_client && npm ci --no-audit --no-fund --loglevel=error)
+    echo "$npm_key" > test/opcua_client/node_modules/.packml-npm
+  fi
 fi
 say "ready: $VENV ($("$VENV/bin/python" -c 'import rclpy, packml_interfaces, packml_ros2; print("rclpy, packml_interfaces, packml_ros2 import")'))"

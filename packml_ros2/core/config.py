@@ -170,6 +170,9 @@ class CellConfig:
     units: Mapping[str, UnitConfig]
     coordinator: CoordinatorConfig
     file: str = "<memory>"
+    #: ``hmi:`` and ``opcua:`` blocks, validated by packml_ros2.hmi / packml_ros2.opcua
+    hmi: Mapping[str, Any] = field(default_factory=dict)
+    opcua: Mapping[str, Any] = field(default_factory=dict)
 
 
 # -- parsing ---------------------------------------------------------------------------------------------
@@ -570,7 +573,7 @@ def _coordinator(n: Node, units: Mapping[str, UnitConfig]) -> CoordinatorConfig:
 def parse_cell(data: Any, file: str = "<memory>", base_dir: Path | None = None) -> CellConfig:
     """Validate a cell document (already parsed YAML). Raises ConfigError listing every problem."""
     root = Node(data, "")
-    root.check_keys({"cell", "defaults", "units", "coordinator"})
+    root.check_keys({"cell", "defaults", "units", "coordinator", "hmi", "opcua"})
     cell = root.get("cell", sc.name, "")
     if "cell" not in root.mapping():
         root.error("missing key 'cell' (the cell namespace, e.g. demo_cell)")
@@ -596,7 +599,10 @@ def parse_cell(data: Any, file: str = "<memory>", base_dir: Path | None = None) 
     _cross_checks(root, units)
     if root.problems:
         raise ConfigError(file, root.problems)
-    return CellConfig(cell, units, coord, file)
+    extras = {k: dict(root.child(k, root.mapping().get(k)).mapping()) for k in ("hmi", "opcua")}
+    if root.problems:
+        raise ConfigError(file, root.problems)
+    return CellConfig(cell, units, coord, file, **extras)
 
 
 def _cross_checks(root: Node, units: Mapping[str, UnitConfig]) -> None:

@@ -1,0 +1,116 @@
+"""``packml alarms [list|ack|reset] [unit]``: the alarm list, acknowledge, reset."""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+
+from packml_interfaces.msg import Alarm
+from packml_interfaces.srv import QueryAlarms
+
+from ..client import Unavailable, UnitProxy
+from .main import EXIT_OK, EXIT_REFUSED, EXIT_UNAVAILABLE, EXIT_USAGE
+from .session import add_common, fail, session
+
+STATES = {
+    Alarm.ACTIVE_UNACKNOWLEDGED: "ACTIVE",
+    Alarm.INACTIVE_UNACKNOWLEDGED: "cleared",
+    Alarm.ACKNOWLEDGED: "acked",
+}
+SORTS = {"time": QueryAlarms.Request.SORT_TIME, "category": QueryAlarms.Request.SORT_CATEGORY_TIME,
+         "newest": QueryAlarms.Request.SORT_TIME_NEWEST}  # fmt: skip
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = subparsers.add_parser(
+        "alarms",
+        help="list, acknowledge or reset alarms",
+        description="list (default): alarms and warnings of a unit or of every unit; ack: "
+        "acknowledge (all, or --id/--value); reset: clear latched alarms that are no longer active.",
+    )
+    p.add_argument("action", nargs="?", choices=["list", "ack", "reset"], default="list")
+    p.add_argument("unit", nargs="?", help="a unit (default: every unit of the cell)")
+    p.add_argument("--id", type=int, help="ack: only this alarm ID")
+    p.add_argument("--value", type=int, default=0, help="ack: the alarm's Value (default 0)")
+    p.add_argument(
+        "--active", action="store_true", help="list: only alarms whose condition is active"
+    )
+    p.add_argument("--category", type=int, help="list: only this category (0..9)")
+    p.add_argument("--history", action="store_true", help="list: the history ring (newest first)")
+    p.add_argument("--sort", choices=list(SORTS), default="time", help="list: order (default time)")
+    p.add_argument(
+        "--first-out", action="store_true", help="reset: also clear the first-out alarms"
+    )
+    p.add_argument("--source", default="operator")
+    add_common(p)
+    p.set_defaults(func=alarms)
+
+
+def alarms(args: argparse.Namespace) -> int:
+    with session(args) as s:
+        try:
+            units: list[UnitProxy] = (
+                [s.unit(args.unit)] if args.unit else list(s.cell().units.values())
+            )
+            if not units:
+                return fail("no unit found", EXIT_UNAVAILABLE)
+            handler = {"list": _list, "ack": _ack, "reset": _reset}[args.action]
+            return max(handler(u, args, s.timeout) for u in units)
+        except LookupError as exc:
+            return fail(str(exc), EXIT_USAGE)
+        except Unavailable as exc:
+            return fail(str(exc), EXIT_UNAVAILABLE)
+
+
+def _when(a: Alarm) -> str:
+    return (
+        dt.datetime.fromtimestamp(a.stamp.sec + a.stamp.nanosec * 1e-9).strftime("%H:%M:%S")
+        if a.stamp.sec
+        else "-"
+    )
+
+
+def _list(u: UnitProxy, args: argparse.Namespace, timeout: float) -> int:
+    resp = u.call_sync(
+        "query_alarms", timeout, active_only=args.active, filter_category=args.category is not None,
+        category=args.category or 0, include_warnings=True, history=args.history,
+        sort=SORTS["newest" if args.history and args.sort == "time" else args.sort],
+    )  # fmt: skip
+    if not resp.alarms:
+        print(f"{u.name}: no {'history' if args.history else 'alarms'}")
+        return EXIT_OK
+    print(f"{u.name}:")
+    for a in resp.alarms:
+        kind = {
+            Alarm.KIND_WARNING: "warning",
+            Alarm.KIND_EVENT: "event",
+            Alarm.KIND_COMMAND: "command",
+        }.get(a.kind, "alarm")
+        where = f" [{a.em}]" if a.em else ""
+        state = (
+            STATES.get(a.operator_state, "?")
+            if a.kind in (Alarm.KIND_ALARM, Alarm.KIND_WARNING)
+            else ""
+        )
+        print(
+            f"  {_when(a)}  {a.id:>5}/{a.value:<3} cat {a.category}  {kind:<7} {state:<7} {a.message}{where}"
+        )
+    return EXIT_OK
+
+
+def _ack(u: UnitProxy, args: argparse.Namespace, timeout: float) -> int:
+    fields = {
+        "all": args.id is None,
+        "id": args.id or 0,
+        "value": args.value,
+        "source": args.source,
+    }
+    resp = u.call_sync("ack_alarms", timeout, **fields)
+    print(f"{u.name}: {resp.message}")
+    return EXIT_OK if resp.accepted or (resp.result == 17 and args.id is None) else EXIT_REFUSED
+
+
+def _reset(u: UnitProxy, args: argparse.Namespace, timeout: float) -> int:
+    resp = u.call_sync("reset_alarms", timeout, clear_first_out=args.first_out, source=args.source)
+    print(f"{u.name}: {resp.message}")
+    return EXIT_OK if resp.accepted else EXIT_REFUSED

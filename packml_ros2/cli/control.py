@@ -1,0 +1,147 @@
+"""``packml cmd``, ``packml mode`` and ``packml fault``: change a unit or a whole cell."""
+
+from __future__ import annotations
+
+import argparse
+import threading
+from typing import Any
+
+from packml_interfaces.srv import Command, SetMode
+from std_srvs.srv import SetBool
+
+from ..client import Unavailable, command_number
+from .main import EXIT_OK, EXIT_REFUSED, EXIT_UNAVAILABLE, EXIT_USAGE
+from .session import Session, add_common, fail, session
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = subparsers.add_parser(
+        "cmd",
+        help="send a state command to a unit or a whole cell",
+        description="Send a PackML command (reset, start, stop, hold, unhold, suspend, unsuspend, "
+        "abort, clear, complete, or its number 1..10) to a unit, or to a cell through its "
+        "coordinator. Exit code 1 and the reason when refused.",
+    )
+    p.add_argument("target", help="a unit (name, cell/unit) or a cell")
+    p.add_argument("command", help="command name or number")
+    p.add_argument(
+        "--source",
+        default="operator",
+        help="who asks (default: operator; remote:<who> needs remote commands on)",
+    )
+    add_common(p)
+    p.set_defaults(func=cmd)
+
+    p = subparsers.add_parser(
+        "mode",
+        help="change the mode of a unit or a whole cell",
+        description="Change the unit mode: production, maintenance, manual, a configured user mode, "
+        "or its number. Exit code 1 and the reason when refused.",
+    )
+    p.add_argument("target", help="a unit (name, cell/unit) or a cell")
+    p.add_argument("mode", help="mode name or number")
+    p.add_argument("--source", default="operator")
+    add_common(p)
+    p.set_defaults(func=mode)
+
+    p = subparsers.add_parser(
+        "fault",
+        help="switch a simulated EM fault on or off",
+        description="Switch a fault of a simulated EM (the faults: block of its sim configuration).",
+    )
+    p.add_argument("em", help="unit/em or cell/unit/em, e.g. robot_cell/gripper")
+    p.add_argument("fault", help="fault name, e.g. vacuum_loss")
+    p.add_argument("state", choices=["on", "off"])
+    add_common(p)
+    p.set_defaults(func=fault)
+
+
+def _report(resp: Any, ok_text: str) -> int:
+    print(resp.message or ok_text)
+    return EXIT_OK if resp.accepted else EXIT_REFUSED
+
+
+def _coordinator(
+    s: Session, cell: str, service: str, srv: Any, request: Any, timeout: float
+) -> Any:
+    client = s.node.create_client(srv, f"/{cell}/coordinator/{service}")
+    if not client.wait_for_service(timeout_sec=s.timeout):
+        raise Unavailable(
+            f"the coordinator of cell {cell} does not answer (/{cell}/coordinator/{service})"
+        )
+    future = client.call_async(request)
+    deadline_event = threading.Event()
+    future.add_done_callback(lambda _: deadline_event.set())
+    if not deadline_event.wait(timeout):
+        raise Unavailable(f"/{cell}/coordinator/{service} did not answer within {timeout:g} s")
+    return future.result()
+
+
+def cmd(args: argparse.Namespace) -> int:
+    try:
+        number = command_number(args.command)
+    except ValueError as exc:
+        return fail(str(exc), EXIT_USAGE)
+    with session(args) as s:
+        try:
+            if s.is_cell(args.target):
+                req = Command.Request(command=number, source=args.source)
+                # a cell sequence waits for every unit: allow a step timeout per unit
+                return _report(
+                    _coordinator(s, args.target, "command", Command, req, 120.0), "accepted"
+                )
+            resp = s.unit(args.target).command(number, args.source, timeout=s.timeout)
+            return _report(resp, "accepted")
+        except LookupError as exc:
+            return fail(str(exc), EXIT_USAGE)
+        except Unavailable as exc:
+            return fail(str(exc), EXIT_UNAVAILABLE)
+
+
+def mode(args: argparse.Namespace) -> int:
+    with session(args) as s:
+        try:
+            if s.is_cell(args.target):
+                req = SetMode.Request(source=args.source)
+                if args.mode.isdigit():
+                    req.mode = int(args.mode)
+                else:
+                    req.mode_name = args.mode
+                return _report(
+                    _coordinator(s, args.target, "set_mode", SetMode, req, 60.0), "accepted"
+                )
+            return _report(
+                s.unit(args.target).set_mode(args.mode, args.source, timeout=s.timeout), "accepted"
+            )
+        except LookupError as exc:
+            return fail(str(exc), EXIT_USAGE)
+        except Unavailable as exc:
+            return fail(str(exc), EXIT_UNAVAILABLE)
+
+
+def fault(args: argparse.Namespace) -> int:
+    parts = args.em.strip("/").split("/")
+    if len(parts) not in (2, 3):
+        return fail(f"{args.em!r}: give unit/em or cell/unit/em", EXIT_USAGE)
+    with session(args) as s:
+        try:
+            if len(parts) == 2:
+                unit = s.unit(parts[0])
+                path = f"{unit.path}/{parts[1]}"
+            else:
+                path = "/" + "/".join(parts)
+            client = s.node.create_client(SetBool, f"{path}/fault/{args.fault}")
+            if not client.wait_for_service(timeout_sec=s.timeout):
+                return fail(
+                    f"no fault {args.fault!r} at {path} (is it a simulated EM with that fault?)",
+                    EXIT_UNAVAILABLE,
+                )
+            resp = client.call(SetBool.Request(data=args.state == "on"), timeout_sec=s.timeout)
+            if resp is None:
+                return fail(f"{path} did not answer", EXIT_UNAVAILABLE)
+            print(f"{path}: {resp.message}")
+            return EXIT_OK if resp.success else EXIT_REFUSED
+        except LookupError as exc:
+            return fail(str(exc), EXIT_USAGE)
+        except Unavailable as exc:
+            return fail(str(exc), EXIT_UNAVAILABLE)

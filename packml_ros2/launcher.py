@@ -1,0 +1,251 @@
+"""Start a whole PackML cell from its YAML file: units, simulated EMs and the coordinator, in one
+process (a multi-threaded executor) or one process per node (``processes=True``). It waits until
+every unit and the coordinator answer, prints what to try, and stops everything on Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import rclpy
+from packml_interfaces.srv import Command
+from rclpy.node import Node
+
+from . import run
+from .core import CellConfig, ConfigError, load_cell
+from .sim_em import SimConfig, parse_sim
+
+READY_TIMEOUT = 60.0
+
+
+@dataclass
+class Plan:
+    """What a cell file starts, validated before anything starts."""
+
+    file: Path
+    cell: CellConfig
+    source: str
+    sims: dict[tuple[str, str], SimConfig] = field(default_factory=dict)
+
+    @property
+    def node_count(self) -> int:
+        return len(self.cell.units) + len(self.sims) + (1 if self.cell.coordinator.enabled else 0)
+
+
+def plan(file: str | os.PathLike[str]) -> Plan:
+    """Load and validate the cell, including every EM's ``sim:`` block (ConfigError lists all)."""
+    path = Path(file)
+    cell = load_cell(path)
+    p = Plan(path, cell, path.read_text(encoding="utf-8"))
+    problems: list[tuple[str, str]] = []
+    for uname, unit in cell.units.items():
+        for em in unit.equipment_modules:
+            key = f"units.{uname}.equipment_modules.{em.name}.sim"
+            try:
+                p.sims[(uname, em.name)] = parse_sim(em.sim, key, str(path))
+            except ConfigError as exc:
+                problems += exc.problems
+    if problems:
+        raise ConfigError(str(path), problems)
+    return p
+
+
+# -- readiness and the summary ----------------------------------------------------------------------------
+def wait_ready(
+    node: Node, p: Plan, timeout: float = READY_TIMEOUT, alive: Callable[[], bool] = lambda: True
+) -> list[str]:
+    """Wait until every unit's and the coordinator's command service answers; returns what is
+    still missing (empty: all ready)."""
+    cell = p.cell.cell
+    services = [f"/{cell}/{u}/command" for u in p.cell.units]
+    if p.cell.coordinator.enabled:
+        services.append(f"/{cell}/coordinator/command")
+    clients = {name: node.create_client(Command, name) for name in services}
+    deadline = time.monotonic() + timeout
+    missing = list(services)
+    while missing and time.monotonic() < deadline and alive():
+        missing = [name for name in missing if not clients[name].service_is_ready()]
+        if missing:
+            clients[missing[0]].wait_for_service(timeout_sec=0.2)
+    for client in clients.values():
+        node.destroy_client(client)
+    return missing
+
+
+def summary(p: Plan, mode: str) -> str:
+    """The ready message: what runs, and the exact lines to try."""
+    cell = p.cell.cell
+    ems = sum(len(u.equipment_modules) for u in p.cell.units.values())
+    first = next(iter(p.cell.units))
+    faults = [(u, em, f) for (u, em), sim in p.sims.items() for f in sim.faults]
+
+    def row(command: str, note: str = "") -> str:
+        return f"  {command:<48} # {note}" if note else f"  {command}"
+
+    lines = [
+        f"PackML cell {cell} is up ({mode}): {len(p.cell.units)} unit(s), {ems} equipment module(s)"
+        + (", coordinator" if p.cell.coordinator.enabled else ""),
+        "",
+        "In another terminal (. .venv/bin/activate first, or use .venv/bin/packml):",
+        row("packml status", "every unit: state, mode, EMs, alarms, counts"),
+        row("packml watch", "a live view, redrawn on every change"),
+    ]
+    if p.cell.coordinator.enabled:
+        lines.append(row(f"packml cmd {cell} reset", "the whole cell, in the configured order"))
+        lines.append(row(f"packml cmd {cell} start"))
+    lines.append(row(f"packml cmd {first} hold", "one unit: reset start stop hold unhold ..."))
+    lines.append(row(f"packml mode {first} maintenance", "mode changes: in Stopped, Idle, Aborted"))
+    for u, em, f in faults[:3]:
+        lines.append(row(f"packml fault {u}/{em} {f} on", "a simulated fault; off clears it"))
+    lines += [
+        row("packml alarms", "then: packml alarms ack; packml cmd <unit> reset"),
+        "",
+        "With the ROS 2 command line:",
+        row(f"ros2 service call /{cell}/{first}/start std_srvs/srv/Trigger"),
+        row(f"ros2 topic echo /{cell}/{first}/status"),
+        "",
+        "Ctrl-C stops the cell.",
+    ]
+    return "\n".join(lines)
+
+
+# -- one process -----------------------------------------------------------------------------------------
+def build_nodes(p: Plan, **node_kwargs: Any) -> list[Node]:
+    """Every node of the cell, in start order: units first, then EMs, then the coordinator."""
+    from .sim_em import SimulatedEm
+    from .unit_node import UnitNode
+
+    nodes: list[Node] = [UnitNode(u, source=p.source, **node_kwargs) for u in p.cell.units.values()]
+    for (uname, em), sim in p.sims.items():
+        nodes.append(SimulatedEm(em, uname, p.cell.cell, sim, **node_kwargs))
+    if p.cell.coordinator.enabled:
+        from .coordinator_node import CoordinatorNode
+
+        nodes.append(CoordinatorNode(p.cell, **node_kwargs))
+    return nodes
+
+
+def launch_in_process(p: Plan, threads: int = 0, ready: Callable[[str], None] = print) -> int:
+    run.default_environment()
+    rclpy.init(signal_handler_options=rclpy.signals.SignalHandlerOptions.ALL)
+    nodes = build_nodes(p)
+    probe = Node("packml_launch_probe")
+
+    def announce() -> None:
+        missing = wait_ready(probe, p, alive=rclpy.ok)
+        if rclpy.ok():
+            ready(
+                summary(p, f"{p.node_count} nodes in one process")
+                if not missing
+                else f"not answering: {', '.join(missing)}"
+            )
+
+    threading.Thread(target=announce, daemon=True).start()
+
+    def shutdown() -> None:
+        for node in nodes:
+            close = getattr(node, "close", None)
+            if close is not None:
+                close()
+
+    return run.spin(
+        [*nodes, probe], threads=threads or min(8, 2 + len(nodes) // 2), on_shutdown=shutdown
+    )
+
+
+# -- one process per node --------------------------------------------------------------------------------
+def commands(p: Plan) -> list[tuple[str, list[str]]]:
+    """(name, argv) of every node process."""
+    py, f = sys.executable, str(p.file)
+    out = [(f"unit {u}", [py, "-m", "packml_ros2.unit_node", f, u]) for u in p.cell.units]
+    out += [(f"em {u}/{em}", [py, "-m", "packml_ros2.sim_em", f, u, em]) for (u, em) in p.sims]
+    if p.cell.coordinator.enabled:
+        out.append(("coordinator", [py, "-m", "packml_ros2.coordinator_node", f]))
+    return out
+
+
+def launch_processes(
+    p: Plan, ready: Callable[[str], None] = print, log_dir: Path | None = None
+) -> int:
+    run.default_environment()
+    children: list[tuple[str, subprocess.Popen[bytes]]] = []
+    stopping = threading.Event()
+
+    def on_signal(signum: int, _: Any) -> None:
+        stopping.set()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    logs = ExitStack()
+    try:
+        for name, argv in commands(p):
+            out = (
+                logs.enter_context(
+                    open(log_dir / f"{name.replace(' ', '_').replace('/', '_')}.log", "ab")  # noqa: SIM115
+                )
+                if log_dir
+                else None
+            )
+            # Own process group: Ctrl-C reaches the launcher only, which stops the children in order.
+            children.append((name, subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT if out else None,
+                                                    start_new_session=True)))  # fmt: skip
+        rclpy.init(signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+        probe = Node("packml_launch_probe")
+        missing = wait_ready(
+            probe,
+            p,
+            alive=lambda: not stopping.is_set() and all(c.poll() is None for _, c in children),
+        )
+        probe.destroy_node()
+        rclpy.try_shutdown()
+        dead = [name for name, c in children if c.poll() is not None]
+        if dead:
+            ready(f"packml launch: {', '.join(dead)} exited during start-up; stopping the cell")
+            stopping.set()
+        elif not stopping.is_set():
+            ready(
+                summary(p, f"{len(children)} processes")
+                if not missing
+                else f"not answering: {', '.join(missing)}"
+            )
+        while not stopping.wait(0.2):
+            for name, c in children:
+                if c.poll() is not None and c.returncode not in (0, -signal.SIGINT):
+                    print(f"packml launch: {name} exited with {c.returncode}", file=sys.stderr)
+                    children.remove((name, c))
+                    break
+        return _stop_children(children)
+    finally:
+        logs.close()
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+def _stop_children(
+    children: Sequence[tuple[str, subprocess.Popen[bytes]]], timeout: float = 10.0
+) -> int:
+    """SIGINT to everyone (EMs first, units last), then wait; 0 when every child exited cleanly."""
+    for _, c in reversed(children):
+        if c.poll() is None:
+            c.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + timeout
+    code = 0
+    for name, c in children:
+        try:
+            rc = c.wait(max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            c.kill()
+            rc = c.wait()
+            print(f"packml launch: {name} did not stop in time; killed", file=sys.stderr)
+        if rc not in (0, -signal.SIGINT):
+            code = 1
+    return code

@@ -1,0 +1,195 @@
+"""Issue 5: `packml launch` (one process and one process per node, clean Ctrl-C) and the `packml`
+verbs, as a user runs them: real subprocesses against a real cell."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+PACKML = [sys.executable, "-m", "packml_ros2.cli.main"]
+FAST = {"resetting": 0.1, "starting": 0.1, "stopping": 0.1, "clearing": 0.1, "aborting": 0.05}
+
+
+def cell_file(tmp_path: Path, name: str) -> Path:
+    doc = {
+        "cell": name,
+        "defaults": {"remote_commands_enabled": True},
+        "units": {
+            "filler": {
+                "persistence": {"path": str(tmp_path / "filler.sqlite3")},
+                "counters": {"processed": [{"id": 1, "name": "bottles"}]},
+                "alarms": [{"id": 201, "message": "Nozzle clogged", "category": 2, "em": "nozzle"}],
+                "equipment_modules": {
+                    "nozzle": {"sim": {"durations": FAST, "cycle_time": 0.1,
+                                       "faults": {"clog": {"kind": "alarm", "alarm_id": 201}}}},
+                    "conveyor": {"sim": {"durations": FAST, "cycle_time": 0.2, "counter": "none"}},
+                },
+            },
+            "capper": {
+                "persistence": {"path": str(tmp_path / "capper.sqlite3")},
+                "equipment_modules": {"chuck": {"sim": {"durations": FAST, "cycle_time": 0.2}}},
+            },
+        },
+        "coordinator": {"start_order": ["capper", "filler"], "stop_order": ["filler", "capper"]},
+    }  # fmt: skip
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+class Launched:
+    """`packml launch` running in the background; its output collected line by line."""
+
+    def __init__(self, args: list[str], log: Path) -> None:
+        self.log = log
+        self._out = log.open("wb")
+        self.proc = subprocess.Popen(
+            [*PACKML, "launch", *args],
+            stdout=self._out,
+            stderr=subprocess.STDOUT,
+            env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        )
+
+    def output(self) -> str:
+        return self.log.read_text(errors="replace")
+
+    def wait_ready(self, timeout: float = 60.0) -> str:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            text = self.output()
+            if "is up" in text:
+                return text
+            if self.proc.poll() is not None:
+                raise AssertionError(f"packml launch exited {self.proc.returncode}:\n{text}")
+            time.sleep(0.05)
+        raise AssertionError(f"not ready within {timeout} s:\n{self.output()}")
+
+    def ctrl_c(self, timeout: float = 20.0) -> int:
+        self.proc.send_signal(signal.SIGINT)
+        try:
+            return self.proc.wait(timeout)
+        finally:
+            self._out.close()
+
+
+def packml(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([*PACKML, *args], capture_output=True, text=True, timeout=timeout)
+
+
+def wait_for(
+    args: tuple[str, ...], text: str, timeout: float = 15.0
+) -> subprocess.CompletedProcess[str]:
+    deadline = time.monotonic() + timeout
+    while True:
+        result = packml(*args)
+        if text in result.stdout or time.monotonic() > deadline:
+            return result
+
+
+@pytest.fixture
+def launched(tmp_path: Path):
+    name = f"cli{os.getpid()}"
+    launch = Launched([str(cell_file(tmp_path, name))], tmp_path / "launch.log")
+    launch.wait_ready()
+    yield name, launch
+    if launch.proc.poll() is None:
+        launch.proc.kill()
+
+
+def test_launch_in_one_process_and_the_cli_verbs(launched) -> None:
+    cell, launch = launched
+    ready = launch.output()
+    assert f"packml cmd {cell} reset" in ready and "ros2 topic echo" in ready  # what to try
+
+    status = packml("status")
+    assert status.returncode == 0, status.stderr
+    assert "filler" in status.stdout and "capper" in status.stdout and "STOPPED" in status.stdout
+
+    # the whole cell through the coordinator, in the configured order (downstream first)
+    reset = packml("cmd", cell, "reset")
+    assert reset.returncode == 0, reset.stdout + reset.stderr
+    assert reset.stdout.index("capper") < reset.stdout.index("filler")
+    start = packml("cmd", cell, "2")  # numbers are accepted too
+    assert start.returncode == 0, start.stdout + start.stderr
+
+    # a refusal: exit code 1 and the reason
+    again = packml("cmd", "filler", "start")
+    assert again.returncode == 1
+    assert "START not allowed in EXECUTE" in again.stdout + again.stderr
+    mode = packml("mode", "filler", "maintenance")
+    assert mode.returncode == 1 and "not allowed in EXECUTE" in mode.stdout + mode.stderr
+
+    detail = wait_for(("status", f"{cell}/filler"), "bottles: ", 10)
+    assert "EXECUTE" in detail.stdout and "nozzle" in detail.stdout
+
+    # a simulated fault: category 2 -> the filler stops; the alarm is listed, acknowledged, reset
+    assert packml("fault", "filler/nozzle", "clog", "on").returncode == 0
+    alarms = wait_for(("alarms", "list", "filler"), "Nozzle clogged")
+    assert "201" in alarms.stdout and "ACTIVE" in alarms.stdout
+    stopped = wait_for(("status", "filler"), "STOPPED")
+    assert "STOPPED" in stopped.stdout
+    refused = packml("cmd", "filler", "reset")
+    assert refused.returncode == 1 and "Nozzle clogged" in refused.stdout + refused.stderr
+    assert packml("fault", "filler/nozzle", "clog", "off").returncode == 0
+    ack = packml("alarms", "ack", "filler")
+    assert ack.returncode == 0, ack.stdout + ack.stderr
+    assert packml("cmd", "filler", "reset").returncode == 0
+
+    watch = packml("watch", "--frames", "2", "--plain")
+    assert watch.returncode == 0, watch.stderr
+    assert watch.stdout.count(cell) >= 2 and "filler" in watch.stdout
+
+    assert launch.ctrl_c() == 0, launch.output()[-2000:]
+
+
+def test_launch_one_process_per_node_and_ctrl_c(tmp_path: Path) -> None:
+    name = f"proc{os.getpid()}"
+    launch = Launched(["--processes", str(cell_file(tmp_path, name))], tmp_path / "launch.log")
+    try:
+        ready = launch.wait_ready()
+        assert "6 processes" in ready  # 2 units, 3 EMs, the coordinator
+        result = packml("cmd", name, "reset")
+        assert result.returncode == 0, result.stdout + result.stderr
+        children = subprocess.run(
+            ["pgrep", "-f", f"{name}.yaml"], capture_output=True, text=True
+        ).stdout.split()
+        assert len([c for c in children if int(c) != launch.proc.pid]) == 6
+        assert launch.ctrl_c() == 0, launch.output()[-2000:]
+        left = subprocess.run(
+            ["pgrep", "-f", f"{name}.yaml"], capture_output=True, text=True
+        ).stdout.split()
+        assert not left, f"processes left behind: {left}"
+    finally:
+        if launch.proc.poll() is None:
+            launch.proc.kill()
+        subprocess.run(["pkill", "-9", "-f", f"{name}.yaml"], check=False)
+
+
+def test_bad_configuration_fails_at_start_naming_the_key(tmp_path: Path) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text(
+        "cell: bad\nunits:\n  u:\n    equipment_modules:\n      e: {sim: {durations: {starting: -1}, cycle_tim: 2}}\n"
+    )
+    result = packml("launch", "--check", str(path))
+    assert result.returncode == 2
+    assert "units.u.equipment_modules.e.sim.durations.starting" in result.stderr
+    assert "cycle_tim" in result.stderr and "did you mean 'cycle_time'" in result.stderr
+
+
+@pytest.mark.parametrize("verb", ["launch", "status", "cmd", "mode", "alarms", "watch", "fault"])
+def test_every_verb_has_help(verb: str) -> None:
+    result = packml(verb, "--help")
+    assert result.returncode == 0 and "usage: packml " + verb in result.stdout
+
+
+def test_no_running_cell_is_reported_with_exit_code_3() -> None:
+    result = packml("status", "--cell", f"nothing_here_{os.getpid()}", "--timeout", "1")
+    assert result.returncode == 3, result.stdout + result.stderr
+    assert "no unit found" in result.stderr
