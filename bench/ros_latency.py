@@ -241,7 +241,7 @@ def main() -> int:
         "floor": {"trigger_call_to_published_status": summary_ms(floor)},
         "units_by_em_count": units,
     }
-    for n, data in units.items():
+    for data in units.values():
         ex = data["idle_to_execute"]  # type: ignore[index]
         data["idle_to_execute_over_floor"] = round(ex["p50_ms"] / (floor_p50 * 1e3), 2)  # type: ignore[index]
     if "8" in units:
