@@ -164,14 +164,34 @@ def launch_in_process(p: Plan, threads: int = 0, ready: Callable[[str], None] = 
 
 
 # -- one process per node --------------------------------------------------------------------------------
-def commands(p: Plan) -> list[tuple[str, list[str]]]:
-    """(name, argv) of every node process."""
-    py, f = sys.executable, str(p.file)
-    out = [(f"unit {u}", [py, "-m", "packml_ros2.unit_node", f, u]) for u in p.cell.units]
-    out += [(f"em {u}/{em}", [py, "-m", "packml_ros2.sim_em", f, u, em]) for (u, em) in p.sims]
+@dataclass(frozen=True)
+class NodeSpec:
+    """One node of a cell as an executable of this package (setup.py entry points)."""
+
+    name: str
+    executable: str  # unit_node | em_node | coordinator
+    module: str
+    arguments: tuple[str, ...]
+
+
+def node_specs(p: Plan) -> list[NodeSpec]:
+    """Every node of the cell: units, EMs, the coordinator. The launch file (launch/
+    cell.launch.py) and ``--processes`` both start exactly these."""
+    f = str(p.file)
+    out = [
+        NodeSpec(f"unit {u}", "unit_node", "packml_ros2.unit_node", (f, u)) for u in p.cell.units
+    ]
+    out += [
+        NodeSpec(f"em {u}/{em}", "em_node", "packml_ros2.sim_em", (f, u, em)) for (u, em) in p.sims
+    ]
     if p.cell.coordinator.enabled:
-        out.append(("coordinator", [py, "-m", "packml_ros2.coordinator_node", f]))
+        out.append(NodeSpec("coordinator", "coordinator", "packml_ros2.coordinator_node", (f,)))
     return out
+
+
+def commands(p: Plan) -> list[tuple[str, list[str]]]:
+    """(name, argv) of every node process, with this interpreter."""
+    return [(s.name, [sys.executable, "-m", s.module, *s.arguments]) for s in node_specs(p)]
 
 
 def launch_processes(
