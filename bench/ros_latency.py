@@ -45,6 +45,50 @@ sys.exit(run.spin([node]))  # the executor the packml nodes use: a fair floor
 """
 
 
+FANOUT_SERVER = """
+import sys, rclpy
+from rclpy.node import Node
+from std_srvs.srv import Trigger
+from packml_interfaces.msg import EmReport, Status
+from packml_ros2 import qos, run
+run.init()
+n_echo = int(sys.argv[1])
+node = Node("fanout_server")
+go = node.create_publisher(Status, "/bench_fanout/go", qos.STATUS)
+out = node.create_publisher(Status, "/bench_fanout/status", qos.STATUS)
+state = {"seq": 0, "replies": 0}
+def handle(req, resp):
+    state["seq"] += 1
+    state["replies"] = 0
+    go.publish(Status(unit="fanout", sequence=state["seq"], state_current=3))
+    if n_echo == 0:
+        out.publish(Status(unit="fanout", sequence=state["seq"], state_current=6))
+    resp.success = True
+    return resp
+def on_reply(msg):
+    if msg.sequence == state["seq"]:
+        state["replies"] += 1
+        if state["replies"] == n_echo:
+            out.publish(Status(unit="fanout", sequence=state["seq"], state_current=6))
+node.create_service(Trigger, "/bench_fanout/trigger", handle)
+node.create_subscription(EmReport, "/bench_fanout/reports", on_reply, qos.EM_REPORTS)
+sys.exit(run.spin([node]))
+"""
+
+ECHO = """
+import sys, rclpy
+from rclpy.node import Node
+from packml_interfaces.msg import EmReport, Status
+from packml_ros2 import qos, run
+run.init()
+node = Node("echo_" + sys.argv[1])
+pub = node.create_publisher(EmReport, "/bench_fanout/reports", qos.EM_REPORTS)
+node.create_subscription(Status, "/bench_fanout/go",
+    lambda m: pub.publish(EmReport(em=sys.argv[1], kind=1, sequence=m.sequence)), qos.STATUS)
+sys.exit(run.spin([node]))
+"""
+
+
 def percentile(values: list[float], p: float) -> float:
     ordered = sorted(values)
     k = (len(ordered) - 1) * p / 100
@@ -159,6 +203,30 @@ def measure_floor(client: Client, procs: Processes, cycles: int) -> list[float]:
     return samples
 
 
+def measure_fanout_floor(client: Client, procs: Processes, echoes: int, cycles: int) -> list[float]:
+    """The rclpy floor of the unit's message pattern with ``echoes`` EM processes: a Trigger
+    call, one message to every echo process, one reply from each, one message back."""
+    server = procs.start(f"fanout_server_{echoes}", "-c", FANOUT_SERVER, str(echoes))
+    echo_procs = [procs.start(f"echo_{echoes}_{i}", "-c", ECHO, f"e{i}") for i in range(echoes)]
+    topic = "/bench_fanout/status"
+    client.watch(topic)
+    trig = client.trigger("/bench_fanout/trigger")
+    deadline = time.monotonic() + 30
+    while (
+        client.node.count_subscribers("/bench_fanout/go") < echoes and time.monotonic() < deadline
+    ):
+        time.sleep(0.05)
+    samples = []
+    for i in range(cycles + 10):
+        t0 = client.call(trig)
+        _, t1 = client.wait(topic, lambda m, i=i: m.sequence == i + 1 and m.state_current == 6)
+        if i >= 10:
+            samples.append(t1 - t0)
+    for proc in [*echo_procs, server]:
+        proc.stop()
+    return samples
+
+
 def measure_unit(
     client: Client, procs: Processes, workdir: Path, ems: int, cycles: int
 ) -> dict[str, object]:
@@ -228,6 +296,9 @@ def main() -> int:
         client = Client()
         try:
             floor = measure_floor(client, procs, args.cycles)
+            fanout = {
+                str(n): measure_fanout_floor(client, procs, n, args.cycles) for n in em_counts
+            }
             units = {
                 str(n): measure_unit(client, procs, workdir, n, args.cycles) for n in em_counts
             }
@@ -239,11 +310,14 @@ def main() -> int:
         "benchmark": "ros_latency",
         "cycles": args.cycles,
         "floor": {"trigger_call_to_published_status": summary_ms(floor)},
+        "floor_fanout_by_em_count": {n: summary_ms(v) for n, v in fanout.items()},
         "units_by_em_count": units,
     }
-    for data in units.values():
+    for n, data in units.items():
         ex = data["idle_to_execute"]  # type: ignore[index]
         data["idle_to_execute_over_floor"] = round(ex["p50_ms"] / (floor_p50 * 1e3), 2)  # type: ignore[index]
+        fan = statistics.median(fanout[n]) * 1e3
+        data["idle_to_execute_over_fanout_floor"] = round(ex["p50_ms"] / fan, 2)  # type: ignore[index]
     if "8" in units:
         ex8 = units["8"]["idle_to_execute"]  # type: ignore[index]
         result["targets_8_ems"] = {

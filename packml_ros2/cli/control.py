@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import threading
+import time
 from typing import Any
 
 from packml_interfaces.srv import Command, SetMode
@@ -20,10 +21,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="send a state command to a unit or a whole cell",
         description="Send a PackML command (reset, start, stop, hold, unhold, suspend, unsuspend, "
         "abort, clear, complete, or its number 1..10) to a unit, or to a cell through its "
-        "coordinator. Exit code 1 and the reason when refused.",
+        "coordinator. Waits until the unit settles (the state the command leads to, e.g. Idle "
+        "after reset); exit code 1 and the reason when refused or when it settles elsewhere.",
     )
     p.add_argument("target", help="a unit (name, cell/unit) or a cell")
     p.add_argument("command", help="command name or number")
+    p.add_argument("--no-wait", action="store_true", help="answer as soon as the unit accepted")
+    p.add_argument(
+        "--wait-timeout",
+        type=float,
+        default=60.0,
+        help="seconds to wait for the unit to settle (default 60)",
+    )
     p.add_argument(
         "--source",
         default="operator",
@@ -77,6 +86,22 @@ def _coordinator(
     return future.result()
 
 
+def _settled(unit: Any, resp: Command.Response, before: int, timeout: float) -> int:
+    """Wait until the unit, past the sequence it had before the command, is no longer on its way
+    (StateChangeInProcess false): statuses of different topics are not ordered with the answer."""
+    t0 = time.monotonic()
+    status = unit.wait_status(
+        lambda st: st.sequence > before and not st.state_change_in_process, timeout
+    )
+    took = time.monotonic() - t0
+    if status.state_current == resp.state_requested:
+        print(f"now {status.state_current_name} ({took:.2f} s)")
+        return EXIT_OK
+    banner = f": {status.alarm_banner}" if status.alarm_banner else ""
+    print(f"settled in {status.state_current_name} instead ({took:.2f} s){banner}")
+    return EXIT_REFUSED
+
+
 def cmd(args: argparse.Namespace) -> int:
     try:
         number = command_number(args.command)
@@ -90,8 +115,13 @@ def cmd(args: argparse.Namespace) -> int:
                 return _report(
                     _coordinator(s, args.target, "command", Command, req, 120.0), "accepted"
                 )
-            resp = s.unit(args.target).command(number, args.source, timeout=s.timeout)
-            return _report(resp, "accepted")
+            unit = s.unit(args.target)
+            before = unit.wait_status(timeout=s.timeout).sequence
+            resp = unit.command(number, args.source, timeout=s.timeout)
+            if not resp.accepted or args.no_wait or resp.state_current == resp.state_requested:
+                return _report(resp, "accepted")
+            print(resp.message, flush=True)
+            return _settled(unit, resp, before, args.wait_timeout)
         except LookupError as exc:
             return fail(str(exc), EXIT_USAGE)
         except Unavailable as exc:
