@@ -62,30 +62,15 @@ class ModeStateTimes:
         self._since = now
 
     def enter(self, now: float, mode: int, state: int, planned: bool = False) -> None:
-        """The unit entered ``state`` (and/or ``mode``) at ``now``: restart their current times."""
-        dt = now - self._since
-        if dt > 0.0:  # _close(now), inlined: this runs on every transition
-            m = self._mode
-            i = m * NUM_STATES + self._state
-            self.mode_current[m] += dt
-            self.mode_cumulative[m] += dt
-            self.state_current[i] += dt
-            self.state_cumulative[i] += dt
-            self.acc_time_since_reset += dt
-            if self._planned:
-                self.planned_stop += dt
-            self._since = now
+        """The unit entered ``state`` (and/or ``mode``) at ``now``: restart their current times.
+        (The engine's transition path inlines this; mode changes and tests come through here.)"""
+        self._close(now)
         if mode != self._mode:
             self.mode_current[mode] = 0.0
             self.modes_used.add(mode)
         self.state_current[mode * NUM_STATES + state] = 0.0
         self._mode = mode
         self._state = state
-        self._planned = planned
-
-    def set_planned(self, now: float, planned: bool) -> None:
-        self._close(now)
-        self._since = max(self._since, now)
         self._planned = planned
 
     # -- resets --------------------------------------------------------------------------------------
