@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import subprocess
 import sys
 from pathlib import Path
 
@@ -31,6 +32,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "--logs", type=Path, help="with --processes: write each node's output to this directory"
     )
     p.add_argument("--check", action="store_true", help="only validate the cell file and exit")
+    p.add_argument(
+        "--opcua",
+        nargs="?",
+        type=int,
+        const=-1,
+        metavar="PORT",
+        help="also serve the units over OPC UA (packml opcua), on PORT or the cell file's "
+        "opcua.port (default 4840)",
+    )
     p.set_defaults(func=launch)
 
 
@@ -42,14 +52,37 @@ def launch(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"packml launch: invalid configuration\n{exc}", file=sys.stderr)
         return EXIT_USAGE
+    opcua = getattr(args, "opcua", None)
+    if opcua is not None:
+        from ..opcua import parse_opcua
+
+        try:
+            parse_opcua(plan.cell)
+        except ConfigError as exc:
+            print(f"packml launch: invalid configuration\n{exc}", file=sys.stderr)
+            return EXIT_USAGE
     if args.check:
         print(f"{args.cell_file}: valid ({plan.node_count} nodes)")
         return 0
-    if args.processes:
-        if args.logs:
-            args.logs.mkdir(parents=True, exist_ok=True)
-        return launcher.launch_processes(plan, ready=_ready, log_dir=args.logs)
-    return launcher.launch_in_process(plan, threads=args.threads, ready=_ready)
+    opcua_server = _start_opcua(args.cell_file, opcua) if opcua is not None else None
+    try:
+        if args.processes:
+            if args.logs:
+                args.logs.mkdir(parents=True, exist_ok=True)
+            return launcher.launch_processes(plan, ready=_ready, log_dir=args.logs)
+        return launcher.launch_in_process(plan, threads=args.threads, ready=_ready)
+    finally:
+        if opcua_server is not None:
+            launcher._stop_children([("opcua", opcua_server)])
+
+
+def _start_opcua(cell_file: Path, port: int) -> subprocess.Popen[bytes]:
+    """``packml opcua`` as a child process (own session: Ctrl-C reaches the launcher, which stops
+    it last); it prints its endpoint itself."""
+    argv = [sys.executable, "-m", "packml_ros2.cli.main", "opcua", str(cell_file)]
+    if port >= 0:
+        argv += ["--port", str(port)]
+    return subprocess.Popen(argv, start_new_session=True)
 
 
 def _ready(text: str) -> None:

@@ -1,0 +1,216 @@
+"""The ``opcua:`` block of a cell file (every key optional)::
+
+    opcua:
+      host: 127.0.0.1              # listen address (0.0.0.0: every interface)
+      port: 4840
+      units: [robot_cell]          # which units to expose (default: all of the cell)
+      allow_anonymous: true        # anonymous sessions may connect and read
+      allow_anonymous_write: false # anonymous sessions may also call methods (commands)
+      users:                       # user name -> password, for methods (commands, mode, speed)
+        operator: env:PACKML_OPCUA_OPERATOR   # from the environment, or
+        mes: pbkdf2_sha256$...                # a hash (packml opcua --hash-password), or plain text
+      user_certificates:           # user name -> certificate (DER or PEM): X509 identity tokens,
+        scada: certs/scada.der     #   or the client's application instance certificate
+      security_policies: [None, Basic256Sha256_Sign, Basic256Sha256_SignAndEncrypt]
+      certificate: certs/server.der    # the server's application instance certificate and key;
+      private_key: certs/server.pem    #   default: self-signed, generated into state_dir
+      trusted_client_certificates: []  # if set: only these client certificates may open a
+                                       #   secure channel (default: any, the user decides rights)
+      state_dir: ~/.local/state/packml_ros2/opcua
+      application_uri: urn:packml_ros2:<cell>
+      call_timeout: 10.0           # seconds a method waits for the unit's answer
+
+Relative paths are relative to the cell file. Errors name the key path (``opcua.users.mes``).
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import hmac
+import os
+import secrets
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..core import schema as sc
+from ..core.config import DEFAULT_STATE_DIR, CellConfig
+from ..core.schema import ConfigError, Node, invalid
+
+#: Names accepted in ``security_policies`` -> asyncua SecurityPolicyType member names.
+POLICIES = {
+    "none": "NoSecurity",
+    "basic256sha256_sign": "Basic256Sha256_Sign",
+    "basic256sha256_signandencrypt": "Basic256Sha256_SignAndEncrypt",
+    "aes128sha256rsaoaep_sign": "Aes128Sha256RsaOaep_Sign",
+    "aes128sha256rsaoaep_signandencrypt": "Aes128Sha256RsaOaep_SignAndEncrypt",
+    "aes256sha256rsapss_sign": "Aes256Sha256RsaPss_Sign",
+    "aes256sha256rsapss_signandencrypt": "Aes256Sha256RsaPss_SignAndEncrypt",
+}
+DEFAULT_POLICIES = ("NoSecurity", "Basic256Sha256_Sign", "Basic256Sha256_SignAndEncrypt")
+KEYS = {
+    "host", "port", "units", "allow_anonymous", "allow_anonymous_write", "users",
+    "user_certificates", "security_policies", "certificate", "private_key",
+    "trusted_client_certificates", "state_dir", "application_uri", "call_timeout",
+}  # fmt: skip
+HASH_PREFIX = "pbkdf2_sha256$"
+
+
+@dataclass(frozen=True)
+class OpcUaConfig:
+    cell: str
+    units: tuple[str, ...]
+    host: str = "127.0.0.1"
+    port: int = 4840
+    allow_anonymous: bool = True
+    allow_anonymous_write: bool = False
+    users: dict[str, str] = field(default_factory=dict)  # name -> password or hash
+    user_certificates: dict[str, Path] = field(default_factory=dict)
+    security_policies: tuple[str, ...] = DEFAULT_POLICIES
+    certificate: Path | None = None
+    private_key: Path | None = None
+    trusted_client_certificates: tuple[Path, ...] = ()
+    state_dir: Path = Path(DEFAULT_STATE_DIR).expanduser() / "opcua"
+    application_uri: str = ""
+    call_timeout: float = 10.0
+
+    @property
+    def endpoint(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"opc.tcp://{host}:{self.port}/"
+
+    @property
+    def secure(self) -> bool:
+        """Whether an endpoint other than None is configured (needs a certificate)."""
+        return any(p != "NoSecurity" for p in self.security_policies)
+
+    @property
+    def access_control(self) -> bool:
+        """Methods need a configured user (anonymous sessions cannot call them)."""
+        return not self.allow_anonymous_write
+
+    def app_uri(self) -> str:
+        return self.application_uri or f"urn:packml_ros2:{self.cell}"
+
+
+def hash_password(password: str, iterations: int = 200_000) -> str:
+    """``pbkdf2_sha256$<iterations>$<salt>$<hash>`` (base64) for ``users:``."""
+    salt = secrets.token_bytes(16)
+    digest = hashlib.pbkdf2_hmac("sha256", password.encode(), salt, iterations)
+    b64 = base64.b64encode
+    return f"{HASH_PREFIX}{iterations}${b64(salt).decode()}${b64(digest).decode()}"
+
+
+def check_password(password: str | None, stored: str) -> bool:
+    """Constant-time comparison with a plain or hashed password (``env:`` is resolved at load)."""
+    if password is None:
+        return False
+    if stored.startswith(HASH_PREFIX):
+        try:
+            iterations, salt, digest = stored[len(HASH_PREFIX) :].split("$")
+            expected = base64.b64decode(digest)
+            got = hashlib.pbkdf2_hmac(
+                "sha256", password.encode(), base64.b64decode(salt), int(iterations)
+            )
+        except ValueError:
+            return False
+        return hmac.compare_digest(got, expected)
+    return hmac.compare_digest(password.encode(), stored.encode())
+
+
+def _password(n: Node) -> str:
+    s = sc.text(n)
+    if s.startswith("env:"):
+        var = s[4:]
+        if var not in os.environ:
+            raise invalid(f"environment variable {var} is not set")
+        s = os.environ[var]
+    if s.startswith(HASH_PREFIX):
+        parts = s[len(HASH_PREFIX) :].split("$")
+        if len(parts) != 3 or not parts[0].isdigit():
+            raise invalid("malformed password hash (expected pbkdf2_sha256$<n>$<salt>$<hash>)")
+    elif len(s) < 4:
+        raise invalid("password too short (at least 4 characters)")
+    return s
+
+
+def _host(n: Node) -> str:
+    s = sc.text(n).strip()
+    if not s:
+        raise invalid("empty host")
+    return s
+
+
+def _policy(n: Node) -> str:
+    key = str(n.value).strip().lower().replace("-", "_")
+    if key not in POLICIES:
+        raise invalid(f"{n.value!r} is not one of None, {', '.join(DEFAULT_POLICIES[1:])}, ...")
+    return POLICIES[key]
+
+
+def parse_opcua(cell: CellConfig, base: Path | None = None) -> OpcUaConfig:
+    """Validate ``cell.opcua``; :class:`ConfigError` lists every problem with its key path."""
+    file = cell.file
+    base = base if base is not None else Path(file).resolve().parent
+    root = Node(dict(cell.opcua), "opcua")
+    root.check_keys(KEYS)
+
+    def path(n: Node) -> Path:
+        p = Path(sc.text(n)).expanduser()
+        return p if p.is_absolute() else base / p
+
+    def existing(n: Node) -> Path:
+        p = path(n)
+        if not p.is_file():
+            raise invalid(f"no such file: {p}")
+        return p
+
+    units = tuple(n.parse(sc.name, "") for n in root.list_at("units")) or tuple(cell.units)
+    for i, u in enumerate(units):
+        if u and u not in cell.units:
+            root.child("units", None).child(i, u).error(
+                f"unknown unit {u!r}; the cell has {', '.join(cell.units)}"
+            )
+    users = {name: n.parse(_password, "") for name, n in root.items_at("users")}
+    certs = {name: n.parse(existing, Path()) for name, n in root.items_at("user_certificates")}
+    policies = tuple(n.parse(_policy, "") for n in root.list_at("security_policies"))
+    if "security_policies" in root.mapping() and not policies:
+        root.child("security_policies", None).error("at least one policy is needed (e.g. None)")
+    certificate = root.get("certificate", existing, None)
+    private_key = root.get("private_key", existing, None)
+    if (certificate is None) != (private_key is None):
+        root.error("certificate and private_key go together: give both or neither")
+    config = OpcUaConfig(
+        cell=cell.cell,
+        units=units,
+        host=root.get("host", _host, "127.0.0.1"),
+        port=root.get("port", sc.integer(0, 65535), 4840),
+        allow_anonymous=root.get("allow_anonymous", sc.boolean, True),
+        allow_anonymous_write=root.get("allow_anonymous_write", sc.boolean, False),
+        users={k: v for k, v in users.items() if v},
+        user_certificates=certs,
+        security_policies=policies or DEFAULT_POLICIES,
+        certificate=certificate,
+        private_key=private_key,
+        trusted_client_certificates=tuple(
+            n.parse(existing, Path()) for n in root.list_at("trusted_client_certificates")
+        ),
+        state_dir=root.get("state_dir", path, Path(DEFAULT_STATE_DIR).expanduser() / "opcua"),
+        application_uri=root.get("application_uri", sc.text, ""),
+        call_timeout=root.get("call_timeout", sc.number(positive=True), 10.0),
+    )
+    if not config.allow_anonymous and not config.users and not config.user_certificates:
+        root.child("allow_anonymous", False).error(
+            "nobody could connect: allow anonymous sessions or configure users"
+        )
+    if root.problems:
+        raise ConfigError(file, root.problems)
+    return config
+
+
+def with_overrides(config: OpcUaConfig, **changes: Any) -> OpcUaConfig:
+    """The configuration with command-line overrides (``None`` = keep)."""
+    from dataclasses import replace
+
+    return replace(config, **{k: v for k, v in changes.items() if v is not None})

@@ -1,0 +1,301 @@
+"""ROS messages of a unit -> OPC 30050 variable values, and unit answers -> OPC UA status codes.
+
+Pure functions (no server, no ROS node): :func:`status_values` and :func:`admin_values` return
+``{relative browse path: Value}`` for one unit object (paths as in :class:`.model.UnitNodes`);
+structured values are :class:`Struct` (type name + fields) until the server turns them into the
+data type classes asyncua generated from the model. The dotted PackTags names of
+``packml_ros2.core.packtags.flat_tags`` correspond as follows::
+
+    Status.UnitModeCurrent            Status/UnitModeCurrent (the unit's mode enumeration)
+    Status.UnitModeChangeInProcess    Status/UnitModeChangeInProgress
+    Status.StateCurrent               BaseStateMachine/.../CurrentState/Number (+ Status/StateCurrent)
+    Status.StateRequested             Status/StateRequested
+    Status.StateChangeInProcess       Status/StateChangeInProgress
+    Status.EquipmentInterlock.Blocked Status/EquipmentBlocked (Starved likewise)
+    Admin.Alarm[#] / AlarmExtent      Admin/Alarm (PackMLAlarmDataType[]) / Admin/AlarmExtent
+    Admin.ProdProcessedCount[#]       Admin/ProdProcessedCount (PackMLCountDataType[])
+    Admin.StateCurrentTime[m,s]       Admin/StateCurrentTime (Int32[32,18])
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from asyncua import ua
+
+from .model import BASE_SM, EXECUTE_SM, MACHINE_PATHS, MACHINE_SM
+
+UNECE_URI = "http://www.opcfoundation.org/UA/units/un/cefact"
+#: Engineering units of counters and descriptors -> UN/CEFACT Recommendation 20 common codes.
+UNECE_CODES = {
+    "pcs": "H87", "piece": "H87", "pieces": "H87", "part": "H87", "parts": "H87",
+    "case": "CS", "cases": "CS", "s": "SEC", "sec": "SEC", "min": "MIN", "h": "HUR",
+    "kg": "KGM", "g": "GRM", "t": "TNE", "m": "MTR", "mm": "MMT", "l": "LTR", "%": "P1",
+    "1/min": "C94", "/min": "C94", "ppm": "C94",
+}  # fmt: skip
+NULL_TIME = ua.uatypes.FILETIME_EPOCH_AS_UTC_DATETIME  # encodes as 0: "not set"
+GOOD = 0
+NOT_ACTIVE = ua.StatusCodes.BadStateNotActive
+
+
+@dataclass(frozen=True)
+class Struct:
+    """A structured value: the data type's name and its fields (values may be Structs too)."""
+
+    type: str
+    fields: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Value:
+    value: Any
+    vtype: ua.VariantType
+    status: int = GOOD
+    dims: tuple[int, ...] | None = None
+
+
+def unit_id(code: str) -> int:
+    """OPC UA Part 8: the UnitId of a UN/CEFACT common code (up to 3 characters)."""
+    n = 0
+    for ch in code:
+        n = (n << 8) | ord(ch)
+    return n
+
+
+def eu_information(unit: str) -> ua.EUInformation:
+    code = UNECE_CODES.get(unit.strip().lower())
+    return ua.EUInformation(
+        NamespaceUri=UNECE_URI,
+        UnitId=unit_id(code) if code else -1,
+        DisplayName=ua.LocalizedText(unit),
+        Description=ua.LocalizedText(unit),
+    )
+
+
+def utc(stamp: Any) -> dt.datetime:
+    """builtin_interfaces/Time -> UTC datetime (zero -> the OPC UA null DateTime)."""
+    sec, nanosec = int(getattr(stamp, "sec", 0)), int(getattr(stamp, "nanosec", 0))
+    if sec <= 0 and nanosec <= 0:
+        return NULL_TIME
+    return dt.datetime.fromtimestamp(sec, tz=dt.UTC) + dt.timedelta(microseconds=nanosec // 1000)
+
+
+# -- structures ---------------------------------------------------------------------------------------------
+def descriptor(d: Any) -> Struct:
+    return Struct(
+        "PackMLDescriptorDataType",
+        {"ID": int(d.id), "Name": d.name, "Unit": eu_information(d.unit), "Value": float(d.value)},
+    )
+
+
+def descriptors(items: Iterable[Any]) -> list[Struct]:
+    return [descriptor(d) for d in items]
+
+
+def product(p: Any) -> Struct:
+    return Struct(
+        "PackMLProductDataType",
+        {
+            "ProductID": int(p.product_id),
+            "ProcessVariables": descriptors(p.process_variables),
+            "Ingredients": [
+                Struct(
+                    "PackMLIngredientsDataType",
+                    {"IngredientID": int(i.ingredient_id), "Parameter": descriptors(i.parameter)},
+                )
+                for i in p.ingredients
+            ],
+        },
+    )
+
+
+def remote_interface(r: Any) -> Struct:
+    return Struct(
+        "PackMLRemoteInterfaceDataType",
+        {
+            "Number": int(r.number),
+            "ControlCmdNumber": int(r.control_cmd_number),
+            "CmdValue": int(r.cmd_value),
+            "Parameter": descriptors(r.parameter),
+        },
+    )
+
+
+def count(c: Any) -> Struct:
+    return Struct(
+        "PackMLCountDataType",
+        {
+            "ID": int(c.id),
+            "Name": c.name,
+            "Unit": eu_information(c.unit),
+            "Count": int(c.count),
+            "AccCount": int(c.acc_count),
+        },
+    )
+
+
+def alarm(a: Any | None) -> Struct:
+    """packml_interfaces/Alarm -> PackMLAlarmDataType (None or id 0 -> an empty entry)."""
+    if a is None:
+        return Struct(
+            "PackMLAlarmDataType",
+            {"ID": 0, "Value": 0, "Message": "", "Category": 0, "DateTime": NULL_TIME,
+             "AckDateTime": NULL_TIME, "Trigger": False},
+        )  # fmt: skip
+    return Struct(
+        "PackMLAlarmDataType",
+        {
+            "ID": int(a.id),
+            "Value": int(a.value),
+            "Message": a.message,
+            "Category": int(a.category),
+            "DateTime": utc(a.stamp),
+            "AckDateTime": utc(a.ack_stamp),
+            "Trigger": bool(a.trigger),
+        },
+    )
+
+
+# -- the state machines -------------------------------------------------------------------------------------
+def _places() -> dict[int, tuple[str | None, str | None, str | None]]:
+    """PackML state number -> the current state of (BaseStateMachine, MachineState, ExecuteState);
+    None: that (sub) state machine is not active."""
+    out: dict[int, tuple[str | None, str | None, str | None]] = {}
+    for s in EXECUTE_SM.states:
+        out[s.number] = ("Cleared", "Running", s.name)
+    for s in MACHINE_SM.states:
+        if s.name != "Running":
+            out[s.number] = ("Cleared", s.name, None)
+    for s in BASE_SM.states:
+        if s.name != "Cleared":
+            out[s.number] = (s.name, None, None)
+    return out
+
+
+PLACES = _places()
+_STATE_IDS = {s.name: s.id for m in (BASE_SM, MACHINE_SM, EXECUTE_SM) for s in m.states}
+_STATE_NUMBERS = {s.name: s.number for m in (BASE_SM, MACHINE_SM, EXECUTE_SM) for s in m.states}
+
+
+def state_machine_values(state: int, packml_ns: int) -> dict[str, Value]:
+    """CurrentState (LocalizedText), its Id (the state object of the companion specification's
+    state machine type) and Number (StateNumber) of the three nested state machines."""
+    places = PLACES.get(int(state), (None, None, None))
+    out: dict[str, Value] = {}
+    for machine, current in zip((BASE_SM, MACHINE_SM, EXECUTE_SM), places, strict=True):
+        path = f"{MACHINE_PATHS[machine.name]}/CurrentState"
+        if current is None:
+            out[path] = Value(ua.LocalizedText(""), ua.VariantType.LocalizedText, NOT_ACTIVE)
+            out[f"{path}/Id"] = Value(ua.NodeId(), ua.VariantType.NodeId, NOT_ACTIVE)
+            out[f"{path}/Number"] = Value(0, ua.VariantType.UInt32, NOT_ACTIVE)
+            continue
+        out[path] = Value(ua.LocalizedText(current, "en"), ua.VariantType.LocalizedText)
+        out[f"{path}/Id"] = Value(ua.NodeId(_STATE_IDS[current], packml_ns), ua.VariantType.NodeId)
+        out[f"{path}/Number"] = Value(_STATE_NUMBERS[current], ua.VariantType.UInt32)
+    return out
+
+
+# -- whole messages -----------------------------------------------------------------------------------------
+I32, F, B = ua.VariantType.Int32, ua.VariantType.Float, ua.VariantType.Boolean
+EO = ua.VariantType.ExtensionObject
+
+
+def status_values(msg: Any, packml_ns: int) -> dict[str, Value]:
+    """packml_interfaces/Status -> the unit's Status object and state machines."""
+    out = {
+        "Status/UnitModeCurrent": Value(int(msg.unit_mode_current), I32),
+        # OPC 30050 types UnitModeRequested as Boolean: a mode change has been requested
+        "Status/UnitModeRequested": Value(
+            bool(msg.unit_mode_change_in_process)
+            or int(msg.unit_mode_requested) != int(msg.unit_mode_current),
+            B,
+        ),
+        "Status/UnitModeChangeInProgress": Value(bool(msg.unit_mode_change_in_process), B),
+        "Status/StateRequested": Value(int(msg.state_requested), I32),
+        "Status/StateChangeInProgress": Value(bool(msg.state_change_in_process), B),
+        "Status/MachSpeed": Value(float(msg.mach_speed), F),
+        "Status/CurMachSpeed": Value(float(msg.cur_mach_speed), F),
+        "Status/EquipmentBlocked": Value(bool(msg.equipment_interlock.blocked), B),
+        "Status/EquipmentStarved": Value(bool(msg.equipment_interlock.starved), B),
+        "Status/Parameter": Value(descriptors(msg.parameter), EO),
+        "Status/Product": Value([product(p) for p in msg.product], EO),
+        "Status/RemoteParameter": Value([remote_interface(r) for r in msg.remote_interface], EO),
+        "Status/StateCurrent": Value(int(msg.state_current), I32),
+    }
+    out.update(state_machine_values(msg.state_current, packml_ns))
+    return out
+
+
+def _matrix(values: Sequence[int], columns: int) -> tuple[list[int], tuple[int, ...]]:
+    rows = len(values) // columns if columns else 0
+    return [int(v) for v in values[: rows * columns]], (rows, columns)
+
+
+def admin_values(msg: Any) -> dict[str, Value]:
+    """packml_interfaces/Admin -> the unit's Admin object (and the speeds' EURange)."""
+    columns = int(getattr(msg, "NUM_STATES", 18))
+    cur, cur_dims = _matrix(msg.state_current_time, columns)
+    cum, cum_dims = _matrix(msg.state_cumulative_time, columns)
+    design = float(msg.mach_design_speed)
+    out = {
+        "Admin/Alarm": Value([alarm(a) for a in msg.alarm], EO),
+        "Admin/AlarmExtent": Value(int(msg.alarm_extent), I32),
+        "Admin/AlarmHistory": Value([alarm(a) for a in msg.alarm_history], EO),
+        "Admin/AlarmHistoryExtent": Value(int(msg.alarm_history_extent), I32),
+        "Admin/Warning": Value([alarm(a) for a in msg.warning], EO),
+        "Admin/WarningExtent": Value(int(msg.warning_extent), I32),
+        "Admin/StopReason": Value(alarm(msg.stop_reason if msg.stop_reason_extent else None), EO),
+        "Admin/StopReasonExtent": Value(int(msg.stop_reason_extent), I32),
+        "Admin/ModeCurrentTime": Value([int(v) for v in msg.mode_current_time], I32),
+        "Admin/ModeCumulativeTime": Value([int(v) for v in msg.mode_cumulative_time], I32),
+        "Admin/StateCurrentTime": Value(cur, I32, dims=cur_dims),
+        "Admin/StateCumulativeTime": Value(cum, I32, dims=cum_dims),
+        "Admin/ProdConsumedCount": Value([count(c) for c in msg.prod_consumed_count], EO),
+        "Admin/ProdProcessedCount": Value([count(c) for c in msg.prod_processed_count], EO),
+        "Admin/ProdDefectiveCount": Value([count(c) for c in msg.prod_defective_count], EO),
+        "Admin/AccTimeSinceReset": Value(int(msg.acc_time_since_reset), I32),
+        "Admin/MachDesignSpeed": Value(float(design), F),
+        "Admin/Parameter": Value(descriptors(msg.parameter), EO),
+    }
+    if design > 0:
+        for speed in ("MachSpeed", "CurMachSpeed"):
+            out[f"Status/{speed}/EURange"] = Value(
+                ua.Range(Low=0.0, High=design), ua.VariantType.ExtensionObject
+            )
+    return out
+
+
+# -- answers -----------------------------------------------------------------------------------------------
+#: packml_interfaces/Result codes -> (name, OPC UA status code of a refused method call).
+_S = ua.StatusCodes
+RESULTS = {
+    1: ("UNKNOWN_COMMAND", _S.BadInvalidArgument),
+    2: ("COMMAND_NOT_ALLOWED", _S.BadInvalidState),  # not valid in the current state
+    3: ("STATE_DISABLED", _S.BadInvalidState),  # the target state is disabled in this mode
+    4: ("REMOTE_DISABLED", _S.BadUserAccessDenied),
+    5: ("MODE_UNKNOWN", _S.BadOutOfRange),
+    6: ("MODE_CHANGE_NOT_ALLOWED", _S.BadInvalidState),
+    7: ("MODE_CHANGE_IN_PROCESS", _S.BadInvalidState),
+    8: ("ALARM_ACTIVE", _S.BadInvalidState),
+    9: ("EM_UNKNOWN", _S.BadNotFound),
+    10: ("EM_SWITCH_IN_PRODUCTION", _S.BadInvalidState),
+    11: ("EM_MISSING", _S.BadInvalidState),
+    12: ("ALARM_UNKNOWN", _S.BadNotFound),
+    13: ("INVALID_ARGUMENT", _S.BadInvalidArgument),
+    14: ("SUPERSEDED", _S.BadInvalidState),
+    15: ("UNIT_UNAVAILABLE", _S.BadNoCommunication),
+    16: ("UNAUTHORIZED", _S.BadUserAccessDenied),
+    17: ("NOTHING_TO_DO", _S.BadNothingToDo),
+    18: ("INTERLOCK_ACTIVE", _S.BadInvalidState),
+}
+RESULT_NAMES = {code: name for code, (name, _) in RESULTS.items()}
+
+
+def result_status(accepted: bool, result: int) -> int:
+    """The status code of a method call from a unit's answer (accepted -> Good)."""
+    if accepted:
+        return GOOD
+    return RESULTS.get(int(result), ("", _S.BadInvalidState))[1]

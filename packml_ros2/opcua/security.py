@@ -1,0 +1,229 @@
+"""Who may do what on the OPC UA server, and how a refusal's reason reaches the client.
+
+- :class:`Users`: asyncua user manager. A session is a *user* with a configured user name and
+  password, or with a configured certificate (X509 identity token, or the client's application
+  instance certificate of a signed channel); otherwise *anonymous*, if anonymous sessions are
+  allowed at all. A wrong password is refused (no fall-back to anonymous).
+- :class:`Rules`: the permission ruleset: everybody may browse, read and subscribe; only users
+  may write (nothing is writable anyway) or manage nodes (nobody may: no Admin role is ever
+  given out). Calls pass the service level and are checked per method (:func:`may_call`), so a
+  refused method answers ``BadUserAccessDenied`` for that method.
+- Diagnostics: a method that refuses records its reason with :func:`refuse`; the CallResponse
+  then carries, per refused method, a DiagnosticInfo with the text (AdditionalInfo, and
+  LocalizedText through the string table) when the client asked for operation-level diagnostics
+  (RequestHeader.ReturnDiagnostics), as OPC UA Part 4 describes.
+
+asyncua has no hook for the calling session in a method, nor for response diagnostics: :func:`install`
+wraps ``UaProcessor.process_message`` / ``send_response`` once per process. The wrappers only act
+through context variables that this package sets, so other asyncua servers are unaffected.
+"""
+
+from __future__ import annotations
+
+import contextvars
+import logging
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from asyncua import ua
+from asyncua.common.utils import Buffer
+from asyncua.crypto import uacrypto
+from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, User, UserRole
+from asyncua.server import uaprocessor
+from asyncua.ua.ua_binary import nodeid_from_binary, struct_from_binary, struct_to_binary
+
+from .config import OpcUaConfig, check_password
+
+_logger = logging.getLogger(__name__)
+
+#: The user of the session whose request is being processed.
+CURRENT_USER: contextvars.ContextVar[User | None] = contextvars.ContextVar(
+    "packml_opcua_user", default=None
+)
+#: RequestHeader.ReturnDiagnostics of the Call request being processed.
+_RETURN_DIAGNOSTICS: contextvars.ContextVar[int] = contextvars.ContextVar(
+    "packml_opcua_return_diagnostics", default=0
+)
+#: id(CallMethodResult) -> (symbolic id, text) of the methods refused in the current request.
+_REFUSALS: contextvars.ContextVar[dict[int, tuple[str, str]] | None] = contextvars.ContextVar(
+    "packml_opcua_refusals", default=None
+)
+
+# RequestHeader.ReturnDiagnostics, operation level (OPC UA Part 4, 7.33)
+DIAG_SYMBOLIC_ID, DIAG_LOCALIZED_TEXT, DIAG_ADDITIONAL_INFO = 0x20, 0x40, 0x80
+_CALL_REQUEST = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
+_WRITE_REQUEST = ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary)
+
+
+class Users:
+    """asyncua user manager from the ``opcua:`` block."""
+
+    def __init__(self, config: OpcUaConfig, certificates: Mapping[str, bytes]) -> None:
+        self.config = config
+        self._certificates = {der: name for name, der in certificates.items()}
+
+    @classmethod
+    async def load(cls, config: OpcUaConfig) -> Users:
+        certs = {}
+        for name, path in config.user_certificates.items():
+            certs[name] = uacrypto.der_from_x509(await uacrypto.load_certificate(path))
+        return cls(config, certs)
+
+    def get_user(
+        self,
+        iserver: Any,
+        username: str | None = None,
+        password: str | None = None,
+        certificate: bytes | None = None,
+    ) -> User | None:
+        if username:
+            stored = self.config.users.get(username)
+            if stored is not None and check_password(password, stored):
+                return User(role=UserRole.User, name=username)
+            _logger.warning("OPC UA: refused user %r (unknown user or wrong password)", username)
+            return None
+        if certificate:
+            name = self._certificates.get(bytes(certificate))
+            if name is not None:
+                return User(role=UserRole.User, name=name)
+        if self.config.allow_anonymous:
+            return User(role=UserRole.Anonymous, name=None)
+        return None
+
+    def identity_tokens(self) -> list[type]:
+        tokens: list[type] = []
+        if self.config.allow_anonymous:
+            tokens.append(ua.AnonymousIdentityToken)
+        if self.config.users:
+            tokens.append(ua.UserNameIdentityToken)
+        if self.config.user_certificates:
+            tokens.append(ua.X509IdentityToken)
+        return tokens
+
+
+class Rules(PermissionRuleset):
+    """Service-level permissions (see the module text)."""
+
+    def __init__(self) -> None:
+        user = {ua.NodeId(t) for t in USER_TYPES}
+        self._allowed = {
+            UserRole.Anonymous: user - {_WRITE_REQUEST},
+            UserRole.User: user,
+            UserRole.Admin: user,
+        }
+
+    def check_validity(self, user: User, action_type_id: ua.NodeId, body: Any) -> bool:
+        return action_type_id in self._allowed.get(user.role, set())
+
+
+def may_call(config: OpcUaConfig) -> tuple[bool, str]:
+    """Whether the current session may call methods; the user name (``''`` = anonymous)."""
+    user = CURRENT_USER.get()
+    if user is not None and user.role in (UserRole.User, UserRole.Admin):
+        return True, user.name or ""
+    return config.allow_anonymous_write, ""
+
+
+def refuse(status: int, symbol: str, text: str) -> ua.CallMethodResult:
+    """A refused method call: ``status`` and, for diagnostics, the reason."""
+    result = ua.CallMethodResult(StatusCode=ua.StatusCode(status))
+    refusals = _REFUSALS.get()
+    if refusals is not None:
+        refusals[id(result)] = (symbol, text)
+    return result
+
+
+def _localized_text_field() -> str:
+    """The DiagnosticInfo attribute asyncua encodes with the LocalizedText bit (0x04) of OPC UA
+    Part 6, 5.2.2.12. asyncua 2.1 numbers the optional fields in declaration order and so swaps
+    Locale (0x08) and LocalizedText; both are Int32 at the same place in the stream when only
+    one of them is present, so setting the other attribute puts the right bit on the wire."""
+    mask = struct_to_binary(ua.DiagnosticInfo(LocalizedText=0))[0]
+    return "LocalizedText" if mask == 0x04 else "Locale"
+
+
+_LOCALIZED_TEXT = _localized_text_field()
+
+
+def _diagnostics(
+    response: ua.CallResponse, refusals: dict[int, tuple[str, str]], mask: int
+) -> None:
+    table: list[str] = []
+
+    def index(text: str) -> int:
+        table.append(text)
+        return len(table) - 1
+
+    infos = []
+    for result in response.Results:
+        info = ua.DiagnosticInfo()
+        found = refusals.get(id(result))
+        if found is not None:
+            symbol, text = found
+            if mask & DIAG_SYMBOLIC_ID:
+                info.SymbolicId = index(symbol)
+            if mask & DIAG_LOCALIZED_TEXT:
+                setattr(info, _LOCALIZED_TEXT, index(text))
+            if mask & DIAG_ADDITIONAL_INFO:
+                info.AdditionalInfo = text
+        infos.append(info)
+    response.DiagnosticInfos = infos
+    response.ResponseHeader.StringTable = table
+
+
+def install() -> None:
+    """Wrap asyncua's request processing once (see the module text)."""
+    processor = uaprocessor.UaProcessor
+    if getattr(processor, "_packml_hooks", False):
+        return
+    process_message, send_response = processor.process_message, processor.send_response
+
+    async def wrapped_process_message(self: Any, seqhdr: Any, body: Buffer) -> Any:
+        session = getattr(self, "session", None)
+        user_token = CURRENT_USER.set(getattr(session, "user", None))
+        diag_token = _RETURN_DIAGNOSTICS.set(0)
+        refusal_token = _REFUSALS.set({})
+        try:
+            try:
+                peek = body.copy()
+                if nodeid_from_binary(peek) == _CALL_REQUEST:
+                    _RETURN_DIAGNOSTICS.set(
+                        struct_from_binary(ua.RequestHeader, peek).ReturnDiagnostics
+                    )
+            except Exception:  # the original reports malformed requests
+                pass
+            return await process_message(self, seqhdr, body)
+        finally:
+            _REFUSALS.reset(refusal_token)
+            _RETURN_DIAGNOSTICS.reset(diag_token)
+            CURRENT_USER.reset(user_token)
+
+    def wrapped_send_response(
+        self: Any, requesthandle: Any, seqhdr: Any, response: Any, *args: Any, **kwargs: Any
+    ) -> Any:
+        refusals = _REFUSALS.get()
+        mask = _RETURN_DIAGNOSTICS.get() & (
+            DIAG_SYMBOLIC_ID | DIAG_LOCALIZED_TEXT | DIAG_ADDITIONAL_INFO
+        )
+        if refusals and mask and isinstance(response, ua.CallResponse):
+            _diagnostics(response, refusals, mask)
+        return send_response(self, requesthandle, seqhdr, response, *args, **kwargs)
+
+    processor.process_message = wrapped_process_message  # type: ignore[method-assign]
+    processor.send_response = wrapped_send_response  # type: ignore[method-assign]
+    processor._packml_hooks = True  # type: ignore[attr-defined]
+
+
+async def trusted_validator(paths: tuple[Path, ...]) -> Any:
+    """A certificate validator that admits only these client certificates."""
+    trusted = {uacrypto.der_from_x509(await uacrypto.load_certificate(p)) for p in paths}
+
+    async def validate(certificate: Any, app_description: Any) -> None:
+        if uacrypto.der_from_x509(certificate) not in trusted:
+            _logger.warning(
+                "OPC UA: refused an untrusted client certificate (%s)", certificate.subject
+            )
+            raise ua.uaerrors.BadCertificateUntrusted
+
+    return validate

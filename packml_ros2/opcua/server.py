@@ -1,0 +1,286 @@
+"""``packml opcua``: a cell's units as OPC 30050 objects on an asyncua server.
+
+:class:`PackMLServer` builds the address space (:mod:`.model`), configures endpoints, users and
+certificates from the ``opcua:`` block (:mod:`.config`, :mod:`.security`), starts the ROS side
+(:mod:`.bridge`) and writes every status and admin message of a unit into its object as it
+arrives. Several messages that arrive while a write is in progress are coalesced per unit and
+topic: the newest one wins, so a slow client never makes the server fall behind the cell.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import datetime as dt
+import ipaddress
+import logging
+import signal
+import socket
+from collections import OrderedDict
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from asyncua import Server, ua
+
+from ..core.config import CellConfig
+from . import security
+from .bridge import Methods, RosSide
+from .config import OpcUaConfig
+from .mapping import Struct, Value, admin_values, status_values, utc
+from .model import PACKML_OPC, AddressSpace, UnitNodes
+
+_logger = logging.getLogger(__name__)
+
+
+def to_ua(value: Any) -> Any:
+    """Mapping values -> what asyncua encodes (Structs become the generated data type classes)."""
+    if isinstance(value, Struct):
+        cls = getattr(ua, value.type)
+        return cls(**{k: to_ua(v) for k, v in value.fields.items()})
+    if isinstance(value, list):
+        return [to_ua(v) for v in value]
+    return value
+
+
+def variant(v: Value) -> ua.Variant:
+    if v.dims:
+        return ua.Variant(to_ua(v.value), v.vtype, Dimensions=list(v.dims), is_array=True)
+    if isinstance(v.value, list):
+        return ua.Variant(to_ua(v.value), v.vtype, is_array=True)
+    return ua.Variant(to_ua(v.value), v.vtype)
+
+
+async def ensure_certificate(config: OpcUaConfig) -> tuple[Path, Path]:
+    """The configured certificate and key, or a self-signed pair in ``state_dir`` (made once,
+    renewed when it no longer matches the application URI or expires within a week)."""
+    if config.certificate and config.private_key:
+        return config.certificate, config.private_key
+    from asyncua.crypto import cert_gen, uacrypto
+    from cryptography import x509
+    from cryptography.hazmat.primitives.serialization import Encoding
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    folder = config.state_dir / config.cell
+    cert_file, key_file = folder / "server_cert.der", folder / "server_key.pem"
+    if cert_file.is_file() and key_file.is_file():
+        cert = await uacrypto.load_certificate(cert_file)
+        uris = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+        if config.app_uri() in uris.get_values_for_type(
+            x509.UniformResourceIdentifier
+        ) and cert.not_valid_after_utc > dt.datetime.now(dt.UTC) + dt.timedelta(days=7):
+            return cert_file, key_file
+    folder.mkdir(parents=True, exist_ok=True)
+    key = cert_gen.generate_private_key()
+    names: list[x509.GeneralName] = [
+        x509.UniformResourceIdentifier(config.app_uri()),
+        x509.DNSName(socket.gethostname()),
+        x509.DNSName("localhost"),
+        x509.IPAddress(ipaddress.ip_address("127.0.0.1")),
+    ]
+    try:
+        names.append(x509.IPAddress(ipaddress.ip_address(config.host)))
+    except ValueError:
+        names.append(x509.DNSName(config.host))
+    cert = cert_gen.generate_self_signed_app_certificate(
+        key, f"packml_ros2 {config.cell}", {"organizationName": "packml_ros2"}, list(dict.fromkeys(names)),
+        [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH], days=3650,
+    )  # fmt: skip
+    key_file.write_bytes(cert_gen.dump_private_key_as_pem(key))
+    key_file.chmod(0o600)
+    cert_file.write_bytes(cert.public_bytes(Encoding.DER))
+    return cert_file, key_file
+
+
+def warnings(config: OpcUaConfig) -> list[str]:
+    """What in a configuration weakens security (printed at start)."""
+    out = []
+    if config.users and not any(p.endswith("SignAndEncrypt") for p in config.security_policies):
+        out.append("no SignAndEncrypt policy: user passwords travel in clear text")
+    loopback = config.host in ("127.0.0.1", "::1", "localhost")
+    if not loopback and config.allow_anonymous_write:
+        out.append(f"anyone who reaches {config.host}:{config.port} can command the units")
+    if not loopback and "NoSecurity" in config.security_policies:
+        out.append("the None policy is offered on a network interface: traffic is not protected")
+    return out
+
+
+class PackMLServer:
+    """The OPC UA server of one cell."""
+
+    def __init__(self, cell: CellConfig, config: OpcUaConfig) -> None:
+        self.cell = cell
+        self.config = config
+        self.server: Server | None = None
+        self.space: AddressSpace | None = None
+        self.units: dict[str, UnitNodes] = {}
+        self.ros: RosSide | None = None
+        self._last: dict[tuple[str, str], Value] = {}
+        self._pending: OrderedDict[tuple[str, str], Any] = OrderedDict()
+        self._flushing: asyncio.Task[None] | None = None
+        self.users: security.Users | None = None
+
+    async def start(self) -> None:
+        config = self.config
+        security.install()
+        self.users = await security.Users.load(config)
+        server = Server(user_manager=self.users)
+        await server.init()
+        server.set_endpoint(config.endpoint)
+        if config.host in ("0.0.0.0", "::"):  # endpoints name the address the client used
+            server.set_match_discovery_client_ip(True)
+        server.set_server_name(f"packml_ros2 cell {config.cell}")
+        server.product_uri = "urn:packml_ros2"
+        server.manufacturer_name = "packml_ros2"
+        server.application_type = ua.ApplicationType.Server
+        await server.set_application_uri(config.app_uri())
+        await server.set_build_info(
+            "urn:packml_ros2", "packml_ros2", "packml_ros2", f"OPC 30050 {PACKML_OPC}", "0",
+            dt.datetime.now(dt.UTC),
+        )  # fmt: skip
+        if config.secure:
+            cert, key = await ensure_certificate(config)
+            await server.load_certificate(str(cert))
+            await server.load_private_key(str(key))
+        server.set_security_policy(
+            [ua.SecurityPolicyType[name] for name in config.security_policies],
+            permission_ruleset=security.Rules(),
+        )
+        server.set_identity_tokens(self.users.identity_tokens())
+        if config.trusted_client_certificates:
+            server.set_certificate_validator(
+                await security.trusted_validator(config.trusted_client_certificates)
+            )
+        self.server = server
+        self.space = space = AddressSpace(server)
+        await space.build_types()
+        space.u = 1  # the instances live in the server's own namespace (its application URI)
+        for name in config.units:
+            unit = self.cell.units[name]
+            methods = Methods(
+                name,
+                config,
+                ros=lambda: self.ros,
+                mode_enum=lambda n=name: self.units[n].mode_enum,
+                packml_ns=lambda: space.p,
+            )
+            self.units[name] = await space.build_unit(
+                name,
+                f"/{self.cell.cell}/{name}",
+                unit.description,
+                {m.number: m.name for m in sorted(unit.modes.values(), key=lambda m: m.number)},
+                methods.callbacks(),
+            )
+        await server.start()
+        self.ros = RosSide(
+            self.cell.cell, list(config.units), asyncio.get_running_loop(), self._on_message
+        )
+        self.ros.start()
+
+    # -- ROS -> OPC UA ---------------------------------------------------------------------------------
+    def _on_message(self, unit: str, topic: str, msg: Any) -> None:
+        """In the loop: remember the newest message per (unit, topic), write them in order."""
+        self._pending.pop((unit, topic), None)
+        self._pending[(unit, topic)] = msg
+        if self._flushing is None or self._flushing.done():
+            self._flushing = asyncio.get_running_loop().create_task(self._flush())
+
+    async def _flush(self) -> None:
+        while self._pending:
+            (unit, topic), msg = self._pending.popitem(last=False)
+            try:
+                await self._apply(unit, topic, msg)
+            except Exception:
+                _logger.exception("OPC UA: could not write %s of %s", topic, unit)
+
+    async def _apply(self, unit: str, topic: str, msg: Any) -> None:
+        assert self.server is not None and self.space is not None
+        values = status_values(msg, self.space.p) if topic == "status" else admin_values(msg)
+        stamp = utc(msg.stamp)
+        source_time = None if stamp.year < 1971 else stamp
+        nodes = self.units[unit].variables
+        for path, value in values.items():
+            node = nodes.get(path)
+            if node is None or self._last.get((unit, path)) == value:
+                continue
+            self._last[(unit, path)] = value
+            await self.server.write_attribute_value(
+                node,
+                ua.DataValue(
+                    variant(value),
+                    StatusCode=ua.StatusCode(value.status),
+                    SourceTimestamp=source_time,
+                ),
+            )
+
+    # -- the rest ----------------------------------------------------------------------------------
+    def describe(self) -> str:
+        config = self.config
+        names = {
+            "NoSecurity": "None",
+            "Basic256Sha256_Sign": "Basic256Sha256 Sign",
+            "Basic256Sha256_SignAndEncrypt": "Basic256Sha256 SignAndEncrypt",
+        }
+        policies = ", ".join(names.get(p, p) for p in config.security_policies)
+        anonymous = (
+            "no"
+            if not config.allow_anonymous
+            else "read and call methods"
+            if config.allow_anonymous_write
+            else "read-only"
+        )
+        users = ", ".join([*config.users, *config.user_certificates]) or "none configured"
+        lines = [
+            f"OPC UA server for cell {config.cell} on {config.endpoint}",
+            f"  units: {', '.join(config.units)} under Objects/PackMLObjects (OPC 30050 PackMLBaseObjectType)",
+            f"  security policies: {policies}",
+            f"  anonymous: {anonymous}; users for commands: {users}",
+        ]  # fmt: skip
+        lines += [f"  WARNING: {w}" for w in warnings(config)]
+        return "\n".join(lines)
+
+    async def stop(self) -> None:
+        if self.ros is not None:
+            await asyncio.get_running_loop().run_in_executor(None, self.ros.stop)
+            self.ros = None
+        if self._flushing is not None:
+            self._flushing.cancel()
+        if self.server is not None:
+            await self.server.stop()
+            self.server = None
+
+
+class _QuietFaults(logging.Filter):
+    """asyncua logs every service fault as an error; a client that deletes a subscription while
+    publish requests are pending (BadNoSubscription) is routine, not an error."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "BadNoSubscription" not in record.getMessage()
+
+
+def quiet_asyncua() -> None:
+    """Log levels for a server process: asyncua's warnings and errors, without routine noise."""
+    logging.getLogger("asyncua.server.uaprocessor").addFilter(_QuietFaults())
+    logging.getLogger("asyncua.server.address_space").setLevel(logging.ERROR)
+
+
+async def serve(
+    cell: CellConfig,
+    config: OpcUaConfig,
+    ready: Callable[[str], None] = print,
+    stop: asyncio.Event | None = None,
+) -> int:
+    """Run until ``stop`` is set, or SIGINT / SIGTERM; returns the exit code."""
+    stop = stop or asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError):  # not the main thread
+            loop.add_signal_handler(sig, stop.set)
+    server = PackMLServer(cell, config)
+    try:
+        await server.start()
+        ready(server.describe())
+        await stop.wait()
+    finally:
+        await server.stop()
+    return 0

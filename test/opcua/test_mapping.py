@@ -1,0 +1,324 @@
+"""Issue 8, without a network: the OPC 30050 mapping of the unit's messages, the answer codes, the
+``opcua:`` configuration, users and permissions, and the diagnostics a refused call carries."""
+
+from __future__ import annotations
+
+import datetime as dt
+from pathlib import Path
+
+import pytest
+import yaml
+from asyncua import ua
+from asyncua.common.utils import Buffer
+from asyncua.crypto.permission_rules import User, UserRole
+from asyncua.ua.ua_binary import struct_from_binary, struct_to_binary
+from builtin_interfaces.msg import Time
+from packml_interfaces.msg import Admin, Alarm, Count, Descriptor, Product, Status
+
+from packml_ros2.core import ConfigError, load_cell
+from packml_ros2.opcua import mapping, security
+from packml_ros2.opcua.config import check_password, hash_password, parse_opcua
+from packml_ros2.opcua.mapping import NOT_ACTIVE, Struct, admin_values, status_values
+
+P = 2  # the PackML namespace index in these tests
+BASE = "BaseStateMachine/CurrentState"
+MACHINE = "BaseStateMachine/MachineState/CurrentState"
+EXECUTE = "BaseStateMachine/MachineState/ExecuteState/CurrentState"
+
+
+@pytest.mark.parametrize(
+    ("state", "base", "machine", "execute"),
+    [
+        (6, ("Cleared", 18, 5001), ("Running", 19, 75), ("Execute", 6, 36)),
+        (4, ("Cleared", 18, 5001), ("Running", 19, 75), ("Idle", 4, 28)),
+        (15, ("Cleared", 18, 5001), ("Running", 19, 75), ("Resetting", 15, 27)),
+        (17, ("Cleared", 18, 5001), ("Running", 19, 75), ("Complete", 17, 38)),
+        (2, ("Cleared", 18, 5001), ("Stopped", 2, 53), None),
+        (7, ("Cleared", 18, 5001), ("Stopping", 7, 54), None),
+        (1, ("Cleared", 18, 5001), ("Clearing", 1, 55), None),
+        (8, ("Aborting", 8, 61), None, None),
+        (9, ("Aborted", 9, 62), None, None),
+    ],
+)
+def test_state_machines_nest_as_opc30050(state, base, machine, execute) -> None:
+    values = mapping.state_machine_values(state, P)
+    for path, want in ((BASE, base), (MACHINE, machine), (EXECUTE, execute)):
+        if want is None:  # a sub state machine that is not active
+            assert values[path].status == NOT_ACTIVE
+            assert values[f"{path}/Number"].status == NOT_ACTIVE
+            continue
+        name, number, node = want
+        assert values[path].value.Text == name and values[path].status == 0
+        assert values[f"{path}/Number"].value == number
+        assert values[f"{path}/Id"].value == ua.NodeId(node, P)
+
+
+def test_every_packml_state_has_a_place() -> None:
+    numbers = set(range(1, 18))
+    assert numbers <= set(mapping.PLACES)
+    # the deepest active machine's Number is the PackML state number
+    for n in numbers:
+        values = mapping.state_machine_values(n, P)
+        deepest = next(
+            values[f"{p}/Number"] for p in (EXECUTE, MACHINE, BASE) if values[p].status == 0
+        )
+        assert deepest.value == n
+
+
+def _status(**kw) -> Status:
+    msg = Status(
+        unit="filler", unit_mode_current=1, unit_mode_requested=1, state_current=6,
+        state_requested=6, mach_speed=40.0, cur_mach_speed=40.0,
+        parameter=[Descriptor(id=3, name="fill volume", unit="ml", value=500.0)],
+        product=[Product(product_id=7, process_variables=[Descriptor(id=1, name="t", unit="s", value=2.0)])],
+    )  # fmt: skip
+    msg.equipment_interlock.blocked = True
+    for k, v in kw.items():
+        setattr(msg, k, v)
+    return msg
+
+
+def test_status_values() -> None:
+    v = status_values(_status(), P)
+    assert v["Status/UnitModeCurrent"].value == 1
+    assert v["Status/UnitModeRequested"].value is False
+    assert v["Status/StateRequested"].value == 6
+    assert v["Status/StateChangeInProgress"].value is False
+    assert v["Status/MachSpeed"] == mapping.Value(40.0, ua.VariantType.Float)
+    assert (
+        v["Status/EquipmentBlocked"].value is True and v["Status/EquipmentStarved"].value is False
+    )
+    assert v["Status/StateCurrent"].value == 6
+    (param,) = v["Status/Parameter"].value
+    assert param.type == "PackMLDescriptorDataType"
+    assert param.fields["ID"] == 3 and param.fields["Value"] == 500.0
+    assert param.fields["Unit"].DisplayName.Text == "ml"
+    (product,) = v["Status/Product"].value
+    assert product.fields["ProductID"] == 7 and len(product.fields["ProcessVariables"]) == 1
+    # a requested mode change: OPC 30050's UnitModeRequested is a Boolean
+    changing = status_values(_status(unit_mode_requested=2, unit_mode_change_in_process=True), P)
+    assert changing["Status/UnitModeRequested"].value is True
+    assert changing["Status/UnitModeChangeInProgress"].value is True
+
+
+def _alarm(id_: int, trigger: bool = True, acked: bool = False) -> Alarm:
+    a = Alarm(id=id_, value=1, message=f"alarm {id_}", category=2, trigger=trigger)
+    a.stamp = Time(sec=1_700_000_000, nanosec=250_000_000)
+    if acked:
+        a.ack_stamp = Time(sec=1_700_000_060)
+    return a
+
+
+def test_admin_values() -> None:
+    msg = Admin(unit="filler", mach_design_speed=50.0, acc_time_since_reset=42)
+    msg.alarm = [_alarm(201), _alarm(202, trigger=False, acked=True)]
+    msg.alarm_extent = 2
+    msg.alarm_history = [_alarm(201)]
+    msg.alarm_history_extent = 1
+    msg.prod_processed_count = [Count(id=1, name="bottles", unit="pcs", count=5, acc_count=12)]
+    msg.mode_current_time = list(range(32))
+    msg.state_current_time = list(range(32 * 18))
+    msg.state_cumulative_time = [0] * (32 * 18)
+    v = admin_values(msg)
+    first, second = v["Admin/Alarm"].value
+    assert first.fields["ID"] == 201 and first.fields["Trigger"] is True
+    assert first.fields["Message"] == "alarm 201" and first.fields["Category"] == 2
+    assert first.fields["DateTime"] == dt.datetime(2023, 11, 14, 22, 13, 20, 250000, tzinfo=dt.UTC)
+    assert first.fields["AckDateTime"] == mapping.NULL_TIME  # not acknowledged: the null DateTime
+    assert second.fields["AckDateTime"].year == 2023 and second.fields["Trigger"] is False
+    assert v["Admin/AlarmExtent"].value == 2
+    assert v["Admin/StopReason"].value.fields["ID"] == 0  # StopReasonExtent 0: an empty entry
+    (count,) = v["Admin/ProdProcessedCount"].value
+    assert count == Struct(
+        "PackMLCountDataType",
+        {
+            "ID": 1,
+            "Name": "bottles",
+            "Unit": mapping.eu_information("pcs"),
+            "Count": 5,
+            "AccCount": 12,
+        },
+    )
+    assert v["Admin/StateCurrentTime"].dims == (32, 18)
+    assert v["Admin/StateCurrentTime"].value[1 * 18 + 6] == 24  # [Production, Execute]
+    assert v["Admin/ModeCurrentTime"].value[1] == 1
+    assert v["Admin/AccTimeSinceReset"].value == 42
+    assert v["Status/MachSpeed/EURange"].value.High == 50.0
+
+
+def test_engineering_units() -> None:
+    eu = mapping.eu_information("pcs")
+    assert eu.UnitId == (ord("H") << 16) | (ord("8") << 8) | ord("7")  # UN/CEFACT H87, piece
+    assert eu.NamespaceUri == mapping.UNECE_URI
+    assert mapping.eu_information("bottles").UnitId == -1
+
+
+def test_refusals_map_to_bad_status_codes() -> None:
+    S = ua.StatusCodes
+    assert mapping.result_status(True, 0) == 0
+    assert mapping.result_status(False, 2) == S.BadInvalidState  # COMMAND_NOT_ALLOWED
+    assert mapping.result_status(False, 5) == S.BadOutOfRange  # MODE_UNKNOWN
+    assert mapping.result_status(False, 16) == S.BadUserAccessDenied
+    assert mapping.result_status(False, 99) == S.BadInvalidState
+    assert all(ua.StatusCode(code).is_bad() for _, code in mapping.RESULTS.values())
+
+
+# -- configuration, users, permissions -----------------------------------------------------------------
+def _cell(tmp_path: Path, opcua: dict | None) -> Path:
+    doc = {"cell": "c", "units": {"filler": {}, "capper": {}}}
+    if opcua is not None:
+        doc["opcua"] = opcua
+    path = tmp_path / "cell.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+def test_config_defaults(tmp_path: Path) -> None:
+    config = parse_opcua(load_cell(_cell(tmp_path, None)))
+    assert config.endpoint == "opc.tcp://127.0.0.1:4840/"
+    assert config.units == ("filler", "capper")
+    assert config.allow_anonymous and not config.allow_anonymous_write and config.access_control
+    assert config.security_policies == (
+        "NoSecurity",
+        "Basic256Sha256_Sign",
+        "Basic256Sha256_SignAndEncrypt",
+    )
+    assert config.app_uri() == "urn:packml_ros2:c"
+
+
+def test_config_errors_name_the_key(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("NO_SUCH_PACKML_VAR", raising=False)
+    bad = {
+        "prot": 1,
+        "port": 70000,
+        "units": ["filler", "nope"],
+        "users": {"a": "xy", "b": "env:NO_SUCH_PACKML_VAR"},
+        "security_policies": ["Basic256"],
+        "certificate": "missing.der",
+        "private_key": "key.pem",  # a key without its certificate
+    }
+    (tmp_path / "key.pem").write_text("-")
+    with pytest.raises(ConfigError) as err:
+        parse_opcua(load_cell(_cell(tmp_path, bad)))
+    paths = dict(err.value.problems)
+    assert "did you mean 'port'" in paths["opcua.prot"]
+    assert "outside" in paths["opcua.port"]
+    assert "unknown unit 'nope'" in paths["opcua.units[1]"]
+    assert "too short" in paths["opcua.users.a"]
+    assert "NO_SUCH_PACKML_VAR is not set" in paths["opcua.users.b"]
+    assert "Basic256" in paths["opcua.security_policies[0]"]
+    assert "no such file" in paths["opcua.certificate"]
+    assert "give both or neither" in paths["opcua"]
+
+
+def test_passwords(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    stored = hash_password("s3cret", iterations=1000)
+    assert stored.startswith("pbkdf2_sha256$1000$")
+    assert check_password("s3cret", stored) and not check_password("S3cret", stored)
+    assert check_password("plain", "plain") and not check_password(None, "plain")
+    monkeypatch.setenv("PACKML_TEST_PW", "from-env")
+    config = parse_opcua(load_cell(_cell(tmp_path, {"users": {"op": "env:PACKML_TEST_PW"}})))
+    assert config.users == {"op": "from-env"}
+
+
+def test_users_and_rules(tmp_path: Path) -> None:
+    config = parse_opcua(load_cell(_cell(tmp_path, {"users": {"op": hash_password("pw12", 1000)}})))
+    users = security.Users(config, {"scada": b"DER"})
+    assert users.get_user(None, "op", "pw12") == User(role=UserRole.User, name="op")
+    assert users.get_user(None, "op", "wrong") is None  # no fall-back to anonymous
+    assert users.get_user(None, "nobody", "pw12") is None
+    assert users.get_user(None, certificate=b"DER") == User(role=UserRole.User, name="scada")
+    assert users.get_user(None).role is UserRole.Anonymous
+    assert users.identity_tokens() == [ua.AnonymousIdentityToken, ua.UserNameIdentityToken]
+
+    rules = security.Rules()
+    anonymous, user = User(role=UserRole.Anonymous), User(role=UserRole.User, name="op")
+    read = ua.NodeId(ua.ObjectIds.ReadRequest_Encoding_DefaultBinary)
+    write = ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary)
+    call = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
+    add_nodes = ua.NodeId(ua.ObjectIds.AddNodesRequest_Encoding_DefaultBinary)
+    assert rules.check_validity(anonymous, read, None) and rules.check_validity(
+        anonymous, call, None
+    )
+    assert not rules.check_validity(anonymous, write, None) and rules.check_validity(
+        user, write, None
+    )
+    assert not rules.check_validity(user, add_nodes, None)
+
+    # methods: per call, from the session's user
+    token = security.CURRENT_USER.set(anonymous)
+    try:
+        assert security.may_call(config) == (False, "")
+    finally:
+        security.CURRENT_USER.reset(token)
+    token = security.CURRENT_USER.set(user)
+    try:
+        assert security.may_call(config) == (True, "op")
+    finally:
+        security.CURRENT_USER.reset(token)
+
+
+def test_nobody_could_connect_is_an_error(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="nobody could connect"):
+        parse_opcua(load_cell(_cell(tmp_path, {"allow_anonymous": False})))
+
+
+def test_refusal_diagnostics_follow_part6_encoding() -> None:
+    """The reason of a refused call travels as DiagnosticInfo: LocalizedText (bit 0x04 on the
+    wire, OPC UA Part 6) indexes the response's string table, AdditionalInfo carries it too."""
+    token = security._REFUSALS.set({})
+    try:
+        refused = security.refuse(
+            ua.StatusCodes.BadInvalidState, "COMMAND_NOT_ALLOWED", "START not allowed"
+        )
+        response = ua.CallResponse(Results=[ua.CallMethodResult(), refused])
+        security._diagnostics(response, security._REFUSALS.get(), 0x20 | 0x40 | 0x80)
+    finally:
+        security._REFUSALS.reset(token)
+    ok, info = response.DiagnosticInfos
+    assert struct_to_binary(ok) == b"\x00"
+    raw = struct_to_binary(info)
+    assert raw[0] == 0x01 | 0x04 | 0x10  # SymbolicId, LocalizedText, AdditionalInfo
+    table = response.ResponseHeader.StringTable
+    assert table[int.from_bytes(raw[1:5], "little")] == "COMMAND_NOT_ALLOWED"
+    assert table[int.from_bytes(raw[5:9], "little")] == "START not allowed"
+    assert struct_from_binary(ua.DiagnosticInfo, Buffer(raw)).AdditionalInfo == "START not allowed"
+
+
+def test_security_warnings_and_trusted_client_certificates(tmp_path: Path) -> None:
+    import asyncio
+
+    from asyncua.crypto import cert_gen
+    from cryptography import x509
+    from cryptography.hazmat.primitives.serialization import Encoding
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    from packml_ros2.opcua.server import warnings
+
+    open_ = parse_opcua(
+        load_cell(_cell(tmp_path, {"host": "0.0.0.0", "allow_anonymous_write": True,
+                                   "users": {"a": "abcd"}, "security_policies": ["None"]}))
+    )  # fmt: skip
+    assert len(warnings(open_)) == 3
+    assert warnings(parse_opcua(load_cell(_cell(tmp_path, None)))) == []
+
+    def certificate(name: str) -> tuple[Path, x509.Certificate]:
+        key = cert_gen.generate_private_key()
+        cert = cert_gen.generate_self_signed_app_certificate(
+            key, name, {}, [x509.UniformResourceIdentifier(f"urn:{name}")],
+            [ExtendedKeyUsageOID.CLIENT_AUTH], days=1,
+        )  # fmt: skip
+        path = tmp_path / f"{name}.der"
+        path.write_bytes(cert.public_bytes(Encoding.DER))
+        return path, cert
+
+    trusted_path, trusted = certificate("mes")
+    _, stranger = certificate("stranger")
+
+    async def check() -> None:
+        validate = await security.trusted_validator((trusted_path,))
+        await validate(trusted, None)
+        with pytest.raises(ua.UaStatusCodeError):
+            await validate(stranger, None)
+
+    asyncio.run(check())
