@@ -33,6 +33,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     )
     p.add_argument("--check", action="store_true", help="only validate the cell file and exit")
     p.add_argument(
+        "--hmi",
+        nargs="?",
+        type=int,
+        const=-1,
+        metavar="PORT",
+        help="also serve the operator HMI (packml hmi) on 127.0.0.1, on PORT or the cell file's "
+        "hmi.port (default 8080)",
+    )
+    p.add_argument(
         "--opcua",
         nargs="?",
         type=int,
@@ -52,6 +61,15 @@ def launch(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"packml launch: invalid configuration\n{exc}", file=sys.stderr)
         return EXIT_USAGE
+    hmi = getattr(args, "hmi", None)
+    if hmi is not None:
+        from ..hmi import hmi_settings
+
+        try:
+            hmi_settings(plan.cell)
+        except ConfigError as exc:
+            print(f"packml launch: invalid configuration\n{exc}", file=sys.stderr)
+            return EXIT_USAGE
     opcua = getattr(args, "opcua", None)
     if opcua is not None:
         from ..opcua import parse_opcua
@@ -64,6 +82,7 @@ def launch(args: argparse.Namespace) -> int:
     if args.check:
         print(f"{args.cell_file}: valid ({plan.node_count} nodes)")
         return 0
+    server = _start_hmi(args.cell_file, hmi) if hmi is not None else None
     opcua_server = _start_opcua(args.cell_file, opcua) if opcua is not None else None
     try:
         if args.processes:
@@ -72,8 +91,19 @@ def launch(args: argparse.Namespace) -> int:
             return launcher.launch_processes(plan, ready=_ready, log_dir=args.logs)
         return launcher.launch_in_process(plan, threads=args.threads, ready=_ready)
     finally:
+        if server is not None:
+            launcher._stop_children([("hmi", server)])
         if opcua_server is not None:
             launcher._stop_children([("opcua", opcua_server)])
+
+
+def _start_hmi(cell_file: Path, port: int) -> subprocess.Popen[bytes]:
+    """``packml hmi`` as a child process (own session: Ctrl-C reaches the launcher, which stops
+    it last); it prints its address itself."""
+    argv = [sys.executable, "-m", "packml_ros2.cli.main", "hmi", str(cell_file)]
+    if port >= 0:
+        argv += ["--port", str(port)]
+    return subprocess.Popen(argv, start_new_session=True)
 
 
 def _start_opcua(cell_file: Path, port: int) -> subprocess.Popen[bytes]:

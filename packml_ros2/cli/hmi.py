@@ -1,0 +1,108 @@
+"""``packml hmi <cell.yaml>``: the operator HMI of a running cell, in the browser."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+from ..core import CellConfig, ConfigError, load_cell
+from ..hmi.settings import HmiSettings, hmi_settings
+from .main import EXIT_OK, EXIT_USAGE
+
+TOKEN_ENV = "PACKML_HMI_TOKEN"
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "hmi",
+        help="the operator HMI in a browser",
+        description="Serve the operator screens of a cell (overview, state diagram, modes, "
+        "commands, alarms, EMs, times, counters, OEE) on http://127.0.0.1:<port>/. Every action "
+        "goes to the units' services with source 'hmi'. Host, port and an optional access token "
+        f"come from the cell file's hmi: block; the options and ${TOKEN_ENV} override it. "
+        "Ctrl-C stops the server.",
+    )
+    p.add_argument("cell_file", type=Path, help="the cell YAML (e.g. config/demo_cell.yaml)")
+    p.add_argument(
+        "--host",
+        help="interface to serve on (default: hmi.host, else 127.0.0.1; 0.0.0.0 = every "
+        "interface: other machines can reach the page)",
+    )
+    p.add_argument("--port", type=int, help="TCP port (default: hmi.port, else 8080; 0 = any free)")
+    p.add_argument(
+        "--token",
+        help=f"access token required for actions (default: ${TOKEN_ENV}, else hmi.token); "
+        "without a token the page can operate freely",
+    )
+    p.add_argument("--check", action="store_true", help="only validate the hmi: block and exit")
+    p.set_defaults(func=hmi)
+
+
+def hmi(args: argparse.Namespace) -> int:
+    try:
+        cell = load_cell(args.cell_file)
+        settings = hmi_settings(cell)
+    except ConfigError as exc:
+        print(f"packml hmi: invalid configuration\n{exc}", file=sys.stderr)
+        return EXIT_USAGE
+    token = args.token if args.token is not None else os.environ.get(TOKEN_ENV)
+    settings = replace(
+        settings,
+        host=args.host or settings.host,
+        port=args.port if args.port is not None else settings.port,
+        token=(token or None) if token is not None else settings.token,
+    )
+    if not 0 <= settings.port <= 65535:
+        print(f"packml hmi: port {settings.port} is outside 0..65535", file=sys.stderr)
+        return EXIT_USAGE
+    if args.check:
+        print(f"{args.cell_file}: hmi valid ({settings.host}:{settings.port})")
+        return EXIT_OK
+    return serve(cell, settings)
+
+
+def serve(cell: CellConfig, settings: HmiSettings) -> int:
+    from .. import run
+    from ..hmi.bridge import Bridge
+    from ..hmi.server import Server, bind, url_of
+
+    run.default_environment()
+    try:
+        sock = bind(settings.host, settings.port)
+    except OSError as exc:
+        print(
+            f"packml hmi: cannot serve on {settings.host}:{settings.port}: {exc.strerror or exc}",
+            file=sys.stderr,
+        )
+        return EXIT_USAGE
+    bridge = Bridge(cell, token=settings.token, title=settings.title)
+    try:
+        bridge.spin_in_background()
+        server = Server(bridge, sock)
+        access = (
+            "an access token is required for commands (read-only without it)"
+            if settings.token
+            else "no access token: whoever opens the page can operate"
+        )
+        print(f"PackML HMI for cell {cell.cell}: {url_of(sock, settings.host)}  ({access})",
+              flush=True)  # fmt: skip
+        if not settings.loopback and not settings.token:
+            print(
+                f"packml hmi: warning: serving on {settings.host} without a token: other "
+                "machines can operate the cell (set hmi.token or --token)",
+                file=sys.stderr,
+                flush=True,
+            )
+        # uvicorn handles Ctrl-C/SIGTERM while it runs and raises the signal again afterwards:
+        # let that land here, so the bridge closes and the exit code is 0.
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: None)
+        server.run()
+    finally:
+        bridge.close()
+        sock.close()
+    return EXIT_OK

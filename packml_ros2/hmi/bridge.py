@@ -1,0 +1,637 @@
+"""The ROS side of the HMI: one node that follows every unit of a cell (latched status, admin,
+alarms, transitions) and the coordinator's CellStatus through :class:`~packml_ros2.client.CellProxy`,
+keeps the latest of each as a JSON-able dict, and pushes every change to its listeners at once.
+
+Actions go to the units' (and the coordinator's) services with source ``hmi``; each returns the
+service's answer as a dict ``{accepted, result, result_name, message, ...}``. With a token
+configured, an action without it (or with a wrong one) is refused here with result
+``UNAUTHORIZED`` and never reaches the unit.
+
+Threads: the node is spun by one single-threaded executor (:meth:`Bridge.spin_in_background`), so
+messages are converted and announced in the order they arrive. Listeners are called from that
+thread and must not block (the web server hands events to its event loop).
+"""
+
+from __future__ import annotations
+
+import hmac
+import itertools
+import os
+import threading
+import time
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future
+from contextlib import suppress
+from typing import Any
+
+import rclpy
+from packml_interfaces.srv import Command, SetMode
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.context import Context
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+
+from ..client import CellProxy, Unavailable
+from ..core import CellConfig
+from ..core.numbers import ACTING, Cmd, State, command_name, parse_command, state_name
+from ..core.reasons import Reason
+
+Event = dict[str, Any]
+Listener = Callable[[Event], None]
+
+SOURCE = "hmi"
+STALE_AFTER = 3.0  # s without any message from a unit (it publishes admin every second): offline
+TRANSITIONS_KEPT = 30
+HISTORY_KEPT = 50
+CALL_TIMEOUT = 10.0
+OPERATOR_STATES = ("active_unacknowledged", "inactive_unacknowledged", "acknowledged")
+KINDS = ("alarm", "warning", "command", "event")
+OEE_FIELDS = (
+    "availability", "performance", "quality", "oee", "production_time", "execute_time",
+    "planned_stop_time", "internal_downtime", "external_downtime", "stopped_time",
+    "aborted_time", "processed", "defective",
+)  # fmt: skip
+_node_ids = itertools.count()
+
+
+class ActionError(LookupError):
+    """An unknown unit or action (the web server answers 404)."""
+
+
+# -- messages -> dicts -------------------------------------------------------------------------------------
+def _sec(t: Any) -> float:
+    return t.sec + t.nanosec * 1e-9
+
+
+def _time_or_none(t: Any) -> float | None:
+    return _sec(t) if (t.sec or t.nanosec) else None
+
+
+def alarm_dict(a: Any) -> dict[str, Any]:
+    state = int(a.operator_state)
+    return {
+        "id": a.id,
+        "value": a.value,
+        "message": a.message,
+        "category": a.category,
+        "trigger": a.trigger,
+        "latched": a.latched,
+        "acknowledged": a.acknowledged,
+        "operator_state": state,
+        "operator_state_name": OPERATOR_STATES[state] if state < len(OPERATOR_STATES) else "",
+        "kind": KINDS[a.kind] if a.kind < len(KINDS) else str(a.kind),
+        "em": a.em,
+        "source": a.source,
+        "reaction": a.reaction,
+        "reaction_name": command_name(a.reaction) if a.reaction else "",
+        "time": _time_or_none(a.stamp),
+        "ack_time": _time_or_none(a.ack_stamp),
+        "cleared_time": _time_or_none(a.cleared_stamp),
+    }
+
+
+def status_dict(s: Any) -> dict[str, Any]:
+    return {
+        "stamp": _sec(s.stamp),
+        "unit": s.unit,
+        "mode": s.unit_mode_current,
+        "mode_name": s.unit_mode_current_name,
+        "mode_requested": s.unit_mode_requested,
+        "mode_change_in_process": s.unit_mode_change_in_process,
+        "mode_change_not_allowed": s.mode_change_not_allowed,
+        "state": s.state_current,
+        "state_name": s.state_current_name,
+        "state_requested": s.state_requested,
+        "state_requested_name": state_name(s.state_requested),
+        "state_change_in_process": s.state_change_in_process,
+        "acting": s.state_current in ACTING,
+        "sequence": s.sequence,
+        "states_disabled": s.states_disabled,
+        "commands_valid": list(s.commands_valid),
+        "commands_valid_names": list(s.commands_valid_names),
+        "cntrl_cmd": s.cntrl_cmd,
+        "mach_speed": s.mach_speed,
+        "cur_mach_speed": s.cur_mach_speed,
+        "command_mach_speed": s.command_mach_speed,
+        "material_interlock": s.material_interlock,
+        "blocked": s.equipment_interlock.blocked,
+        "starved": s.equipment_interlock.starved,
+        "remote_commands_enabled": s.remote_commands_enabled,
+        "time_rollover_warning": s.time_rollover_warning,
+        "active_alarms": s.active_alarms,
+        "unacknowledged_alarms": s.unacknowledged_alarms,
+        "alarm_banner": s.alarm_banner,
+        "stop_reason_id": s.stop_reason_id,
+        "parameters": [
+            {"id": d.id, "name": d.name, "unit": d.unit, "value": d.value} for d in s.parameter
+        ],
+        "equipment_modules": [
+            {
+                "name": e.name,
+                "active": e.active,
+                "online": e.online,
+                "configured": e.configured,
+                "state_complete": e.state_complete,
+                "sequence": e.sequence,
+                "command_request": e.command_request,
+                "command_request_name": command_name(e.command_request)
+                if e.command_request
+                else "",
+                "blocked": e.blocked,
+                "starved": e.starved,
+                "stale_reports": e.stale_reports,
+            }
+            for e in s.equipment_modules
+        ],
+    }
+
+
+def _counts(counts: Any) -> list[dict[str, Any]]:
+    return [
+        {"id": c.id, "name": c.name, "unit": c.unit, "count": c.count, "acc_count": c.acc_count}
+        for c in counts
+    ]
+
+
+def admin_dict(a: Any, modes: list[int]) -> dict[str, Any]:
+    """Admin with the state times of the configured ``modes`` only (``times[str(mode)]``)."""
+    n = a.NUM_STATES
+    times: dict[str, Any] = {}
+    cur, cum = a.state_current_time, a.state_cumulative_time
+    for m in modes:
+        times[str(m)] = {
+            "mode_current": a.mode_current_time[m] if m < len(a.mode_current_time) else 0,
+            "mode_cumulative": a.mode_cumulative_time[m] if m < len(a.mode_cumulative_time) else 0,
+            "state_current": list(cur[m * n : (m + 1) * n]),
+            "state_cumulative": list(cum[m * n : (m + 1) * n]),
+        }
+    o = a.oee
+    return {
+        "stamp": _sec(a.stamp),
+        "times": times,
+        "acc_time_since_reset": a.acc_time_since_reset,
+        "time_rollover_warning": a.time_rollover_warning,
+        "counters": {
+            "consumed": _counts(a.prod_consumed_count),
+            "processed": _counts(a.prod_processed_count),
+            "defective": _counts(a.prod_defective_count),
+        },
+        "mach_design_speed": a.mach_design_speed,
+        "stop_reason": alarm_dict(a.stop_reason) if a.stop_reason_extent else None,
+        "oee": {name: getattr(o, name) for name in OEE_FIELDS},
+        "history": [alarm_dict(x) for x in a.alarm_history[:HISTORY_KEPT]],
+        "alarm_overflow": a.alarm_overflow,
+    }
+
+
+def alarm_list_dict(a: Any) -> dict[str, Any]:
+    return {
+        "stamp": _sec(a.stamp),
+        "alarms": [alarm_dict(x) for x in a.alarms],
+        "warnings": [alarm_dict(x) for x in a.warnings],
+        "first_out": alarm_dict(a.first_out) if a.first_out.id else None,
+        "banner": a.banner,
+        "alarm_overflow": a.alarm_overflow,
+        "warning_overflow": a.warning_overflow,
+    }
+
+
+def transition_dict(t: Any) -> dict[str, Any]:
+    return {
+        "stamp": _sec(t.stamp),
+        "sequence": t.sequence,
+        "from_state": t.from_state_name,
+        "to_state": t.to_state_name,
+        "from_mode": t.from_mode,
+        "to_mode": t.to_mode,
+        "trigger": t.trigger_name,
+        "command": command_name(t.command) if t.command else "",
+        "source": t.source,
+        "detail": t.detail,
+    }
+
+
+def cell_status_dict(c: Any) -> dict[str, Any]:
+    return {
+        "stamp": _sec(c.stamp),
+        "cell": c.cell,
+        "state": c.state_current,
+        "state_name": c.state_current_name,
+        "mode": c.unit_mode_current,
+        "all_online": c.all_online,
+        "busy": c.busy,
+        "sequence_step": c.sequence_step,
+        "lost_units": list(c.lost_units),
+        "detail": c.detail,
+        "units": [
+            {
+                "name": u.name,
+                "online": u.online,
+                "state": u.state_current,
+                "state_name": u.state_current_name,
+                "mode": u.unit_mode_current,
+                "mode_name": u.unit_mode_current_name,
+                "em_total": u.em_total,
+                "em_online": u.em_online,
+                "active_alarms": u.active_alarms,
+                "alarm_banner": u.alarm_banner,
+                "blocked": u.blocked,
+                "starved": u.starved,
+                "interlock_suspended": u.interlock_suspended,
+                "health": u.health,
+            }
+            for u in c.units
+        ],
+    }
+
+
+def answer_dict(resp: Any) -> dict[str, Any]:
+    """A service response as a dict; ``result_name`` spells the reason code."""
+    out: dict[str, Any] = {}
+    for name in resp.get_fields_and_field_types():
+        value = getattr(resp, name)
+        out["message" if name == "message_out" else name] = (
+            value if isinstance(value, bool | int | float | str) else str(value)
+        )
+    code = int(out.get("result", 0))
+    out["result_name"] = Reason(code).name if code in Reason._value2member_map_ else str(code)
+    for key in ("state_current", "state_requested"):
+        if key in out:
+            out[f"{key}_name"] = state_name(out[key])
+    return out
+
+
+def refusal(reason: Reason, message: str) -> dict[str, Any]:
+    return {
+        "accepted": False,
+        "result": int(reason),
+        "result_name": reason.name,
+        "message": message,
+    }
+
+
+def config_dict(cell: CellConfig, title: str = "", token_required: bool = False) -> dict[str, Any]:
+    """What the page needs to draw itself: units, their modes and EMs, states and commands."""
+    return {
+        "cell": cell.cell,
+        "title": title or cell.cell,
+        "token_required": token_required,
+        "coordinator": cell.coordinator.enabled,
+        "states": [{"number": int(s), "name": s.name, "acting": s in ACTING} for s in State if s],
+        "commands": [{"number": int(c), "name": c.name} for c in Cmd if c],
+        "units": [
+            {
+                "name": name,
+                "description": u.description,
+                "modes": [
+                    {
+                        "number": m.number,
+                        "name": m.name,
+                        "disabled": m.disabled_mask,
+                        "change_allowed": sorted(s.name for s in m.change_allowed),
+                    }
+                    for m in sorted(u.modes.values(), key=lambda m: m.number)
+                ],
+                "equipment_modules": [e.name for e in u.equipment_modules],
+                "mach_design_speed": u.mach_design_speed,
+            }
+            for name, u in cell.units.items()
+        ],
+    }
+
+
+# -- the bridge -------------------------------------------------------------------------------------------
+class Bridge:
+    """The cell seen by the HMI. ``context``: an initialised rclpy Context (default: a new one,
+    shut down by :meth:`close`). Spin the node with :meth:`spin_in_background`."""
+
+    def __init__(
+        self,
+        cell: CellConfig,
+        *,
+        token: str | None = None,
+        title: str = "",
+        context: Context | None = None,
+        stale_after: float = STALE_AFTER,
+    ) -> None:
+        self.cell = cell
+        self.token = token or None
+        self.config = config_dict(cell, title, self.token is not None)
+        self._modes = {name: sorted(m for m in u.modes if m < 32) for name, u in cell.units.items()}
+        self._own_context = context is None
+        if context is None:
+            context = Context()
+            rclpy.init(
+                context=context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO
+            )
+        self.context = context
+        self.node = Node(
+            f"hmi_{os.getpid()}_{next(_node_ids)}", namespace=f"/{cell.cell}", context=context
+        )
+        self._lock = threading.RLock()
+        self._listeners: list[Listener] = []
+        self._units: dict[str, dict[str, Any]] = {
+            name: {
+                "status": None,
+                "admin": None,
+                "alarms": None,
+                "transitions": [],
+                "online": False,
+            }
+            for name in cell.units
+        }
+        self._last_seen: dict[str, float] = {}
+        self._cell_status: dict[str, Any] | None = None
+        self._stale_after = stale_after
+        self._group = MutuallyExclusiveCallbackGroup()
+        self.proxy = CellProxy(self.node, cell.cell, cell.units, on_change=self._on_change)
+        self._coordinator = {
+            "command": self.node.create_client(
+                Command, f"/{cell.cell}/coordinator/command", callback_group=self._group
+            ),
+            "set_mode": self.node.create_client(
+                SetMode, f"/{cell.cell}/coordinator/set_mode", callback_group=self._group
+            ),
+        }
+        self._timer = self.node.create_timer(0.5, self._check_online)
+        self._running = True
+        self._executor: SingleThreadedExecutor | None = None
+        self._thread: threading.Thread | None = None
+
+    # -- running -------------------------------------------------------------------------------------
+    def spin_in_background(self) -> Bridge:
+        """Spin the node in a daemon thread (one thread: callbacks run in arrival order)."""
+        self._executor = SingleThreadedExecutor(context=self.context)
+        self._executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, name="hmi-bridge", daemon=True)
+        self._thread.start()
+        return self
+
+    def _spin(self) -> None:
+        assert self._executor is not None
+        with suppress(ExternalShutdownException, rclpy.executors.ShutdownException):
+            while self._running and self.context.ok():
+                self._executor.spin_once(timeout_sec=0.1)
+
+    def close(self) -> None:
+        self._running = False
+        if self._thread is not None:
+            self._thread.join(3)
+        if self._executor is not None:
+            self._executor.shutdown(timeout_sec=2)
+        with suppress(Exception):
+            self.node.destroy_node()
+        if self._own_context:
+            rclpy.try_shutdown(context=self.context)
+
+    # -- state ---------------------------------------------------------------------------------------
+    def snapshot(self) -> dict[str, Any]:
+        """Everything the page shows, as it is now."""
+        with self._lock:
+            return {
+                "config": self.config,
+                "units": {
+                    name: {**u, "transitions": list(u["transitions"])}
+                    for name, u in self._units.items()
+                },
+                "cell_status": self._cell_status,
+                "time": time.time() * 1000.0,
+            }
+
+    def subscribe(self, listener: Listener) -> tuple[dict[str, Any], Callable[[], None]]:
+        """The snapshot and, from then on, every change event (no gap, no duplicate); returns
+        (snapshot, unsubscribe). ``listener`` runs in the bridge's thread: it must not block."""
+        with self._lock:
+            self._listeners.append(listener)
+            snap = self.snapshot()
+
+        def unsubscribe() -> None:
+            with self._lock, suppress(ValueError):
+                self._listeners.remove(listener)
+
+        return snap, unsubscribe
+
+    def _emit(self, event: Event) -> None:
+        for listener in list(self._listeners):
+            try:
+                listener(event)
+            except Exception as exc:  # one broken listener must not starve the others
+                self.node.get_logger().warning(f"HMI listener failed: {exc!r}")
+
+    def _on_change(self, path: str, topic: str, msg: Any) -> None:
+        received = time.time() * 1000.0
+        name = path.rsplit("/", 1)[-1]
+        with self._lock:
+            if topic == "cell_status":
+                data = cell_status_dict(msg)
+                self._cell_status = data
+                self._emit({"topic": "cell", "unit": None, "data": data, "received": received})
+                return
+            unit = self._units.get(name)
+            if unit is None:
+                return
+            self._last_seen[name] = time.monotonic()
+            if not unit["online"]:
+                unit["online"] = True
+                self._emit({"topic": "online", "unit": name, "data": True, "received": received})
+            if topic == "transitions":
+                data = transition_dict(msg)
+                unit["transitions"].append(data)
+                del unit["transitions"][:-TRANSITIONS_KEPT]
+                self._emit({"topic": "transition", "unit": name, "data": data,
+                            "received": received})  # fmt: skip
+                return
+            if topic == "status":
+                data = status_dict(msg)
+            elif topic == "admin":
+                data = admin_dict(msg, self._modes[name])
+            elif topic == "alarms":
+                data = alarm_list_dict(msg)
+            else:
+                return
+            # (no reordering by stamp: a unit that catches up a deadline publishes a status
+            # stamped at the deadline, which may be earlier than the one before; DDS delivers
+            # each topic in order and one thread handles them.)
+            unit[topic] = data
+            self._emit({"topic": topic, "unit": name, "data": data, "received": received})
+
+    def _check_online(self) -> None:
+        now = time.monotonic()
+        with self._lock:
+            for name, unit in self._units.items():
+                if unit["online"] and now - self._last_seen.get(name, 0.0) > self._stale_after:
+                    unit["online"] = False
+                    self._emit({"topic": "online", "unit": name, "data": False,
+                                "received": time.time() * 1000.0})  # fmt: skip
+
+    # -- actions -------------------------------------------------------------------------------------
+    def authorized(self, token: str | None) -> dict[str, Any] | None:
+        """None when ``token`` may operate; otherwise the refusal to show."""
+        if self.token is None:
+            return None
+        if not token:
+            return refusal(
+                Reason.UNAUTHORIZED,
+                "this HMI is read-only without the access token: enter it to operate",
+            )
+        if not hmac.compare_digest(token.encode(), self.token.encode()):
+            return refusal(Reason.UNAUTHORIZED, "wrong access token: nothing was sent to the unit")
+        return None
+
+    def act(
+        self,
+        unit: str | None,
+        action: str,
+        args: Mapping[str, Any] | None = None,
+        token: str | None = None,
+    ) -> Future[dict[str, Any]]:
+        """Call ``action`` of ``unit`` (None: the cell coordinator) with source ``hmi``; a future
+        of the answer dict. Raises :class:`ActionError` for an unknown unit or action."""
+        args = dict(args or {})
+        if unit is not None and unit not in self._units:
+            raise ActionError(f"no unit {unit!r} in cell {self.cell.cell}")
+        builders = UNIT_ACTIONS if unit is not None else CELL_ACTIONS
+        if action not in builders:
+            raise ActionError(f"unknown action {action!r} (valid: {', '.join(sorted(builders))})")
+        done: Future[dict[str, Any]] = Future()
+        denied = self.authorized(token)
+        if denied is not None:
+            done.set_result(denied)
+            return done
+        try:
+            service, fields = builders[action](args)
+        except (ValueError, TypeError, KeyError) as exc:
+            text = exc.args[0] if exc.args and isinstance(exc.args[0], str) else str(exc)
+            done.set_result(refusal(Reason.INVALID_ARGUMENT, f"{action}: {text}"))
+            return done
+        fields["source"] = SOURCE
+        if unit is not None:
+            future = self.proxy.unit(unit).call(service, **fields)
+            where = f"{self.cell.cell}/{unit}"
+        else:
+            future = self._call_coordinator(service, fields)
+            where = f"the {self.cell.cell} coordinator"
+
+        def finished(f: Future[Any]) -> None:
+            exc = f.exception()
+            if isinstance(exc, Unavailable):
+                done.set_result(
+                    refusal(Reason.UNIT_UNAVAILABLE, f"{where} is not answering ({exc})")
+                )
+            elif exc is not None:
+                done.set_result(refusal(Reason.UNIT_UNAVAILABLE, f"{where}: {exc}"))
+            else:
+                done.set_result(answer_dict(f.result()))
+
+        future.add_done_callback(finished)
+        return done
+
+    def act_sync(self, unit: str | None, action: str, args: Mapping[str, Any] | None = None,
+                 token: str | None = None, timeout: float = CALL_TIMEOUT) -> dict[str, Any]:  # fmt: skip
+        """:meth:`act` and wait (not from the bridge's thread)."""
+        try:
+            return self.act(unit, action, args, token).result(timeout)
+        except TimeoutError:
+            return refusal(Reason.UNIT_UNAVAILABLE, f"{action}: no answer within {timeout:g} s")
+
+    def _call_coordinator(self, service: str, fields: dict[str, Any]) -> Future[Any]:
+        client = self._coordinator[service]
+        result: Future[Any] = Future()
+        if not client.service_is_ready():
+            result.set_exception(
+                Unavailable(f"/{self.cell.cell}/coordinator/{service} is not available")
+            )
+            return result
+        srv_type = Command if service == "command" else SetMode
+        ros_future = client.call_async(srv_type.Request(**fields))
+
+        def done(f: Any) -> None:
+            exc = f.exception()
+            if exc is not None:
+                result.set_exception(exc)
+            else:
+                result.set_result(f.result())
+
+        ros_future.add_done_callback(done)
+        return result
+
+
+# -- request builders: (args from the page) -> (service, request fields) ------------------------------
+def _command(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    cmd = args.get("command")
+    if isinstance(cmd, bool) or cmd is None:
+        raise ValueError("give 'command': a name (start) or a number (2)")
+    number = int(cmd) if isinstance(cmd, int) else int(parse_command(str(cmd)))
+    return "command", {"command": number}
+
+
+def _set_mode(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    mode = args.get("mode")
+    if isinstance(mode, bool) or mode is None or mode == "":
+        raise ValueError("give 'mode': a number (2) or a configured name (maintenance)")
+    if isinstance(mode, int) or (isinstance(mode, str) and mode.strip().isdigit()):
+        return "set_mode", {"mode": int(mode)}
+    return "set_mode", {"mode_name": str(mode)}
+
+
+def _flag(args: dict[str, Any], key: str, default: bool) -> bool:
+    value = args.get(key, default)
+    if not isinstance(value, bool):
+        raise ValueError(f"'{key}' must be true or false")
+    return value
+
+
+def _int(args: dict[str, Any], key: str, default: int = 0) -> int:
+    value = args.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ValueError(f"'{key}' must be an integer")
+    return value
+
+
+def _ack(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    everything = _flag(args, "all", "id" not in args)
+    return "ack_alarms", {"all": everything, "id": _int(args, "id"), "value": _int(args, "value")}
+
+
+def _reset_alarms(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    return "reset_alarms", {"clear_first_out": _flag(args, "clear_first_out", False)}
+
+
+def _reset_times(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    scope = args.get("scope", "mode")
+    scopes = {"mode": 0, "all": 1}
+    if scope not in scopes:
+        raise ValueError("'scope' must be 'mode' (the current mode) or 'all'")
+    return "reset_times", {"scope": scopes[scope]}
+
+
+def _reset_counters(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    return "reset_counters", {}
+
+
+def _set_em_active(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    em = args.get("em")
+    if not isinstance(em, str) or not em:
+        raise ValueError("give 'em': the equipment module's name")
+    return "set_em_active", {"em": em, "active": _flag(args, "active", True)}
+
+
+def _set_mach_speed(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    speed = args.get("mach_speed")
+    if isinstance(speed, bool) or not isinstance(speed, int | float):
+        raise ValueError("'mach_speed' must be a number")
+    return "set_mach_speed", {"mach_speed": float(speed)}
+
+
+Builder = Callable[[dict[str, Any]], tuple[str, dict[str, Any]]]
+UNIT_ACTIONS: dict[str, Builder] = {
+    "command": _command,
+    "set_mode": _set_mode,
+    "ack_alarms": _ack,
+    "reset_alarms": _reset_alarms,
+    "reset_times": _reset_times,
+    "reset_counters": _reset_counters,
+    "set_em_active": _set_em_active,
+    "set_mach_speed": _set_mach_speed,
+}
+CELL_ACTIONS: dict[str, Builder] = {"command": _command, "set_mode": _set_mode}

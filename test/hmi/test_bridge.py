@@ -1,0 +1,386 @@
+"""Issue 7: the HMI backend's bridge (packml_ros2.hmi.bridge) and its web layer (server.py),
+against a real unit node in-process over real DDS: the snapshot, change events in order, actions
+with source ``hmi`` and the unit's refusals, the access token, the event stream over HTTP.
+
+Every wait is on a condition (an event, a message, a service), never a fixed sleep."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from packml_interfaces.srv import SetAlarm
+
+from packml_ros2.core import load_cell
+from packml_ros2.core.config import parse_cell
+from packml_ros2.core.schema import ConfigError
+from packml_ros2.hmi import hmi_settings
+from packml_ros2.hmi.bridge import ActionError, Bridge
+from packml_ros2.hmi.server import Server, bind
+from packml_ros2.testing.harness import Collector
+from packml_ros2.unit_node import UnitNode
+from test.ros.cells import UnitClient, write_cell
+
+pytestmark = pytest.mark.ros
+
+UNIT = "filler"
+TOKEN = "s3cret-token"
+UNIT_DOC: dict[str, Any] = {
+    "description": "Bottle filler",
+    "admin_period": 0.2,
+    "min_dwell": {"resetting": 0.05, "starting": 0.05},  # each acting state is published
+    "counters": {"processed": [{"id": 1, "name": "bottles", "unit": "pcs"}]},
+    "alarms": [{"id": 201, "message": "Nozzle clogged", "category": 2, "em": "nozzle"}],
+    # inactive: the unit completes acting states at once, and the EM is listed in the summary
+    "equipment_modules": {"nozzle": {"active": False}},
+}
+
+
+class Cell:
+    """A unit node spun by the harness, a test client for it, and a bridge on the same domain."""
+
+    def __init__(self, ros: Any, tmp_path: Path, token: str | None, stale_after: float) -> None:
+        self.file, self.cell = write_cell(tmp_path, {UNIT: dict(UNIT_DOC)})
+        self.config = load_cell(self.file)
+        self.node = UnitNode(self.config.units[UNIT], context=ros.context)
+        ros.add(self.node)
+        self.client = UnitClient(ros, self.cell, UNIT)
+        self.client.ready()
+        self.bridge = Bridge(
+            self.config, token=token, context=ros.context, stale_after=stale_after
+        ).spin_in_background()
+        self.events: Collector[dict[str, Any]] = Collector()
+        snapshot, self.unsubscribe = self.bridge.subscribe(self.events)
+        self.ros = ros
+        if snapshot["units"][UNIT]["status"] is None:
+            self.wait_event(lambda e: e["topic"] == "status", "the latched status")
+
+    def wait_event(self, predicate: Callable[[dict[str, Any]], bool], what: str,
+                   start: int = 0, timeout: float = 10.0) -> dict[str, Any]:  # fmt: skip
+        return self.events.wait_for(predicate, timeout, what, start)
+
+    def wait_status(self, predicate: Callable[[dict[str, Any]], bool], what: str,
+                    start: int = 0) -> dict[str, Any]:  # fmt: skip
+        ev = self.wait_event(lambda e: e["topic"] == "status" and predicate(e["data"]), what, start)
+        return ev["data"]
+
+    def close(self) -> None:
+        self.unsubscribe()
+        self.bridge.close()
+        if self.node in self.ros._nodes:
+            self.ros.executor.remove_node(self.node)
+            self.node.close()
+
+
+@contextmanager
+def serving(bridge: Bridge) -> Iterator[httpx.Client]:
+    """The HMI server on a free port, and an HTTP client for it."""
+    server = Server(bridge, bind("127.0.0.1", 0)).start()
+    try:
+        deadline = time.monotonic() + 10
+        while not server.started():  # uvicorn's own start-up flag: a condition, polled
+            assert time.monotonic() < deadline, "the HMI server did not start"
+            time.sleep(0.01)
+        port = server.sock.getsockname()[1]
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=10) as client:
+            yield client
+    finally:
+        server.stop()
+
+
+@pytest.fixture
+def make_cell(ros, tmp_path: Path) -> Iterator[Callable[..., Cell]]:
+    made: list[Cell] = []
+
+    def make(token: str | None = None, stale_after: float = 3.0) -> Cell:
+        cell = Cell(ros, tmp_path, token, stale_after)
+        made.append(cell)
+        return cell
+
+    yield make
+    for cell in made:
+        cell.close()
+
+
+# -- the snapshot and change events ---------------------------------------------------------------------
+def test_snapshot_has_what_the_screens_show(make_cell) -> None:
+    cell = make_cell()
+    cell.wait_event(lambda e: e["topic"] == "admin", "the latched admin")
+    cell.wait_event(lambda e: e["topic"] == "alarms", "the latched alarm list")
+    snap = cell.bridge.snapshot()
+    json.dumps(snap)  # everything is JSON-able
+
+    config = snap["config"]
+    assert config["cell"] == cell.cell and config["token_required"] is False
+    assert [s["name"] for s in config["states"]][:3] == ["CLEARING", "STOPPED", "STARTING"]
+    assert len(config["states"]) == 17 and len(config["commands"]) == 10
+    unit_cfg = config["units"][0]
+    assert unit_cfg["name"] == UNIT and unit_cfg["equipment_modules"] == ["nozzle"]
+    assert [m["name"] for m in unit_cfg["modes"]] == ["PRODUCTION", "MAINTENANCE", "MANUAL"]
+
+    unit = snap["units"][UNIT]
+    assert unit["online"] is True
+    status = unit["status"]
+    assert (status["state_name"], status["state"], status["mode_name"]) == (
+        "STOPPED",
+        2,
+        "PRODUCTION",
+    )
+    assert status["commands_valid_names"] == ["RESET", "ABORT"] and status["acting"] is False
+    assert status["equipment_modules"][0]["name"] == "nozzle"
+    assert status["equipment_modules"][0]["active"] is False
+    admin = unit["admin"]
+    assert admin["counters"]["processed"][0]["name"] == "bottles"
+    assert set(admin["times"]) == {"1", "2", "3"}  # the configured modes only
+    assert len(admin["times"]["1"]["state_current"]) == 18
+    assert set(admin["oee"]) >= {"availability", "performance", "quality", "oee"}
+    assert unit["alarms"]["alarms"] == [] and unit["alarms"]["banner"] == ""
+
+
+def test_actions_go_out_with_source_hmi_and_changes_arrive_in_order(make_cell) -> None:
+    cell = make_cell()
+    mark = len(cell.events)
+    answer = cell.bridge.act_sync(UNIT, "command", {"command": "reset"})
+    assert answer["accepted"] and answer["result_name"] == "ACCEPTED", answer
+    assert answer["state_current_name"] in ("RESETTING", "IDLE")
+    cell.wait_status(lambda s: s["state_name"] == "IDLE", "IDLE", mark)
+    reset = cell.wait_event(
+        lambda e: e["topic"] == "transition" and e["data"]["command"] == "RESET", "the RESET", mark
+    )
+    assert reset["data"]["source"] == "hmi" and reset["unit"] == UNIT
+    assert reset["received"] <= time.time() * 1000
+
+    mark = len(cell.events)
+    assert cell.bridge.act_sync(UNIT, "command", {"command": 2})["accepted"]  # numbers too
+    cell.wait_status(lambda s: s["state_name"] == "EXECUTE", "EXECUTE", mark)
+    states = [
+        e["data"]["state_name"] for e in cell.events.messages[mark:] if e["topic"] == "status"
+    ]
+    assert states.index("STARTING") < states.index("EXECUTE")  # in the order they happened
+    sequences = [e["data"]["sequence"] for e in cell.events.messages if e["topic"] == "status"]
+    assert sequences == sorted(sequences)
+
+    # refusals come back with the unit's reason code and message
+    again = cell.bridge.act_sync(UNIT, "command", {"command": "start"})
+    assert not again["accepted"] and again["result_name"] == "COMMAND_NOT_ALLOWED"
+    assert "START not allowed in EXECUTE" in again["message"]
+    mark = len(cell.events)
+    mode = cell.bridge.act_sync(UNIT, "set_mode", {"mode": "maintenance"})
+    assert not mode["accepted"] and mode["result_name"] == "MODE_CHANGE_NOT_ALLOWED", mode
+    cell.wait_status(
+        lambda s: s["mode_change_not_allowed"], "the mode-change-not-allowed lamp", mark
+    )
+    em = cell.bridge.act_sync(UNIT, "set_em_active", {"em": "nozzle", "active": True})
+    assert not em["accepted"] and em["result_name"] == "EM_SWITCH_IN_PRODUCTION", em
+
+    # the other unit services
+    assert cell.bridge.act_sync(UNIT, "set_mach_speed", {"mach_speed": 12.5})["mach_speed"] == 12.5
+    assert cell.bridge.act_sync(UNIT, "reset_counters")["accepted"]
+    assert cell.bridge.act_sync(UNIT, "reset_times", {"scope": "mode"})["accepted"]
+    assert cell.bridge.act_sync(UNIT, "reset_times", {"scope": "all"})["accepted"]
+    assert cell.bridge.act_sync(UNIT, "command", {"command": "stop"})["accepted"]
+    cell.wait_status(lambda s: s["state_name"] == "STOPPED", "STOPPED")
+    assert cell.bridge.act_sync(UNIT, "set_mode", {"mode": 3})["accepted"]  # MANUAL
+    on = cell.bridge.act_sync(UNIT, "set_em_active", {"em": "nozzle", "active": True})
+    assert on["accepted"], on
+    cell.wait_status(lambda s: s["equipment_modules"][0]["active"], "nozzle active")
+
+
+def test_arguments_are_checked_before_anything_is_sent(make_cell) -> None:
+    cell = make_cell()
+    bad = cell.bridge.act_sync(UNIT, "command", {"command": "jump"})
+    assert bad["result_name"] == "INVALID_ARGUMENT" and "not a PackML command" in bad["message"]
+    assert (
+        cell.bridge.act_sync(UNIT, "reset_times", {"scope": "week"})["result_name"]
+        == "INVALID_ARGUMENT"
+    )
+    assert (
+        cell.bridge.act_sync(UNIT, "set_mach_speed", {"mach_speed": "fast"})["result_name"]
+        == "INVALID_ARGUMENT"
+    )
+    with pytest.raises(ActionError, match="no unit 'capper'"):
+        cell.bridge.act("capper", "command", {"command": 1})
+    with pytest.raises(ActionError, match="unknown action 'launch'"):
+        cell.bridge.act(UNIT, "launch")
+    with pytest.raises(ActionError):
+        cell.bridge.act(None, "ack_alarms")  # the cell has command and set_mode only
+    # no coordinator runs in this test: a cell command says so
+    cell_cmd = cell.bridge.act_sync(None, "command", {"command": "reset"})
+    assert cell_cmd["result_name"] == "UNIT_UNAVAILABLE" and "coordinator" in cell_cmd["message"]
+
+
+def test_alarms_are_acknowledged_and_reset_through_the_bridge(make_cell) -> None:
+    cell = make_cell()
+    assert cell.bridge.act_sync(UNIT, "command", {"command": "reset"})["accepted"]
+    cell.wait_status(lambda s: s["state_name"] == "IDLE", "IDLE")
+    mark = len(cell.events)
+    raised = cell.client.call(SetAlarm, "set_alarm", id=201, value=0, active=True, category=-1,
+                              source="test")  # fmt: skip
+    assert raised.accepted, raised.message_out
+    listed = cell.wait_event(
+        lambda e: e["topic"] == "alarms" and len(e["data"]["alarms"]) == 1, "the alarm", mark
+    )["data"]
+    alarm = listed["alarms"][0]
+    assert (alarm["id"], alarm["message"], alarm["category"]) == (201, "Nozzle clogged", 2)
+    assert alarm["operator_state_name"] == "active_unacknowledged" and alarm["trigger"]
+    assert listed["banner"].startswith("ALARM 201/0") and listed["first_out"]["id"] == 201
+    status = cell.wait_status(lambda s: s["alarm_banner"] != "", "the banner", mark)
+    assert "Nozzle clogged" in status["alarm_banner"] and status["unacknowledged_alarms"] == 1
+    cell.wait_status(lambda s: s["state_name"] == "STOPPED", "category 2 stops the unit", mark)
+
+    # Reset is listed as valid in STOPPED, but refused while the alarm is active: the reason
+    refused = cell.bridge.act_sync(UNIT, "command", {"command": "reset"})
+    assert refused["result_name"] == "ALARM_ACTIVE" and "Nozzle clogged" in refused["message"]
+
+    mark = len(cell.events)
+    ack = cell.bridge.act_sync(UNIT, "ack_alarms", {"all": False, "id": 201, "value": 0})
+    assert ack["accepted"] and ack["acknowledged"] == 1, ack
+    acked = cell.wait_event(
+        lambda e: e["topic"] == "alarms" and e["data"]["alarms"][0]["acknowledged"], "ack", mark
+    )["data"]["alarms"][0]
+    assert acked["operator_state_name"] == "acknowledged" and acked["ack_time"] is not None
+    nothing = cell.bridge.act_sync(UNIT, "ack_alarms", {})
+    assert nothing["result_name"] == "NOTHING_TO_DO", nothing
+
+    cell.client.call(
+        SetAlarm, "set_alarm", id=201, value=0, active=False, category=-1, source="test"
+    )
+    mark = len(cell.events)
+    reset = cell.bridge.act_sync(UNIT, "reset_alarms")
+    assert reset["accepted"] and reset["cleared"] == 1, reset
+    cell.wait_event(lambda e: e["topic"] == "alarms" and not e["data"]["alarms"], "empty", mark)
+
+
+def test_a_silent_unit_goes_offline_and_comes_back(make_cell, ros) -> None:
+    cell = make_cell(stale_after=1.0)  # the unit publishes admin every 0.2 s
+    assert cell.bridge.snapshot()["units"][UNIT]["online"]
+    mark = len(cell.events)
+    ros.executor.remove_node(cell.node)  # the unit stops publishing
+    offline = cell.wait_event(
+        lambda e: e["topic"] == "online" and e["data"] is False, "offline", mark
+    )
+    assert offline["unit"] == UNIT and not cell.bridge.snapshot()["units"][UNIT]["online"]
+    ros.add(cell.node)
+    cell.wait_event(lambda e: e["topic"] == "online" and e["data"] is True, "online again", mark)
+
+
+# -- access control -------------------------------------------------------------------------------------
+def test_a_token_guards_every_action_and_nothing_reaches_the_unit_without_it(make_cell) -> None:
+    cell = make_cell(token=TOKEN)
+    assert cell.bridge.snapshot()["config"]["token_required"] is True
+    seq = cell.bridge.snapshot()["units"][UNIT]["status"]["sequence"]
+    for token in (None, "", "wrong"):
+        answer = cell.bridge.act_sync(UNIT, "command", {"command": "reset"}, token=token)
+        assert not answer["accepted"] and answer["result_name"] == "UNAUTHORIZED", answer
+        assert ("read-only" if not token else "wrong access token") in answer["message"]
+    assert cell.bridge.act_sync(None, "command", {"command": 1})["result_name"] == "UNAUTHORIZED"
+    assert cell.client.status.last.sequence == seq  # nothing was sent
+    assert cell.bridge.act_sync(UNIT, "command", {"command": "reset"}, token=TOKEN)["accepted"]
+    cell.wait_status(lambda s: s["state_name"] == "IDLE", "IDLE")
+
+    # over HTTP: reading is free, actions need "Authorization: Bearer <token>" (403 otherwise)
+    with serving(cell.bridge) as http:
+        assert http.get("/api/snapshot").json()["units"][UNIT]["status"]["state_name"] == "IDLE"
+        assert http.get("/api/config").json()["token_required"] is True
+        denied = http.post(f"/api/units/{UNIT}/command", json={"command": "start"})
+        assert denied.status_code == 403 and "read-only" in denied.json()["message"]
+        wrong = http.post(f"/api/units/{UNIT}/command", json={"command": "start"},
+                          headers={"Authorization": "Bearer nope"})  # fmt: skip
+        assert wrong.status_code == 403 and wrong.json()["result_name"] == "UNAUTHORIZED"
+        assert http.post("/api/auth").status_code == 403
+        auth = {"Authorization": f"Bearer {TOKEN}"}
+        assert http.post("/api/auth", headers=auth).status_code == 200
+        ok = http.post(f"/api/units/{UNIT}/command", json={"command": "start"}, headers=auth)
+        assert ok.status_code == 200 and ok.json()["accepted"], ok.json()
+        refused = http.post(f"/api/units/{UNIT}/command", json={"command": "start"}, headers=auth)
+        assert refused.status_code == 200 and refused.json()["result_name"] == "COMMAND_NOT_ALLOWED"
+        assert http.post("/api/units/nope/command", json={}, headers=auth).status_code == 404
+        assert (
+            http.post(f"/api/units/{UNIT}/command", content=b"{", headers=auth).status_code == 400
+        )
+        page = http.get("/")
+        assert (
+            page.status_code == 200
+            and "default-src 'self'" in page.headers["content-security-policy"]
+        )
+        for asset in ("/static/app.js", "/static/style.css", "/static/favicon.svg"):
+            assert http.get(asset).status_code == 200, asset
+
+
+# -- the event stream over HTTP -------------------------------------------------------------------------
+def _events(response: httpx.Response) -> Iterator[tuple[str, dict[str, Any], float]]:
+    """(event, data, time read) from a server-sent-events response."""
+    kind, data = "", ""
+    for line in response.iter_lines():
+        if line.startswith("event: "):
+            kind = line[7:]
+        elif line.startswith("data: "):
+            data = line[6:]
+        elif not line and data:
+            yield kind, json.loads(data), time.time() * 1000
+            kind, data = "", ""
+
+
+def test_the_event_stream_sends_a_snapshot_then_each_change_at_once(make_cell) -> None:
+    cell = make_cell()
+    with serving(cell.bridge) as http:
+        seen: list[tuple[str, dict[str, Any], float]] = []
+        first, got_idle = threading.Event(), threading.Event()
+
+        def read() -> None:
+            with http.stream("GET", "/api/events", timeout=20) as r:
+                assert r.headers["content-type"].startswith("text/event-stream")
+                for event in _events(r):
+                    seen.append(event)
+                    first.set()
+                    data = event[1]
+                    if data.get("topic") == "status" and data["data"]["state_name"] == "IDLE":
+                        got_idle.set()
+                        return
+
+        reader = threading.Thread(target=read, daemon=True)
+        reader.start()
+        assert first.wait(10), "no snapshot"
+        assert seen[0][0] == "snapshot"
+        assert seen[0][1]["units"][UNIT]["status"]["state_name"] == "STOPPED"
+        answer = http.post(f"/api/units/{UNIT}/command", json={"command": "reset"}).json()
+        assert answer["accepted"], answer
+        assert got_idle.wait(10), [e[1].get("topic") for e in seen]
+        reader.join(5)
+        updates = [(d, t) for kind, d, t in seen if kind == "update" and d["topic"] == "status"]
+        assert [d["data"]["state_name"] for d, _ in updates][-2:] == ["RESETTING", "IDLE"]
+        delays = [t - d["received"] for d, t in updates]
+        assert max(delays) < 100, f"bridge -> HTTP client took {max(delays):.1f} ms"
+
+
+# -- configuration -----------------------------------------------------------------------------------------
+def test_the_hmi_block_is_validated_with_key_paths(tmp_path: Path) -> None:
+    base = {"cell": "c", "units": {"u": {}}}
+    assert hmi_settings(parse_cell(base)).port == 8080
+    settings = hmi_settings(
+        parse_cell({**base, "hmi": {"port": 0, "token": "abcd", "title": "Line 3"}})
+    )
+    assert (settings.port, settings.token, settings.title, settings.loopback) == (
+        0,
+        "abcd",
+        "Line 3",
+        True,
+    )
+    assert not hmi_settings(parse_cell({**base, "hmi": {"host": "0.0.0.0"}})).loopback
+    with pytest.raises(ConfigError) as exc:
+        hmi_settings(
+            parse_cell({**base, "hmi": {"port": 70000, "tokn": "x", "token": ""}}, "cell.yaml")
+        )
+    text = str(exc.value)
+    assert "cell.yaml: hmi.port: 70000 is outside 0..65535" in text
+    assert "hmi.tokn: unknown key (did you mean 'token'?)" in text
+    assert "hmi.token: an empty token" in text
+    demo = hmi_settings(load_cell(Path(__file__).parents[2] / "config" / "demo_cell.yaml"))
+    assert (demo.host, demo.port, demo.token) == ("127.0.0.1", 8080, None)
