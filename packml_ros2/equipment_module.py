@@ -98,7 +98,7 @@ class StateContext:
 class EquipmentModule(Node):
     """An EM node ``name`` under its unit: ``/<cell>/<unit>/<name>``."""
 
-    def __init__(self, name: str, unit: str, cell: str = "", *, lease: float = 1.0,
+    def __init__(self, name: str, unit: str, cell: str = "", *, lease: float = 2.0,
                  fault_alarm_id: int = FAULT_ALARM_ID, **node_kwargs: Any) -> None:  # fmt: skip
         namespace = "/" + "/".join(p for p in (cell, unit) if p)
         super().__init__(name, namespace=namespace, **node_kwargs)
@@ -315,6 +315,8 @@ class EquipmentModule(Node):
             asyncio.run_coroutine_threadsafe(self._stop_tasks(), self._loop).result(timeout=5)
         self._loop.call_soon_threadsafe(self._loop.stop)
         self._thread.join(2)
+        if not self._loop.is_running():
+            self._loop.close()  # else its __del__ complains at interpreter exit
 
     async def _stop_tasks(self) -> None:
         current = asyncio.current_task()

@@ -53,7 +53,7 @@ class SimConfig:
     defect_counter_index: int = 0
     consumed_per_cycle: int = 0
     cycles_per_run: int = 0  # Execute completes after this many cycles (0: runs until commanded)
-    lease: float = 1.0
+    lease: float = 2.0  # heartbeats every lease/4; 2 s rides out a busy machine
     faults: Mapping[str, Fault] = field(default_factory=dict)
     seed: int | None = None
 
@@ -98,7 +98,7 @@ def parse_sim(data: Mapping[str, Any], path: str = "sim", file: str = "<memory>"
         defect_counter_index=n.get("defect_counter_index", sc.integer(0), 0),
         consumed_per_cycle=n.get("consumed_per_cycle", sc.integer(0), 0),
         cycles_per_run=n.get("cycles_per_run", sc.integer(0), 0),
-        lease=n.get("lease", sc.number(positive=True), 1.0),
+        lease=n.get("lease", sc.number(positive=True), 2.0),
         faults=faults,
         seed=n.get("seed", sc.integer(), None),  # type: ignore[arg-type]
     )
