@@ -3,7 +3,7 @@ anything: it only translates field by field."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -182,19 +182,57 @@ def alarm(ev: AlarmEvent | None) -> Alarm:
     )
 
 
-def alarm_list(unit: str, now: float, alarms: AlarmManager) -> AlarmList:
+class MessageCache:
+    """:func:`alarm` (and :func:`count`) with a memory, for publishers that convert the same
+    things again and again (every Admin message carries the alarm history and every counter): an
+    event or counter whose fields are unchanged gets the message made the first time. The
+    messages are shared: publish them, do not modify them."""
+
+    def __init__(self, size: int = 1024) -> None:
+        self.size = size
+        self._made: dict[tuple[object, ...] | None, Alarm] = {}
+        self._counts: dict[tuple[object, ...], Count] = {}
+
+    def count(self, c: Counter) -> Count:
+        key = (c.id, c.name, c.unit, c.count, c.acc_count)
+        msg = self._counts.get(key)
+        if msg is None:
+            if len(self._counts) >= self.size:
+                self._counts.clear()
+            msg = self._counts[key] = count(c)
+        return msg
+
+    def __call__(self, ev: AlarmEvent | None) -> Alarm:
+        key = (
+            None
+            if ev is None
+            else (ev.id, ev.value, ev.message, ev.category, ev.kind, ev.time, ev.em, ev.source,
+                  ev.reaction, ev.trigger, ev.latched, ev.ack_time, ev.cleared_time)
+        )  # fmt: skip
+        msg = self._made.get(key)
+        if msg is None:
+            if len(self._made) >= self.size:
+                self._made.clear()
+            msg = self._made[key] = alarm(ev)
+        return msg
+
+
+def alarm_list(
+    unit: str, now: float, alarms: AlarmManager, cache: MessageCache | None = None
+) -> AlarmList:
+    alarm_of = alarm if cache is None else cache
     listed, alarm_over = alarms.listed(warnings=False)
     warnings, warning_over = alarms.listed(warnings=True)
-    by_category = [alarm(alarms.first_out_by_category.get(c)) for c in range(10)]
+    by_category = [alarm_of(alarms.first_out_by_category.get(c)) for c in range(10)]
     return AlarmList(
         stamp=stamp(now),
         unit=unit,
-        alarms=[alarm(ev) for ev in listed],
-        warnings=[alarm(ev) for ev in warnings],
-        first_out=alarm(alarms.first_out),
+        alarms=[alarm_of(ev) for ev in listed],
+        warnings=[alarm_of(ev) for ev in warnings],
+        first_out=alarm_of(alarms.first_out),
         first_out_by_category=by_category,
         first_out_em_names=list(alarms.first_out_by_em),
-        first_out_by_em=[alarm(ev) for ev in alarms.first_out_by_em.values()],
+        first_out_by_em=[alarm_of(ev) for ev in alarms.first_out_by_em.values()],
         alarm_overflow=alarm_over,
         warning_overflow=warning_over,
         banner=alarms.banner(),
@@ -202,35 +240,34 @@ def alarm_list(unit: str, now: float, alarms: AlarmManager) -> AlarmList:
 
 
 # -- admin --------------------------------------------------------------------------------------------------
-def _counts(counters: Iterable[Counter]) -> list[Count]:
-    return [
-        Count(id=c.id, name=c.name, unit=c.unit, count=c.count, acc_count=c.acc_count)
-        for c in counters
-    ]
+def count(c: Counter) -> Count:
+    return Count(id=c.id, name=c.name, unit=c.unit, count=c.count, acc_count=c.acc_count)
 
 
-def admin(v: AdminView) -> Admin:
+def admin(v: AdminView, cache: MessageCache | None = None) -> Admin:
+    alarm_of: Callable[[AlarmEvent | None], Alarm] = alarm if cache is None else cache
+    count_of: Callable[[Counter], Count] = count if cache is None else cache.count
     t = v.times
     o = v.oee
     return Admin(
         stamp=stamp(v.time),
         unit=v.unit,
         parameter=[descriptor(d) for d in v.parameter],
-        alarm=[alarm(ev) for ev in v.alarm],
+        alarm=[alarm_of(ev) for ev in v.alarm],
         alarm_extent=len(v.alarm),
-        alarm_history=[alarm(ev) for ev in v.alarm_history],
+        alarm_history=[alarm_of(ev) for ev in v.alarm_history],
         alarm_history_extent=len(v.alarm_history),
-        stop_reason=alarm(v.stop_reason),
+        stop_reason=alarm_of(v.stop_reason),
         stop_reason_extent=1 if v.stop_reason is not None else 0,
-        warning=[alarm(ev) for ev in v.warning],
+        warning=[alarm_of(ev) for ev in v.warning],
         warning_extent=len(v.warning),
         mode_current_time=list(t.mode_current),
         mode_cumulative_time=list(t.mode_cumulative),
         state_current_time=list(t.state_current),
         state_cumulative_time=list(t.state_cumulative),
-        prod_consumed_count=_counts(v.prod_consumed_count),
-        prod_processed_count=_counts(v.prod_processed_count),
-        prod_defective_count=_counts(v.prod_defective_count),
+        prod_consumed_count=[count_of(c) for c in v.prod_consumed_count],
+        prod_processed_count=[count_of(c) for c in v.prod_processed_count],
+        prod_defective_count=[count_of(c) for c in v.prod_defective_count],
         acc_time_since_reset=t.acc_time_since_reset,
         mach_design_speed=v.mach_design_speed,
         states_disabled=v.states_disabled,

@@ -38,6 +38,8 @@ class UnitDriver:
         self.clock = clock
         self.emit = emit
         self.name = unit.config.name
+        #: Alarm and Count messages made once per state: every Admin carries all of them.
+        self.cache = convert.MessageCache()
 
     def catch_up(self, now: float) -> None:
         """Fire the deadlines due by ``now``, publishing after each."""
@@ -67,9 +69,11 @@ class UnitDriver:
             elif kind == "status":
                 self.emit("status", self.status_message(item))
             elif kind == "alarms":
-                self.emit("alarms", convert.alarm_list(self.name, unit.now, unit.alarms))
+                self.emit(
+                    "alarms", convert.alarm_list(self.name, unit.now, unit.alarms, self.cache)
+                )
             elif kind == "admin":
-                self.emit("admin", convert.admin(item))
+                self.emit("admin", convert.admin(item, self.cache))
             else:
                 self.emit("log", item)
 

@@ -170,7 +170,11 @@ def record(args: argparse.Namespace) -> int:
         topics = len(recorder.counts)
         print(f"recording {', '.join(units)} ({topics} topics) into {out} ({args.storage}); "
               "Ctrl-C to stop", file=sys.stderr, flush=True)  # fmt: skip
-        run_recorder(recorder, executor, lambda: stop["now"], args.duration)
+
+        def announce(unit: str) -> None:
+            print(f"receiving {unit}", file=sys.stderr, flush=True)
+
+        run_recorder(recorder, executor, lambda: stop["now"], args.duration, announce=announce)
         total = sum(recorder.counts.values())
         counts = ", ".join(f"{t.rsplit('/', 1)[-1]} {n}" for t, n in recorder.counts.items() if n)
         print(f"wrote {out}: {total} messages ({counts or 'none'})", file=sys.stderr)

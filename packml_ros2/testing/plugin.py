@@ -5,13 +5,15 @@ ROS domain of its own (per run and per pytest-xdist worker). Fixtures:
 
 - ``ros_domain``: the domain of this worker;
 - ``ros``: a :class:`~packml_ros2.testing.harness.RosHarness` on a fresh Context;
-- ``processes``: start nodes as separate OS processes; stopped (SIGINT) at teardown.
+- ``processes``: start nodes as separate OS processes; stopped (SIGINT) at teardown;
+- ``packml_replay``: replay-check a recorded bag, e.g.
+  ``packml_replay("test/bags/normal_production").assert_matches()`` (packml_ros2.testing.replay).
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -55,3 +57,12 @@ def processes(tmp_path: Path) -> Iterator[object]:
         failures = procs.close()
         if failures:
             print(failures)
+
+
+@pytest.fixture
+def packml_replay(request: pytest.FixtureRequest) -> Callable[..., object]:
+    """``packml_replay(bag, config=None, units=()) -> ReplayResult`` (paths relative to the
+    pytest root directory); ``.assert_matches()`` fails with the first difference."""
+    from .replay import BagReplayer
+
+    return BagReplayer(request.config.rootpath)

@@ -1,0 +1,266 @@
+"""``packml record``: a recorder node writing a unit's (or a cell's) topics into a rosbag2 bag.
+
+Per unit ``/<cell>/<unit>`` it subscribes (raw CDR, no decoding) to the inputs ``input_log``,
+``em_reports``, ``config`` and the outputs ``status``, ``transitions``, ``admin``, ``alarms``; for a
+cell also ``/<cell>/coordinator/status``. Subscriptions take the publishers' durability, so a
+recorder started after the unit still gets the input log since the unit's start (transient local,
+5000 deep) and the latest status, admin data, alarm list and the last 100 transitions.
+
+Bag timestamps are receive times (strictly increasing in the bag's order). The bag stores the
+publishers' QoS and every type definition (mcap by default, sqlite3 on request), readable by
+rosbag2 and other tools. ``custom_data`` (metadata.yaml) key ``packml`` holds the recorder's notes:
+the DDS publication sequence numbers of the recorded output messages (replay aligns on them
+exactly) and the stop time.
+
+Stopping (Ctrl-C, SIGTERM or ``--duration``): outputs received after the stop are not written; the
+input log is kept open for :data:`DRAIN` seconds more, because the unit publishes it in batches
+(every 50 ms), so every input behind a recorded output is in the bag.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import itertools
+import json
+import os
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterable
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+from .topics import (
+    CELL_STATUS_TYPE,
+    CUSTOM_KEY,
+    OUTPUT_TOPICS,
+    PUBLISHER_QOS,
+    UNIT_TOPICS,
+    msg_class,
+    reader_qos,
+    rosbags_qos,
+    typestore,
+)
+
+#: Seconds the input log stays open after a stop (the unit flushes it every 50 ms).
+DRAIN = 0.5
+STORAGES = ("mcap", "sqlite3")
+
+
+class Recorder:
+    """Records ``units`` (``/<cell>/<unit>`` paths) and the coordinator status of ``cells`` into
+    a new bag at ``path``. Spin :attr:`node` (any executor); :meth:`stop`, then :meth:`close`."""
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        units: Iterable[str],
+        cells: Iterable[str] = (),
+        *,
+        storage: str = "mcap",
+        context: Any = None,
+        node_name: str | None = None,
+    ) -> None:
+        from rclpy.node import Node
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        if storage not in STORAGES:
+            raise ValueError(f"storage {storage!r}: choose one of {', '.join(STORAGES)}")
+        self.path = Path(path)
+        self.units = [u.rstrip("/") for u in units]
+        self.cells = list(cells)
+        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+        # One thread owns the writer (sqlite3 objects stay in the thread that made them) and
+        # does the disk I/O, so subscription callbacks only queue what they received.
+        self._io = _WriterThread()
+        self.writer = self._io.call(_open_writer, Writer, self.path, plugin)
+        self.node = Node(node_name or f"packml_recorder_{os.getpid()}", context=context)
+        self.counts: dict[str, int] = {}
+        self.stopped_at: int | None = None  # ns (receive-time clock) when stop() was called
+        self._last_ts = 0
+        self._pubs: dict[str, list[list[int]]] = {}  # output topic -> publication ranges
+        self._gids: dict[str, Any] = {}
+        self._several: set[str] = set()
+        self._closed = False
+        self._lock = threading.Lock()  # callbacks may run on executor threads; close() too
+        store = typestore()
+        for prefix in self.units:
+            for name, type_name in UNIT_TOPICS.items():
+                self._add(f"{prefix}/{name}", name, type_name, store, name in OUTPUT_TOPICS)
+        for cell in self.cells:
+            topic = f"/{cell.strip('/')}/coordinator/status"
+            self._add(topic, "coordinator", CELL_STATUS_TYPE, store, False)
+
+    def _add(self, topic: str, kind: str, type_name: str, store: Any, output: bool) -> None:
+        conn = self._io.call(
+            partial(
+                self.writer.add_connection,
+                topic,
+                type_name,
+                typestore=store,
+                offered_qos_profiles=[rosbags_qos(PUBLISHER_QOS[kind])],
+            )
+        )
+        self.counts[topic] = 0
+        callback: Callable[[bytes, Any], None] = partial(
+            self._on_message, topic, conn, kind == "input_log", output
+        )
+        self.node.create_subscription(
+            msg_class(type_name), topic, callback, reader_qos(kind), raw=True
+        )
+
+    # -- receiving ----------------------------------------------------------------------------------
+    def _on_message(
+        self, topic: str, conn: Any, input_log: bool, output: bool, raw: bytes, info: Any
+    ) -> None:
+        received = int(info.get("received_timestamp") or time.time_ns())
+        with self._lock:
+            if self._closed:
+                return
+            if self.stopped_at is not None and received > self.stopped_at and not input_log:
+                return
+            ts = max(received, self._last_ts + 1)
+            self._last_ts = ts
+            self._io.post(self.writer.write, conn, ts, raw)
+            self.counts[topic] += 1
+            if output:
+                self._note_publication(topic, info)
+
+    def _note_publication(self, topic: str, info: Any) -> None:
+        seq = info.get("publication_sequence_number")
+        gid = info.get("publisher_gid")
+        if topic in self._several:
+            return
+        if seq is None:
+            self._several.add(topic)  # the middleware does not tell: replay aligns by content
+            return
+        known = self._gids.setdefault(topic, gid)
+        if known != gid:
+            self._several.add(topic)  # a second publisher (the unit restarted): by content
+            return
+        ranges = self._pubs.setdefault(topic, [])
+        if ranges and ranges[-1][1] + 1 == seq:
+            ranges[-1][1] = seq
+        else:
+            ranges.append([seq, seq])
+
+    # -- state --------------------------------------------------------------------------------------
+    def received(self, topic: str) -> int:
+        return self.counts.get(topic, 0)
+
+    def ready(self) -> bool:
+        """Every recorded unit's latched status has arrived (the recorder is matched)."""
+        return all(self.received(f"{u}/status") > 0 for u in self.units)
+
+    def lost(self) -> dict[str, int]:
+        """Output messages the recorder missed (gaps in the publication sequence numbers)."""
+        out = {}
+        for topic, ranges in self._pubs.items():
+            gaps = sum(b[0] - a[1] - 1 for a, b in itertools.pairwise(ranges))
+            if gaps:
+                out[topic] = gaps
+        return out
+
+    def stop(self) -> None:
+        """Stop recording outputs now; the input log stays open (see :data:`DRAIN`)."""
+        if self.stopped_at is None:
+            self.stopped_at = time.time_ns()
+
+    def close(self) -> Path:
+        """Write the bag's index and metadata.yaml (idempotent); returns the bag's path."""
+        with self._lock:
+            if self._closed:
+                return self.path
+            self.stop()
+            self._closed = True
+        notes = {
+            "version": 1,
+            "recorder": "packml_ros2",
+            "units": self.units,
+            "stopped_at_ns": self.stopped_at,
+            "publications": {
+                topic: ranges for topic, ranges in self._pubs.items() if topic not in self._several
+            },
+        }
+        self._io.call(
+            self.writer.set_custom_data, CUSTOM_KEY, json.dumps(notes, separators=(",", ":"))
+        )
+        self._io.call(self.writer.close)
+        self._io.stop()
+        self.node.destroy_node()
+        return self.path
+
+
+def _open_writer(writer_cls: Any, path: Path, plugin: Any) -> Any:
+    writer = writer_cls(path, version=9, storage_plugin=plugin)
+    writer.open()
+    return writer
+
+
+class _WriterThread:
+    """Runs the bag writer's calls in order on one thread."""
+
+    def __init__(self) -> None:
+        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="packml-bag-writer", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            fn, args, future = item
+            try:
+                result = fn(*args)
+            except BaseException as exc:  # reported to the caller, or kept for the next call
+                if future is not None:
+                    future.set_exception(exc)
+                elif self.error is None:
+                    self.error = exc
+                continue
+            if future is not None:
+                future.set_result(result)
+
+    def post(self, fn: Callable[..., Any], *args: Any) -> None:
+        self._queue.put((fn, args, None))
+
+    def call(self, fn: Callable[..., Any], *args: Any) -> Any:
+        future: concurrent.futures.Future[Any] = concurrent.futures.Future()
+        self._queue.put((fn, args, future))
+        result = future.result()
+        if self.error is not None:
+            error, self.error = self.error, None
+            raise error
+        return result
+
+    def stop(self) -> None:
+        self._queue.put(None)
+        self._thread.join()
+
+
+def run_recorder(
+    recorder: Recorder,
+    executor: Any,
+    should_stop: Callable[[], bool],
+    duration: float | None = None,
+    drain: float = DRAIN,
+    announce: Callable[[str], None] | None = None,
+) -> None:
+    """Spin until ``should_stop()`` or ``duration`` seconds, then drain the input log and close.
+    ``announce(unit)`` is called when a unit's first status arrives."""
+    deadline = None if duration is None else time.monotonic() + duration
+    waiting = list(recorder.units)
+    while not should_stop() and (deadline is None or time.monotonic() < deadline):
+        executor.spin_once(timeout_sec=0.05)
+        if waiting and announce is not None:
+            for unit in [u for u in waiting if recorder.received(f"{u}/status")]:
+                waiting.remove(unit)
+                announce(unit)
+    recorder.stop()
+    end = time.monotonic() + drain
+    while time.monotonic() < end:
+        executor.spin_once(timeout_sec=0.02)
+    recorder.close()

@@ -1,0 +1,362 @@
+"""Reading a PackML bag: per unit its input log, configuration, EM reports and recorded outputs.
+
+Any rosbag2 bag with the unit topics works: ours (rosbags), ``ros2 bag record``'s, or one written
+by another writer (e.g. the ``mcap`` / ``mcap-ros2-support`` packages) — a bag directory with
+metadata.yaml, a directory holding one ``.mcap`` / ``.db3`` file, or such a file. Messages are
+read with rosbags (it uses the definitions stored in the bag); the stored definition of every
+packml type must equal the installed one (same RIHS01 hash), since values are compared with the
+installed types.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import sqlite3
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rclpy.serialization import deserialize_message
+
+from .topics import CUSTOM_KEY, OUTPUT_TOPICS, UNIT_TOPICS, msg_class, split_topic, typestore
+
+
+class RecordingError(Exception):
+    """The bag cannot be replayed (the message says why and what to do)."""
+
+
+@dataclass
+class Input:
+    index: int
+    time: float
+    name: str
+    args_json: str
+
+    @property
+    def args(self) -> dict[str, Any]:
+        value: dict[str, Any] = json.loads(self.args_json)
+        return value
+
+
+@dataclass
+class UnitRecording:
+    """One unit's part of a bag."""
+
+    prefix: str  # /<cell>/<unit>
+    inputs: list[Input] = field(default_factory=list)
+    #: output topic -> recorded messages (raw CDR), in the order received; only topics in the bag
+    outputs: dict[str, list[bytes]] = field(default_factory=dict)
+    #: output topic -> DDS publication sequence number of each recorded message (our recorder)
+    publications: dict[str, list[int]] = field(default_factory=dict)
+    config_json: str | None = None
+    em_reports: list[tuple[int, bytes]] = field(default_factory=list)  # (bag time ns, raw)
+
+    @property
+    def name(self) -> str:
+        if self.config_json:
+            name = json.loads(self.config_json).get("unit")
+            if name:
+                return str(name)
+        return self.prefix.rsplit("/", 1)[-1]
+
+    @property
+    def cell(self) -> str:
+        return self.prefix.rsplit("/", 1)[0].strip("/")
+
+
+@dataclass
+class Recording:
+    path: Path
+    storage: str
+    units: dict[str, UnitRecording]  # by prefix
+    custom: dict[str, Any]
+    message_count: int
+    #: every connection: (topic, msgtype, msgdef text, digest, offered QoS, bag messages)
+    connections: list[Any]
+    raw_messages: list[tuple[Any, int, bytes]] = field(default_factory=list)
+    digests: dict[str, str] = field(default_factory=dict)  # msgtype -> stored RIHS01
+
+    def unit(self, name: str) -> UnitRecording:
+        for u in self.units.values():
+            if name in (u.prefix, u.name, u.prefix.strip("/")):
+                return u
+        raise KeyError(f"no unit {name!r} in {self.path} (units: {', '.join(self.units)})")
+
+
+def bag_path(path: str | Path) -> Path:
+    """What rosbags opens: a bag directory (metadata.yaml), else its single storage file."""
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"{p}: no such bag")
+    if p.is_dir() and not (p / "metadata.yaml").exists():
+        files = sorted([*p.glob("*.mcap"), *p.glob("*.db3")])
+        if len(files) != 1:
+            raise RecordingError(
+                f"{p}: neither a rosbag2 bag (no metadata.yaml) nor a directory with one .mcap/.db3 file"
+            )
+        return files[0]
+    return p
+
+
+def load(path: str | Path, keep_raw: bool = False) -> Recording:
+    """Read the bag at ``path``. ``keep_raw``: also keep every message (for ``--update``)."""
+    p = bag_path(path)
+    try:
+        with _open(p) as bag:
+            return _load(bag, path, keep_raw)
+    except RecordingError:
+        raise
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise RecordingError(f"{path}: cannot read the bag: {exc}") from None
+    except Exception as exc:  # rosbags' reader errors
+        if type(exc).__module__.startswith("rosbags"):
+            raise RecordingError(f"{path}: cannot read the bag: {exc}") from None
+        raise
+
+
+class _Bag:
+    """A bag opened for reading: its storage (rosbags), connections and our notes."""
+
+    def __init__(self, p: Path) -> None:
+        self.path = p
+        self.storage = "mcap"
+        self.custom: dict[str, Any] = {}
+        self.reader: Any = None  # a rosbags storage reader, or an AnyReader (general case)
+        self.any = False
+
+    def __enter__(self) -> _Bag:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        if self.reader is not None:
+            self.reader.close()
+
+    @property
+    def connections(self) -> list[Any]:
+        return list(self.reader.connections)
+
+    def messages(self, connections: Any) -> Any:
+        if self.any:
+            return self.reader.messages(connections)
+        return self.reader.messages(connections or self.reader.connections)
+
+    def stored_hash(self, conn: Any) -> str | None:
+        """RIHS01 of the definition stored for ``conn`` (None: none stored)."""
+        if self.any:
+            try:
+                return str(self.reader.typestore.hash_rihs01(conn.msgtype))
+            except Exception:
+                return None
+        if conn.digest:
+            return str(conn.digest)
+        fmt = getattr(conn.msgdef.format, "name", "NONE")
+        if fmt == "NONE" or not conn.msgdef.data:
+            return None
+        return _definition_hash(conn.msgtype, fmt, conn.msgdef.data)
+
+
+def _open(p: Path) -> _Bag:
+    """Open a bag: its single storage file directly when that is all there is (fast: no YAML
+    parsing by rosbags, no definition parsing per open), otherwise rosbags' AnyReader."""
+    import yaml
+    from rosbags.rosbag2.storage_mcap import McapReader
+
+    bag = _Bag(p)
+    file = p
+    if p.is_dir():
+        loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+        info = yaml.load((p / "metadata.yaml").read_text(encoding="utf-8"), Loader=loader)
+        info = info["rosbag2_bagfile_information"]
+        bag.storage = str(info.get("storage_identifier", "mcap"))
+        notes = (info.get("custom_data") or {}).get(CUSTOM_KEY)
+        if notes:
+            try:
+                bag.custom = json.loads(notes)
+            except ValueError:
+                bag.custom = {}
+        files = info.get("relative_file_paths") or []
+        simple = (
+            len(files) == 1
+            and not (info.get("compression_mode") or "").strip()
+            and int(info.get("version", 9)) <= 9
+            and bag.storage in ("mcap", "sqlite3")
+        )
+        if not simple:
+            return _open_any(bag, p)
+        file = p / Path(files[0]).name
+    elif p.suffix == ".db3":
+        bag.storage = "sqlite3"
+    if bag.storage == "sqlite3":
+        try:
+            bag.reader = _Sqlite(file)
+        except (sqlite3.Error, KeyError, ValueError):
+            return _open_any(bag, p)
+        return bag
+    reader = McapReader(file)
+    reader.open()
+    bag.reader = reader
+    return bag
+
+
+class _Sqlite:
+    """rosbag2's sqlite3 storage (schema 4 and later, i.e. with stored definitions), read with
+    the sqlite3 module; rosbags' reader parses every QoS string with a pure-Python YAML parser,
+    which costs more than the whole replay of a small bag."""
+
+    def __init__(self, file: Path) -> None:
+        import yaml
+        from rosbags.interfaces import (
+            Connection,
+            ConnectionExtRosbag2,
+            MessageDefinition,
+            MessageDefinitionFormat,
+        )
+        from rosbags.rosbag2.metadata import parse_qos
+
+        self.db = sqlite3.connect(f"file:{file}?immutable=1", uri=True)
+        try:
+            (schema,) = self.db.execute("SELECT schema_version FROM schema").fetchone()
+            if int(schema) < 4:
+                raise ValueError("old schema")
+            loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+            formats = {
+                "ros2msg": MessageDefinitionFormat.MSG,
+                "ros2idl": MessageDefinitionFormat.IDL,
+            }
+            defs = {
+                name: MessageDefinition(formats[enc], text)
+                for name, enc, text in self.db.execute(
+                    "SELECT topic_type, encoding, encoded_message_definition FROM message_definitions"
+                )
+                if enc in formats
+            }
+            none = MessageDefinition(MessageDefinitionFormat.NONE, "")
+            rows = self.db.execute(
+                "SELECT topics.id, name, type, count(messages.id), serialization_format, "
+                "offered_qos_profiles, type_description_hash FROM topics LEFT JOIN messages ON "
+                "topics.id == messages.topic_id GROUP BY topics.id ORDER BY topics.id"
+            ).fetchall()
+            self.connections = [
+                Connection(
+                    cid,
+                    topic,
+                    msgtype,
+                    defs.get(msgtype, none),
+                    digest or "",
+                    count,
+                    ConnectionExtRosbag2(
+                        fmt, parse_qos(yaml.load(qos or "[]", Loader=loader) or [])
+                    ),
+                    self,
+                )
+                for cid, topic, msgtype, count, fmt, qos, digest in rows
+            ]
+        except Exception:
+            self.db.close()
+            raise
+
+    def messages(self, connections: Any) -> Any:
+        by_id = {c.id: c for c in connections}
+        marks = ",".join("?" for _ in by_id)
+        query = (
+            f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN ({marks}) "
+            "ORDER BY timestamp, id"
+        )
+        for cid, ts, data in self.db.execute(query, tuple(by_id)):
+            yield by_id[cid], ts, data
+
+    def close(self) -> None:
+        self.db.close()
+
+
+def _open_any(bag: _Bag, p: Path) -> _Bag:
+    from rosbags.highlevel import AnyReader
+
+    reader = AnyReader([p], default_typestore=typestore())
+    reader.open()
+    bag.reader = reader
+    bag.any = True
+    return bag
+
+
+@functools.cache
+def _definition_hash(msgtype: str, fmt: str, data: str) -> str:
+    from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.EMPTY)
+    if fmt == "MSG":
+        store.register(get_types_from_msg(data, msgtype))
+    else:
+        sep = "=" * 80 + "\n"
+        types: dict[str, Any] = {}
+        parts = data.split(sep)[1:] if data.startswith(f"{sep}IDL: ") else [data]
+        for part in parts:
+            types.update(
+                get_types_from_idl(part.split("\n", 1)[1] if part.startswith("IDL: ") else part)
+            )
+        store.register(types)
+    return str(store.hash_rihs01(msgtype))
+
+
+def _load(bag: _Bag, path: str | Path, keep_raw: bool) -> Recording:
+    store = typestore()
+    units: dict[str, UnitRecording] = {}
+    wanted = []
+    digests: dict[str, str] = {}
+    for conn in bag.connections:
+        have = bag.stored_hash(conn)
+        if have:
+            digests[conn.msgtype] = have
+        split = split_topic(conn.topic)
+        if split is None or UNIT_TOPICS[split[1]] != conn.msgtype:
+            continue
+        if have is not None and have != store.hash_rihs01(conn.msgtype):
+            raise RecordingError(
+                f"{path}: {conn.msgtype} in the bag ({have}) differs from the installed "
+                f"definition ({store.hash_rihs01(conn.msgtype)}): the bag was recorded with "
+                "another version of packml_interfaces; re-record it, or replay it with that version"
+            )
+        units.setdefault(split[0], UnitRecording(split[0]))
+        if split[1] in OUTPUT_TOPICS:
+            units[split[0]].outputs.setdefault(split[1], [])
+        wanted.append(conn)
+    string_cls = msg_class("std_msgs/msg/String")
+    input_cls = msg_class("packml_interfaces/msg/UnitInput")
+    raw_messages: list[tuple[Any, int, bytes]] = []
+    count = 0
+    by_topic = {c.topic: split_topic(c.topic) for c in wanted}
+    for conn, ts, data in bag.messages(() if keep_raw else wanted):
+        count += 1
+        raw = bytes(data)
+        if keep_raw:
+            raw_messages.append((conn, ts, raw))
+        split = by_topic.get(conn.topic)
+        if split is None:
+            continue
+        unit = units[split[0]]
+        name = split[1]
+        if name == "input_log":
+            m = deserialize_message(raw, input_cls)
+            unit.inputs.append(
+                Input(m.index, m.stamp.sec + m.stamp.nanosec * 1e-9, m.name, m.args_json)
+            )
+        elif name == "config":
+            unit.config_json = deserialize_message(raw, string_cls).data
+        elif name == "em_reports":
+            unit.em_reports.append((ts, raw))
+        else:
+            unit.outputs[name].append(raw)
+    if not keep_raw:
+        count += sum(c.msgcount for c in bag.connections if c not in wanted)
+    pubs = bag.custom.get("publications", {})
+    for unit in units.values():
+        for topic, recorded in unit.outputs.items():
+            ranges = pubs.get(f"{unit.prefix}/{topic}")
+            if ranges is None:
+                continue
+            numbers = [n for a, b in ranges for n in range(a, b + 1)]
+            if len(numbers) == len(recorded):
+                unit.publications[topic] = numbers
+    return Recording(bag.path, bag.storage, units, bag.custom, count, bag.connections, raw_messages,
+                     digests)  # fmt: skip

@@ -1,0 +1,139 @@
+"""What a PackML bag holds: the topics of a unit, their types and QoS, and a rosbags typestore
+with the installed ``packml_interfaces`` definitions (so bags carry their type definitions and
+other rosbag2 tools can read them)."""
+
+from __future__ import annotations
+
+import functools
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from .. import qos
+
+#: The unit's outputs, compared by replay (in the order a report looks at them).
+OUTPUT_TOPICS = ("transitions", "status", "alarms", "admin")
+#: What the unit was given: the engine's input log (replayed offline), EM reports (replayed live)
+#: and the configuration the unit was started with.
+INPUT_TOPICS = ("input_log", "em_reports", "config")
+#: Topic (relative to ``/<cell>/<unit>``) -> ROS type name.
+UNIT_TOPICS: dict[str, str] = {
+    "input_log": "packml_interfaces/msg/UnitInput",
+    "config": "std_msgs/msg/String",
+    "status": "packml_interfaces/msg/Status",
+    "transitions": "packml_interfaces/msg/TransitionEvent",
+    "admin": "packml_interfaces/msg/Admin",
+    "alarms": "packml_interfaces/msg/AlarmList",
+    "em_reports": "packml_interfaces/msg/EmReport",
+}
+CELL_STATUS_TYPE = "packml_interfaces/msg/CellStatus"
+#: Publisher QoS of each unit topic (packml_ros2.qos), stored in the bag's metadata.
+PUBLISHER_QOS: dict[str, QoSProfile] = {
+    "input_log": qos.INPUT_LOG,
+    "config": qos.LATCHED,
+    "status": qos.STATUS,
+    "transitions": qos.TRANSITIONS,
+    "admin": qos.ADMIN,
+    "alarms": qos.ALARMS,
+    "em_reports": qos.EM_REPORTS,
+    "coordinator": qos.CELL_STATUS,
+}
+#: Key of the recorder's notes in the bag's ``custom_data`` (metadata.yaml).
+CUSTOM_KEY = "packml"
+
+
+def reader_qos(topic: str) -> QoSProfile:
+    """The recorder's subscription: the publisher's durability (transient local history reaches
+    a late recorder) with a deep reader history, so bursts are not dropped on our side."""
+    pub = PUBLISHER_QOS[topic]
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=max(pub.depth, 1000),
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=pub.durability,
+    )
+
+
+def msg_class(type_name: str) -> Any:
+    """The rclpy message class of ``pkg/msg/Name``."""
+    import importlib
+
+    pkg, _, name = type_name.split("/")
+    return getattr(importlib.import_module(f"{pkg}.msg"), name)
+
+
+def interface_dir() -> Path:
+    """The installed ``packml_interfaces/msg`` directory (.msg files), or the checkout's."""
+    candidates = [Path(sys.prefix)]
+    candidates += [Path(p) for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
+    try:
+        import packml_interfaces
+
+        # <prefix>/lib/pythonX.Y/site-packages/packml_interfaces -> <prefix>
+        candidates.append(Path(packml_interfaces.__file__).resolve().parents[4])
+    except (ImportError, IndexError):
+        pass
+    for prefix in candidates:
+        d = prefix / "share" / "packml_interfaces" / "msg"
+        if (d / "UnitInput.msg").exists():
+            return d
+    return Path(__file__).resolve().parents[2] / "msg_defs" / "msg"
+
+
+@functools.cache
+def typestore() -> Any:
+    """A rosbags typestore: ROS 2 Kilted's standard types plus the installed packml_interfaces."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS2_KILTED)
+    types: dict[str, Any] = {}
+    for f in sorted(interface_dir().glob("*.msg")):
+        types.update(
+            get_types_from_msg(f.read_text(encoding="utf-8"), f"packml_interfaces/msg/{f.stem}")
+        )
+    store.register(types)
+    return store
+
+
+def rosbags_qos(profile: QoSProfile) -> Any:
+    """A rosbags ``Qos`` (for metadata.yaml ``offered_qos_profiles``) from an rclpy profile."""
+    from rosbags.interfaces import (
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
+    )
+
+    zero = QosTime(0, 0)
+    return Qos(
+        history=QosHistory.KEEP_LAST
+        if profile.history == HistoryPolicy.KEEP_LAST
+        else QosHistory.KEEP_ALL,
+        depth=profile.depth,
+        reliability=QosReliability.RELIABLE
+        if profile.reliability == ReliabilityPolicy.RELIABLE
+        else QosReliability.BEST_EFFORT,
+        durability=QosDurability.TRANSIENT_LOCAL
+        if profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+        else QosDurability.VOLATILE,
+        deadline=zero,
+        lifespan=zero,
+        liveliness=QosLiveliness.AUTOMATIC,
+        liveliness_lease_duration=zero,
+        avoid_ros_namespace_conventions=False,
+    )
+
+
+def split_topic(topic: str) -> tuple[str, str] | None:
+    """``/<cell>/<unit>/<name>`` -> (``/<cell>/<unit>``, name) for unit topics, else None."""
+    prefix, _, name = topic.rpartition("/")
+    if name in UNIT_TOPICS and prefix.count("/") >= 1 and prefix != "":
+        if prefix.rpartition("/")[2] == "coordinator":
+            return None
+        return prefix, name
+    return None

@@ -1,0 +1,442 @@
+"""Issue 6: record and replay — bag-driven regression tests.
+
+The bags in test/bags/ were recorded from real unit and EM processes over DDS
+(tools/record_test_bags.py); independent_writer.mcap holds the same topics written by the ``mcap``
+and ``mcap-ros2-support`` packages. Every bag replays offline to the recorded outputs, identically
+every time; a tampered bag fails with the first diverging transition and the inputs behind it;
+``--update`` rewrites it; the CLI verbs record and replay real nodes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+from packml_interfaces.msg import Admin, AlarmList, Status, TransitionEvent
+from rclpy.serialization import deserialize_message, serialize_message
+
+from packml_ros2.bag import cdr
+from packml_ros2.bag.recording import RecordingError, load
+from packml_ros2.bag.replay import replay, update
+from packml_ros2.bag.topics import CUSTOM_KEY, typestore
+
+ROOT = Path(__file__).resolve().parents[1]
+BAGS = ROOT / "test" / "bags"
+PACKML = [sys.executable, "-m", "packml_ros2.cli.main"]
+RECORDED = sorted(p.name for p in BAGS.iterdir() if p.is_dir())
+ALL_BAGS = [*RECORDED, "independent_writer.mcap"]
+SCENARIOS = {"normal_production", "hold_unhold", "suspend_interlock", "alarm_stop",
+             "alarm_abort_clear_reset", "mode_changes", "em_lost"}  # fmt: skip
+
+
+def packml(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [*PACKML, *args], capture_output=True, text=True, timeout=timeout, cwd=ROOT, check=False
+    )
+
+
+def rewrite(
+    src: Path, dst: Path, change: Any = None, drop: Any = None, custom: bool = True
+) -> None:
+    """Copy bag ``src`` to ``dst`` (rosbags), ``change(topic, index, raw) -> raw`` per message,
+    ``drop(topic, index, raw) -> bool``; ``custom=False`` leaves out the recorder's notes."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import Writer
+
+    seen: dict[str, int] = {}
+    with AnyReader([src]) as reader:
+        writer = Writer(dst, version=9)
+        writer.open()
+        conns = {c.topic: writer.add_connection(c.topic, c.msgtype, typestore=typestore(),
+                                                offered_qos_profiles=c.ext.offered_qos_profiles)
+                 for c in reader.connections}  # fmt: skip
+        for conn, ts, data in reader.messages():
+            i = seen[conn.topic] = seen.get(conn.topic, -1) + 1
+            raw = bytes(data)
+            if drop is not None and drop(conn.topic, i, raw):
+                continue
+            writer.write(
+                conns[conn.topic], ts, raw if change is None else change(conn.topic, i, raw)
+            )
+        notes = (
+            reader.readers[0].storage.metadata.custom
+            if hasattr(reader.readers[0], "storage")
+            else None
+        )
+        if custom and notes and CUSTOM_KEY in notes:
+            writer.set_custom_data(CUSTOM_KEY, notes[CUSTOM_KEY])
+        writer.close()
+
+
+# -- every bag replays --------------------------------------------------------------------------------
+def test_the_scenarios_are_all_there() -> None:
+    assert set(RECORDED) >= SCENARIOS, f"missing bags: {SCENARIOS - set(RECORDED)}"
+    assert (BAGS / "independent_writer.mcap").is_file()
+
+
+@pytest.mark.parametrize("bag", ALL_BAGS)
+def test_bag_replays_to_the_recorded_outputs(packml_replay: Any, bag: str) -> None:
+    result = packml_replay(f"test/bags/{bag}").assert_matches()
+    unit = result.units[0]
+    assert unit.inputs[0].name == "start"
+    assert set(unit.compared) == {"transitions", "status", "alarms", "admin"}
+    assert all(n > 0 for n in unit.compared.values()), unit.compared
+
+
+def test_a_users_regression_test_is_three_lines(packml_replay: Any) -> None:
+    packml_replay("test/bags/normal_production").assert_matches()
+
+
+def test_the_scenarios_do_what_their_names_say() -> None:
+    def transitions(bag: str) -> list[str]:
+        produced = replay(BAGS / bag).units[0].produced["transitions"]
+        return [f"{m.to_state_name}:{m.trigger_name}" for m in produced]
+
+    assert "EXECUTE:STATE_COMPLETE" in transitions("normal_production")
+    assert {"HELD:STATE_COMPLETE", "UNHOLDING:COMMAND"} <= set(transitions("hold_unhold"))
+    assert {"SUSPENDING:INTERLOCK", "UNSUSPENDING:INTERLOCK"} <= set(
+        transitions("suspend_interlock")
+    )
+    assert "STOPPING:ALARM" in transitions("alarm_stop")
+    assert {"ABORTING:ALARM", "CLEARING:COMMAND", "RESETTING:COMMAND"} <= set(
+        transitions("alarm_abort_clear_reset")
+    )
+    assert transitions("mode_changes").count("STOPPED:MODE") == 3
+    assert "ABORTING:EM_LOST" in transitions("em_lost")
+    # hold_unhold: a recorder that joined late, on a unit that restored its admin data
+    u = replay(BAGS / "hold_unhold").units[0]
+    assert u.inputs[0].args["document"] is not None
+    assert u.windows["status"][0] > 0  # the first statuses were published before it subscribed
+
+
+def test_bags_carry_metadata_qos_and_type_definitions() -> None:
+    from rosbags.highlevel import AnyReader
+
+    for bag, storage in (("normal_production", "mcap"), ("alarm_stop", "sqlite3")):
+        meta = (BAGS / bag / "metadata.yaml").read_text()
+        assert f"storage_identifier: {storage}" in meta
+        with AnyReader([BAGS / bag]) as reader:
+            by_topic = {c.topic: c for c in reader.connections}
+            status = by_topic["/demo_cell/robot_cell/status"]
+            assert status.msgdef.data  # the definition is stored: other tools decode it
+            assert status.digest == typestore().hash_rihs01("packml_interfaces/msg/Status")
+            assert status.ext.offered_qos_profiles[0].durability.name == "TRANSIENT_LOCAL"
+            assert {t.rsplit("/", 1)[1] for t in by_topic} == {
+                "input_log",
+                "config",
+                "status",
+                "transitions",
+                "admin",
+                "alarms",
+                "em_reports",
+            }
+
+
+def test_alignment_by_content_when_the_bag_has_no_recorder_notes() -> None:
+    rec = load(BAGS / "hold_unhold")
+    for unit in rec.units.values():
+        unit.publications.clear()
+    result = replay(BAGS / "hold_unhold", recording=rec).assert_matches()
+    assert result.units[0].windows["status"][0] > 0
+
+
+# -- determinism -----------------------------------------------------------------------------------------
+def test_replay_is_deterministic_ten_times_out_of_ten() -> None:
+    for bag in ALL_BAGS:
+        results = [replay(BAGS / bag) for _ in range(10)]
+        assert all(r.ok for r in results), bag
+        assert len({r.digest() for r in results}) == 1, bag
+        admin_times = {
+            tuple((tuple(m.state_cumulative_time), tuple(m.mode_cumulative_time), m.stamp.sec, m.stamp.nanosec)
+                  for m in r.units[0].produced["admin"])
+            for r in results
+        }  # fmt: skip
+        assert len(admin_times) == 1, bag
+
+
+def test_replay_is_deterministic_across_processes_and_hash_seeds() -> None:
+    here = replay(BAGS / "em_lost").digest()
+    code = (
+        "import sys; from packml_ros2.bag.replay import replay; print(replay(sys.argv[1]).digest())"
+    )
+    for seed in ("0", "12345"):
+        env = {**os.environ, "PYTHONHASHSEED": seed}
+        out = subprocess.run([sys.executable, "-c", code, str(BAGS / "em_lost")], capture_output=True,
+                             text=True, env=env, timeout=60, check=True)  # fmt: skip
+        assert out.stdout.strip() == here
+
+
+# -- differences, refusals, --update ---------------------------------------------------------------------
+def _tamper_status(tmp_path: Path) -> Path:
+    bad = tmp_path / "tampered"
+
+    def change(topic: str, i: int, raw: bytes) -> bytes:
+        if topic.endswith("/transitions") and i == 4:  # STARTING -> EXECUTE becomes -> HELD
+            m = deserialize_message(raw, TransitionEvent)
+            m.to_state, m.to_state_name = 11, "HELD"
+            return bytes(serialize_message(m))
+        return raw
+
+    rewrite(BAGS / "normal_production", bad, change)
+    return bad
+
+
+def test_a_tampered_output_fails_with_the_diverging_transition_and_its_inputs(
+    tmp_path: Path,
+) -> None:
+    result = replay(_tamper_status(tmp_path))
+    assert not result.ok
+    text = result.report()
+    assert "MISMATCH" in text
+    assert "first difference: robot_cell/transitions: message #4" in text
+    assert "to_state: recorded 11 (HELD), replayed 6 (EXECUTE)" in text
+    assert "diverging transition:" in text
+    assert "recorded: seq 5 STARTING -> HELD" in text
+    assert "replayed: seq 5 STARTING -> EXECUTE" in text
+    assert "last common transition: seq 4 IDLE -> STARTING [COMMAND 2 from operator]" in text
+    assert "inputs that led to it" in text
+    assert 'em_complete {"name":' in text  # the EMs' State Complete reports of Starting
+    with pytest.raises(AssertionError, match="diverging transition"):
+        result.assert_matches()
+
+
+def test_update_rewrites_the_expected_outputs(tmp_path: Path) -> None:
+    bad = _tamper_status(tmp_path)
+    assert packml("replay", str(bad), "--check").returncode == 1
+    out = packml("replay", str(bad), "--update")
+    assert out.returncode == 0, out.stderr
+    assert "updated" in out.stdout
+    again = packml("replay", str(bad))
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert "match" in again.stdout
+    assert replay(bad).digest() == replay(BAGS / "normal_production").digest()
+    # into another bag, as sqlite3 from an mcap file
+    result, dst = update(BAGS / "independent_writer.mcap", tmp_path / "copy", storage="sqlite3")
+    assert result.ok and "sqlite3" in (dst / "metadata.yaml").read_text()
+    replay(dst).assert_matches()
+
+
+def test_other_output_differences_are_found_too(tmp_path: Path) -> None:
+    def admin_change(topic: str, i: int, raw: bytes) -> bytes:
+        if topic.endswith("/admin") and i == 3:
+            m = deserialize_message(raw, Admin)
+            m.acc_time_since_reset += 1
+            return bytes(serialize_message(m))
+        return raw
+
+    rewrite(BAGS / "alarm_stop", tmp_path / "a", admin_change)
+    result = replay(tmp_path / "a")
+    (d,) = result.differences
+    assert (d.topic, d.kind, d.recorded_index) == ("admin", "differs", 3)
+    assert [f[0] for f in d.fields] == ["acc_time_since_reset"]
+    assert "transitions agree up to the difference" in result.report()
+
+    # a recorded message the replay does not produce, and one it produces that was not recorded
+    rewrite(
+        BAGS / "alarm_stop", tmp_path / "b", drop=lambda t, i, raw: t.endswith("/alarms") and i == 1
+    )
+    (d,) = replay(tmp_path / "b").differences
+    assert d.topic == "alarms" and d.kind == "differs"
+    rewrite(BAGS / "alarm_stop", tmp_path / "c", custom=False,
+            drop=lambda t, i, raw: t.endswith("/alarms") and i == 1)  # fmt: skip
+    (d,) = replay(tmp_path / "c").differences
+    assert d.topic == "alarms"
+
+    def extra(topic: str, i: int, raw: bytes) -> bytes:
+        if topic.endswith("/alarms") and i == 0:
+            m = deserialize_message(raw, AlarmList)
+            m.banner = "not what the unit said"
+            return bytes(serialize_message(m))
+        return raw
+
+    rewrite(BAGS / "alarm_stop", tmp_path / "d", extra)
+    (d,) = replay(tmp_path / "d").differences
+    assert d.fields == [("banner", "not what the unit said", "")]
+
+
+def test_incomplete_input_logs_are_refused(tmp_path: Path) -> None:
+    rewrite(BAGS / "normal_production", tmp_path / "gap",
+            drop=lambda t, i, raw: t.endswith("/input_log") and i == 7)  # fmt: skip
+    with pytest.raises(RecordingError, match=r"gap: inputs #8\.\.#8 are missing"):
+        replay(tmp_path / "gap")
+    rewrite(BAGS / "normal_production", tmp_path / "late",
+            drop=lambda t, i, raw: t.endswith("/input_log") and i < 3)  # fmt: skip
+    with pytest.raises(RecordingError, match=r"begins at input #4, not at the unit's start"):
+        replay(tmp_path / "late")
+    out = packml("replay", str(tmp_path / "late"))
+    assert out.returncode == 1 and "not at the unit's start" in out.stderr
+
+
+def test_the_fast_comparison_ignores_padding_only() -> None:
+    """Serialized messages are compared with their padding ignored (cdr.same_bytes); flipping
+    any data byte must be noticed, flipping a padding byte must not."""
+    rec = load(BAGS / "alarm_abort_clear_reset").unit("robot_cell")
+    for topic, cls in (("status", Status), ("transitions", TransitionEvent), ("alarms", AlarmList),
+                       ("admin", Admin)):  # fmt: skip
+        raw = rec.outputs[topic][-1]
+        again = bytes(serialize_message(deserialize_message(raw, cls)))
+        assert cdr.same_bytes(raw, again, cls)
+        gaps: list[tuple[int, int]] = []
+        end = cdr.walker_of(cls)(memoryview(raw)[4:], 0, gaps, cdr._U32[True], [])
+        padding = {4 + i for s, e in gaps for i in range(s, e)} | set(range(4 + end, len(raw)))
+        for i in range(4, len(raw)):
+            flipped = bytearray(raw)
+            flipped[i] ^= 0x40
+            assert cdr.same_bytes(raw, bytes(flipped), cls) == (i in padding), (topic, i)
+
+
+def test_our_serializer_gives_rclpys_bytes() -> None:
+    """cdr.serialize (used for Admin and AlarmList comparisons) gives the bytes of
+    rclpy.serialization with the padding zeroed, for every message of a few replays."""
+    for bag in ("alarm_abort_clear_reset", "mode_changes", "suspend_interlock"):
+        unit = replay(BAGS / bag).units[0]
+        for topic, msgs in unit.produced.items():
+            cls = type(msgs[0])
+            for m in msgs:
+                assert cdr.serialize(m) == cdr.canonical(bytes(serialize_message(m)), cls), topic
+
+
+# -- command line -------------------------------------------------------------------------------------------
+def test_cli_help_and_usage_errors(tmp_path: Path) -> None:
+    for verb in ("record", "replay"):
+        out = packml(verb, "--help")
+        assert out.returncode == 0 and "exit codes" in out.stdout
+    assert packml("replay", str(tmp_path / "none")).returncode == 2
+    assert packml("replay", str(BAGS / "normal_production"), "--update", "--live").returncode == 2
+    assert packml("record", "a/b", "--duration", "0").returncode == 2
+    ok = packml("replay", str(BAGS / "normal_production"), "--check")
+    assert ok.returncode == 0 and "match" in ok.stdout
+
+
+class Output:
+    """The stderr of a running ``packml`` process, line by line, waited on with a deadline."""
+
+    def __init__(self, proc: subprocess.Popen[str]) -> None:
+        import queue
+        import threading
+
+        self.proc = proc
+        self.lines: queue.Queue[str] = queue.Queue()
+        self.seen: list[str] = []
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        assert self.proc.stderr is not None
+        for line in self.proc.stderr:
+            self.lines.put(line)
+
+    def wait_for(self, text: str, timeout: float = 20.0) -> None:
+        import queue
+        import time
+
+        deadline = time.monotonic() + timeout
+        while not any(text in line for line in self.seen):
+            try:
+                self.seen.append(self.lines.get(timeout=max(0.01, deadline - time.monotonic())))
+            except queue.Empty:
+                raise TimeoutError(f"no {text!r} from packml: {self.seen}") from None
+
+    def rest(self) -> str:
+        self.proc.wait(30)
+        while not self.lines.empty():
+            self.seen.append(self.lines.get())
+        return "".join(self.seen)
+
+
+@pytest.mark.ros
+def test_cli_records_a_running_unit_and_the_bag_replays(tmp_path: Path, processes: Any) -> None:
+    """``packml record`` on a unit that is already running (it joins late) while the unit is
+    commanded — a cell target stopped with Ctrl-C (mcap), a cell/unit target with --duration
+    (sqlite3); then ``packml replay --check``."""
+    import signal
+
+    from std_srvs.srv import Trigger
+
+    from packml_ros2.testing.harness import RosHarness
+    from test.ros.cells import start_unit_process, write_cell
+
+    cell_file, cell = write_cell(tmp_path, {"filler": {"mach_speed": 10}})
+    start_unit_process(processes, cell_file, "filler")
+    ros = RosHarness(int(os.environ["ROS_DOMAIN_ID"]))
+    runs = {
+        "mcap": [cell, "--config", str(cell_file)],
+        "sqlite3": [f"{cell}/filler", "--storage", "sqlite3", "--duration", "30"],
+    }
+    try:
+        assert ros.call(Trigger, f"/{cell}/filler/reset").success  # before the recorder runs
+        for storage, target in runs.items():
+            bag = tmp_path / f"rec_{storage}"
+            proc = subprocess.Popen([*PACKML, "record", *target, "-o", str(bag)], cwd=ROOT,
+                                    stderr=subprocess.PIPE, text=True)  # fmt: skip
+            out = Output(proc)
+            out.wait_for(f"receiving /{cell}/filler")
+            for name in ("start", "hold", "unhold", "stop", "reset"):
+                assert ros.call(Trigger, f"/{cell}/filler/{name}").message
+            if storage == "mcap":
+                proc.send_signal(signal.SIGINT)  # Ctrl-C: the bag is closed cleanly
+            else:
+                proc.terminate()  # SIGTERM, as a service manager would
+            text = out.rest()
+            assert proc.returncode == 0, text
+            assert "wrote" in text and "Traceback" not in text
+    finally:
+        ros.close()
+    for storage in runs:
+        bag = tmp_path / f"rec_{storage}"
+        assert f"storage_identifier: {storage}" in (bag / "metadata.yaml").read_text()
+        out = packml("replay", str(bag), "--check")
+        assert out.returncode == 0, out.stdout + out.stderr
+        unit = replay(bag).units[0]
+        assert unit.compared["transitions"] >= 9  # the commands' transitions were recorded
+        assert load(bag).custom["recorder"] == "packml_ros2"
+    topics = (tmp_path / "rec_mcap" / "metadata.yaml").read_text()
+    assert f"/{cell}/coordinator/status" in topics  # a cell: its coordinator's status too
+
+
+@pytest.mark.ros
+def test_cli_record_unknown_target_is_unavailable(tmp_path: Path) -> None:
+    out = packml("record", "no_such_unit_anywhere", "--timeout", "1", "-o", str(tmp_path / "x"))
+    assert out.returncode == 3, out.stderr
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.ros
+def test_live_replay_drives_a_running_unit(tmp_path: Path, processes: Any) -> None:
+    """``--live``: the recorded EM reports and operator commands go to a fresh unit node started
+    from the bag's own configuration; its transitions match the recording."""
+    config = json.loads(
+        load(BAGS / "alarm_abort_clear_reset").unit("robot_cell").config_json or "{}"
+    )
+    cell_file = tmp_path / "cell.yaml"
+    cell_file.write_text(config["cell_yaml"])
+    processes.module("unit", "packml_ros2.unit_node", str(cell_file), "robot_cell", "--ros-args",
+                     "-p", f"persistence_path:={tmp_path / 'store.sqlite3'}")  # fmt: skip
+    out = packml(
+        "replay", str(BAGS / "alarm_abort_clear_reset"), "--live", "--speed", "2", "--timeout", "20"
+    )
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "--live at speed 2: match" in out.stdout
+    # the unit is no longer fresh (it ran the recording): refused
+    again = packml("replay", str(BAGS / "alarm_abort_clear_reset"), "--live", "--timeout", "20")
+    assert again.returncode == 1 and "freshly started" in again.stderr
+
+
+def test_live_without_a_unit_is_unavailable() -> None:
+    out = packml("replay", str(BAGS / "normal_production"), "--live", "--timeout", "1")
+    assert out.returncode == 3 and "not running" in out.stderr
+
+
+def test_bags_from_other_writers_are_accepted(tmp_path: Path) -> None:
+    """independent_writer.mcap is a bare .mcap file of mcap-ros2-support (its own CDR encoder);
+    a directory holding it (no metadata.yaml) works too."""
+    d = tmp_path / "dir"
+    d.mkdir()
+    shutil.copy(BAGS / "independent_writer.mcap", d / "x.mcap")
+    r = replay(d).assert_matches()
+    assert r.digest() == replay(BAGS / "normal_production").digest()
