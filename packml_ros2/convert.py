@@ -3,7 +3,9 @@ anything: it only translates field by field."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
+from typing import Any, TypeVar
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -30,7 +32,26 @@ from .core.numbers import state_name
 from .core.packtags import AdminView, StatusView, date_time_array
 from .core.unit import Transition
 
+M = TypeVar("M")
+
 _ZERO7 = [0] * 7
+
+
+_CHECKED = os.environ.get("ROS_PYTHON_CHECK_FIELDS", "0") == "1"
+
+
+def build(cls: type[M], **fields: Any) -> M:
+    """``cls(**fields)`` without the defaults: rosidl's generated constructors build a default
+    for every nested message (``kwargs.get('oee', Oee())`` evaluates ``Oee()`` even when ``oee`` is
+    given), which for Admin and Alarm costs more than the fields themselves. Every field must be
+    given. With ROS_PYTHON_CHECK_FIELDS=1 (the tests) the normal, checking constructor is used."""
+    if _CHECKED:
+        return cls(**fields)
+    msg = cls.__new__(cls)
+    msg._check_fields = False  # type: ignore[attr-defined]
+    for name, value in fields.items():
+        setattr(msg, name, value)
+    return msg
 
 
 def stamp(seconds: float) -> Time:
@@ -77,7 +98,8 @@ def product_in(p: Product) -> cfg.Product:
 
 # -- status -------------------------------------------------------------------------------------------------
 def status(v: StatusView) -> Status:
-    return Status(
+    return build(
+        Status,
         stamp=stamp(v.time),
         unit=v.unit,
         unit_mode_current=v.unit_mode_current,
@@ -161,7 +183,8 @@ def transition(
 def alarm(ev: AlarmEvent | None) -> Alarm:
     if ev is None:
         return Alarm(date_time=_ZERO7, ack_date_time=_ZERO7)
-    return Alarm(
+    return build(
+        Alarm,
         trigger=ev.trigger,
         id=ev.id,
         value=ev.value,
@@ -192,6 +215,16 @@ class MessageCache:
         self.size = size
         self._made: dict[tuple[object, ...] | None, Alarm] = {}
         self._counts: dict[tuple[object, ...], Count] = {}
+        self._lists_key: tuple[int, int] = (-1, -1)
+        self._lists: tuple[list[Alarm], list[Alarm], list[Alarm]] = ([], [], [])
+
+    def lists(self, v: AdminView) -> tuple[list[Alarm], list[Alarm], list[Alarm]]:
+        """Admin's alarm, history and warning lists, made again only when the alarm manager's
+        version changed (an Admin message is published every second, the history rarely)."""
+        key = (v.alarms_version, len(v.alarm_history))
+        if key != self._lists_key:
+            self._lists_key, self._lists = key, _alarm_lists(v, self)
+        return self._lists
 
     def count(self, c: Counter) -> Count:
         key = (c.id, c.name, c.unit, c.count, c.acc_count)
@@ -244,27 +277,36 @@ def count(c: Counter) -> Count:
     return Count(id=c.id, name=c.name, unit=c.unit, count=c.count, acc_count=c.acc_count)
 
 
+def _alarm_lists(
+    v: AdminView, alarm_of: Callable[[AlarmEvent | None], Alarm]
+) -> tuple[list[Alarm], list[Alarm], list[Alarm]]:
+    return ([alarm_of(ev) for ev in v.alarm], [alarm_of(ev) for ev in v.alarm_history],
+            [alarm_of(ev) for ev in v.warning])  # fmt: skip
+
+
 def admin(v: AdminView, cache: MessageCache | None = None) -> Admin:
     alarm_of: Callable[[AlarmEvent | None], Alarm] = alarm if cache is None else cache
     count_of: Callable[[Counter], Count] = count if cache is None else cache.count
+    alarms, history, warnings = _alarm_lists(v, alarm_of) if cache is None else cache.lists(v)
     t = v.times
     o = v.oee
-    return Admin(
+    return build(
+        Admin,
         stamp=stamp(v.time),
         unit=v.unit,
         parameter=[descriptor(d) for d in v.parameter],
-        alarm=[alarm_of(ev) for ev in v.alarm],
-        alarm_extent=len(v.alarm),
-        alarm_history=[alarm_of(ev) for ev in v.alarm_history],
-        alarm_history_extent=len(v.alarm_history),
+        alarm=alarms,
+        alarm_extent=len(alarms),
+        alarm_history=history,
+        alarm_history_extent=len(history),
         stop_reason=alarm_of(v.stop_reason),
         stop_reason_extent=1 if v.stop_reason is not None else 0,
-        warning=[alarm_of(ev) for ev in v.warning],
-        warning_extent=len(v.warning),
-        mode_current_time=list(t.mode_current),
-        mode_cumulative_time=list(t.mode_cumulative),
-        state_current_time=list(t.state_current),
-        state_cumulative_time=list(t.state_cumulative),
+        warning=warnings,
+        warning_extent=len(warnings),
+        mode_current_time=t.mode_current,  # the int32[] setters take any sequence
+        mode_cumulative_time=t.mode_cumulative,
+        state_current_time=t.state_current,
+        state_cumulative_time=t.state_cumulative,
         prod_consumed_count=[count_of(c) for c in v.prod_consumed_count],
         prod_processed_count=[count_of(c) for c in v.prod_processed_count],
         prod_defective_count=[count_of(c) for c in v.prod_defective_count],
@@ -275,7 +317,8 @@ def admin(v: AdminView, cache: MessageCache | None = None) -> Admin:
         time_rollover_warning=t.rollover_warning,
         alarm_overflow=v.alarm_overflow,
         warning_overflow=v.warning_overflow,
-        oee=Oee(
+        oee=build(
+            Oee,
             availability=o.availability,
             performance=o.performance,
             quality=o.quality,
@@ -294,7 +337,6 @@ def admin(v: AdminView, cache: MessageCache | None = None) -> Admin:
 
 
 # -- diagnostics -------------------------------------------------------------------------------------------
-_LEVEL = {True: DiagnosticStatus.ERROR, False: DiagnosticStatus.OK}
 
 
 def diagnostics(

@@ -346,10 +346,15 @@ class AlarmManager:
 
     # -- persistence -------------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        return {
-            "history": [ev.to_dict() for ev in self.history],
-            "history_dropped": self.history_dropped,
-        }
+        """For persistence (saved at every transition): rebuilt only when something changed."""
+        cached = self.__dict__.get("_saved")
+        if cached is None or cached[0] != self.version:
+            document = {
+                "history": [ev.to_dict() for ev in self.history],
+                "history_dropped": self.history_dropped,
+            }
+            self._saved = cached = (self.version, document)
+        return cached[1]
 
     def restore(self, data: dict[str, Any]) -> None:
         self.history.clear()

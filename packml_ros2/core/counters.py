@@ -68,6 +68,20 @@ class Counters:
             for c in array:
                 c.count = 0
 
+    def snapshot(self, kind: str) -> tuple[Counter, ...]:
+        """Copies of the counters of ``kind``, shared until the next change (Admin views are taken
+        every second; counts change less often)."""
+        cache: dict[str, tuple[int, tuple[Counter, ...]]] = self.__dict__.setdefault(
+            "_snapshots", {}
+        )
+        hit = cache.get(kind)
+        if hit is None or hit[0] != self.version:
+            copies = tuple(
+                Counter(c.id, c.name, c.unit, c.count, c.acc_count) for c in self.arrays[kind]
+            )
+            cache[kind] = hit = (self.version, copies)
+        return hit[1]
+
     def total(self, kind: str) -> int:
         return sum(c.count for c in self.arrays[kind])
 

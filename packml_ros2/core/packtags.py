@@ -128,6 +128,7 @@ class AdminView:
     alarm_overflow: int
     warning_overflow: int
     oee: Oee
+    alarms_version: int = 0  # AlarmManager.version the lists were taken at (publishers cache by it)
 
     @property
     def acc_time_since_reset(self) -> int:
@@ -257,11 +258,6 @@ def build_admin(unit: Unit, at: float) -> AdminView:
         unit.config.mach_design_speed,
     )
 
-    def copy(kind: str) -> tuple[Counter, ...]:
-        return tuple(
-            Counter(c.id, c.name, c.unit, c.count, c.acc_count) for c in counters.arrays[kind]
-        )
-
     return AdminView(
         time=at,
         unit=unit.config.name,
@@ -271,15 +267,16 @@ def build_admin(unit: Unit, at: float) -> AdminView:
         stop_reason=unit.stop_reason,
         warning=tuple(warnings),
         times=unit.times.snapshot(at),
-        prod_consumed_count=copy("consumed"),
-        prod_processed_count=copy("processed"),
-        prod_defective_count=copy("defective"),
+        prod_consumed_count=counters.snapshot("consumed"),
+        prod_processed_count=counters.snapshot("processed"),
+        prod_defective_count=counters.snapshot("defective"),
         mach_design_speed=unit.config.mach_design_speed,
         states_disabled=unit.mode_def.disabled_mask,
         plc_date_time=date_time_array(at),
         alarm_overflow=alarm_over,
         warning_overflow=warning_over,
         oee=oee,
+        alarms_version=unit.alarms.version,
     )
 
 

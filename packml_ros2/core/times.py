@@ -116,21 +116,31 @@ class ModeStateTimes:
 
     def snapshot(self, now: float) -> TimesSnapshot:
         mc, mcum, sc, scum, acc = self.live(now)
-        over = False
+        # A current time never exceeds its cumulative one: three max() tell whether anything rolled
+        # over, and usually nothing did, so the conversion runs at C speed.
+        over = acc >= ROLLOVER or max(mcum) >= ROLLOVER or max(scum) >= ROLLOVER
 
-        def publish(values: list[float]) -> tuple[int, ...]:
-            nonlocal over
-            out = []
-            for v in values:
-                n = int(v)
-                if n >= ROLLOVER:
-                    over = True
-                    n %= ROLLOVER
-                out.append(n)
+        used = sorted(self.modes_used)
+
+        def whole(v: float) -> int:
+            return int(v) % ROLLOVER if v >= ROLLOVER else int(v)
+
+        def publish(values: list[float], width: int) -> tuple[int, ...]:
+            """Whole seconds; only the slices of the modes ever used can be non-zero."""
+            out = [0] * len(values)
+            for m in used:
+                lo, hi = m * width, (m + 1) * width
+                out[lo:hi] = map(whole, values[lo:hi]) if over else map(int, values[lo:hi])
             return tuple(out)
 
-        snap = (publish(mc), publish(mcum), publish(sc), publish(scum), publish([acc])[0])
-        return TimesSnapshot(*snap, rollover_warning=over)
+        return TimesSnapshot(
+            publish(mc, 1),
+            publish(mcum, 1),
+            publish(sc, NUM_STATES),
+            publish(scum, NUM_STATES),
+            whole(acc),
+            rollover_warning=over,
+        )
 
     # -- persistence -----------------------------------------------------------------------------------
     def to_dict(self, now: float) -> dict[str, Any]:
