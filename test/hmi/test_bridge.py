@@ -57,10 +57,15 @@ class Cell:
             self.config, token=token, context=ros.context, stale_after=stale_after
         ).spin_in_background()
         self.events: Collector[dict[str, Any]] = Collector()
-        snapshot, self.unsubscribe = self.bridge.subscribe(self.events)
+        self.first_snapshot, self.unsubscribe = self.bridge.subscribe(self.events)
         self.ros = ros
-        if snapshot["units"][UNIT]["status"] is None:
-            self.wait_event(lambda e: e["topic"] == "status", "the latched status")
+        self.wait_latched("status")
+
+    def wait_latched(self, topic: str) -> None:
+        """Until the bridge holds the unit's latched ``topic``: already in the snapshot taken at
+        subscription, or as a change event after it (a latched sample arrives only once)."""
+        if self.first_snapshot["units"][UNIT][topic] is None:
+            self.wait_event(lambda e: e["topic"] == topic, f"the latched {topic}")
 
     def wait_event(self, predicate: Callable[[dict[str, Any]], bool], what: str,
                    start: int = 0, timeout: float = 10.0) -> dict[str, Any]:  # fmt: skip
@@ -112,8 +117,8 @@ def make_cell(ros, tmp_path: Path) -> Iterator[Callable[..., Cell]]:
 # -- the snapshot and change events ---------------------------------------------------------------------
 def test_snapshot_has_what_the_screens_show(make_cell) -> None:
     cell = make_cell()
-    cell.wait_event(lambda e: e["topic"] == "admin", "the latched admin")
-    cell.wait_event(lambda e: e["topic"] == "alarms", "the latched alarm list")
+    cell.wait_latched("admin")
+    cell.wait_latched("alarms")
     snap = cell.bridge.snapshot()
     json.dumps(snap)  # everything is JSON-able
 
