@@ -217,6 +217,7 @@ class MessageCache:
         self._counts: dict[tuple[object, ...], Count] = {}
         self._lists_key: tuple[int, int] = (-1, -1)
         self._lists: tuple[list[Alarm], list[Alarm], list[Alarm]] = ([], [], [])
+        self._count_lists: dict[int, tuple[tuple[Counter, ...], list[Count]]] = {}
 
     def lists(self, v: AdminView) -> tuple[list[Alarm], list[Alarm], list[Alarm]]:
         """Admin's alarm, history and warning lists, made again only when the alarm manager's
@@ -234,6 +235,18 @@ class MessageCache:
                 self._counts.clear()
             msg = self._counts[key] = count(c)
         return msg
+
+    def counts(self, counters: tuple[Counter, ...]) -> list[Count]:
+        """The Count messages of a counter snapshot; the engine shares a snapshot until a count
+        changes, so the same tuple gets the same list."""
+        hit = self._count_lists.get(id(counters))
+        if hit is not None and hit[0] is counters:
+            return hit[1]
+        if len(self._count_lists) >= 16:
+            self._count_lists.clear()
+        made = [self.count(c) for c in counters]
+        self._count_lists[id(counters)] = (counters, made)
+        return made
 
     def __call__(self, ev: AlarmEvent | None) -> Alarm:
         key = (
@@ -277,6 +290,10 @@ def count(c: Counter) -> Count:
     return Count(id=c.id, name=c.name, unit=c.unit, count=c.count, acc_count=c.acc_count)
 
 
+def _counts(counters: tuple[Counter, ...]) -> list[Count]:
+    return [count(c) for c in counters]
+
+
 def _alarm_lists(
     v: AdminView, alarm_of: Callable[[AlarmEvent | None], Alarm]
 ) -> tuple[list[Alarm], list[Alarm], list[Alarm]]:
@@ -286,7 +303,9 @@ def _alarm_lists(
 
 def admin(v: AdminView, cache: MessageCache | None = None) -> Admin:
     alarm_of: Callable[[AlarmEvent | None], Alarm] = alarm if cache is None else cache
-    count_of: Callable[[Counter], Count] = count if cache is None else cache.count
+    counts_of: Callable[[tuple[Counter, ...]], list[Count]] = (
+        _counts if cache is None else cache.counts
+    )
     alarms, history, warnings = _alarm_lists(v, alarm_of) if cache is None else cache.lists(v)
     t = v.times
     o = v.oee
@@ -307,9 +326,9 @@ def admin(v: AdminView, cache: MessageCache | None = None) -> Admin:
         mode_cumulative_time=t.mode_cumulative,
         state_current_time=t.state_current,
         state_cumulative_time=t.state_cumulative,
-        prod_consumed_count=[count_of(c) for c in v.prod_consumed_count],
-        prod_processed_count=[count_of(c) for c in v.prod_processed_count],
-        prod_defective_count=[count_of(c) for c in v.prod_defective_count],
+        prod_consumed_count=counts_of(v.prod_consumed_count),
+        prod_processed_count=counts_of(v.prod_processed_count),
+        prod_defective_count=counts_of(v.prod_defective_count),
         acc_time_since_reset=t.acc_time_since_reset,
         mach_design_speed=v.mach_design_speed,
         states_disabled=v.states_disabled,

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from packml_interfaces.msg import Admin, AlarmList, Status, TransitionEvent
+from packml_interfaces.msg import Admin, AlarmList, Status, TransitionEvent, UnitInput
 from rclpy.serialization import deserialize_message, serialize_message
 
 from packml_ros2.bag import cdr
@@ -303,6 +303,23 @@ def test_our_serializer_gives_rclpys_bytes() -> None:
 
 
 # -- command line -------------------------------------------------------------------------------------------
+def test_the_input_log_reader_gives_rclpys_values() -> None:
+    """cdr.read_unit_input (loading input logs) decodes what rclpy decodes; other encodings and
+    broken buffers are left to rclpy (None)."""
+    cases = [("filler", "command", '{"cmd": 2, "source": "operator"}', 1, 0, 5),
+             ("", "em_seen", "", 2**40 + 3, -5, 999_999_999),
+             ("ünit", "step" * 70, '{"é": "ü"}', 17, 2**31 - 1, 1)]  # fmt: skip
+    for unit, name, args, index, sec, nanosec in cases:
+        m = UnitInput(unit=unit, name=name, args_json=args, index=index)
+        m.stamp.sec, m.stamp.nanosec = sec, nanosec
+        raw = bytes(serialize_message(m))
+        back = deserialize_message(raw, UnitInput)
+        assert cdr.read_unit_input(raw) == (back.stamp.sec, back.stamp.nanosec, back.index,
+                                            back.unit, back.name, back.args_json)  # fmt: skip
+        assert cdr.read_unit_input(b"\x00\x00" + raw[2:]) is None  # big-endian: rclpy's job
+        assert cdr.read_unit_input(raw[:-3]) is None  # truncated
+
+
 def test_cli_help_and_usage_errors(tmp_path: Path) -> None:
     for verb in ("record", "replay"):
         out = packml(verb, "--help")

@@ -238,6 +238,13 @@ class _Ser(_Gen):
             self.emit(indent, "o += U(len(e) + 1)")
             self.emit(indent, "o += e")
             self.emit(indent, "o.append(0)")
+        elif (m := _SEQ.match(t)) and m.group(1).replace("/msg/", "/") in SHARED:
+            # publishers share whole lists of shared messages too (MessageCache: the alarm
+            # history, the counts): the list, length included, is serialized once per position
+            self.align(indent, 4)
+            name = nested(t)
+            self.env[name] = _sequence_serializer(m.group(1))
+            self.shared(indent, v, name)
         elif m := _SEQ.match(t):
             self.align(indent, 4)
             self.emit(indent, f"o += U(len({v}))")
@@ -248,15 +255,19 @@ class _Ser(_Gen):
             name = nested(t)
             self.env[name] = serializer_of(message_class(t))
             if t.replace("/msg/", "/") in SHARED:
-                self.emit(indent, f"h = B.get((id({v}), (len(o) - 4) & 7))")
-                self.emit(indent, f"if h is not None and h[0] is {v}:")
-                self.emit(indent + 1, "o += h[1]")
-                self.emit(indent, "else:")
-                self.emit(indent + 1, f"blob(o, {v}, {name})")
+                self.shared(indent, v, name)
             else:
                 self.emit(indent, f"{name}({v}, o)")
         else:
             raise ValueError(f"unsupported field type {t!r}")
+
+    def shared(self, indent: int, v: str, name: str) -> None:
+        """``v`` serialized by ``name``, or its bytes from the last time at this alignment."""
+        self.emit(indent, f"h = B.get((id({v}), (len(o) - 4) & 7))")
+        self.emit(indent, f"if h is not None and h[0] is {v}:")
+        self.emit(indent + 1, "o += h[1]")
+        self.emit(indent, "else:")
+        self.emit(indent + 1, f"blob(o, {v}, {name})")
 
     def items(self, indent: int, t: str, v: str) -> None:
         if t in SIZES:
@@ -293,6 +304,14 @@ def _blob(out: bytearray, msg: Any, ser: Callable[..., None]) -> None:
     out += hit[1]
 
 
+def _compiled(gen: _Ser, what: str) -> Callable[..., None]:
+    env = dict(gen.env)
+    env.update(U=struct.Struct("<I").pack, Z=_ZEROS, raw=_raw, blob=_blob, B=_blobs)
+    exec(compile("\n".join(gen.lines), f"<cdr serializer {what}>", "exec"), env)
+    made: Callable[..., None] = env["ser"]
+    return made
+
+
 def serializer_of(cls: Any) -> Callable[..., None]:
     """``ser(msg, out)`` appends ``msg`` (of ``cls``) to the CDR buffer ``out``."""
     f = _serializers.get(cls)
@@ -303,12 +322,23 @@ def serializer_of(cls: Any) -> Callable[..., None]:
     gen.emit(1, "n = 0")
     for name, t in cls.get_fields_and_field_types().items():
         gen.value(1, t, f"m.{name}")
-    env = dict(gen.env)
-    env.update(U=struct.Struct("<I").pack, Z=_ZEROS, raw=_raw, blob=_blob, B=_blobs)
-    exec(compile("\n".join(gen.lines), f"<cdr serializer {cls.__name__}>", "exec"), env)
-    made: Callable[..., None] = env["ser"]
-    _serializers[cls] = made
+    made = _serializers[cls] = _compiled(gen, cls.__name__)
     return made
+
+
+def _sequence_serializer(element: str) -> Callable[..., None]:
+    """``ser(items, out)`` appends a ``sequence<element>`` (length, then the items) at an offset
+    already aligned to 4."""
+    key = f"sequence<{element}>"
+    f = _serializers.get(key)
+    if f is None:
+        gen = _Ser()
+        gen.emit(0, "def ser(m, o):")
+        gen.emit(1, "n = 0")
+        gen.emit(1, "o += U(len(m))")
+        gen.items(1, element, "m")
+        f = _serializers[key] = _compiled(gen, key)
+    return f
 
 
 def serialize(msg: Any) -> bytes:
@@ -317,3 +347,30 @@ def serialize(msg: Any) -> bytes:
     out = bytearray(b"\x00\x01\x00\x00")
     serializer_of(type(msg))(msg, out)
     return bytes(out)
+
+
+# -- reading the input log without rclpy --------------------------------------------------------------
+_TIME_INDEX = struct.Struct("<iIQ")  # after the header: stamp, then the uint64 index (aligned)
+_U32_LE = struct.Struct("<I").unpack_from
+
+
+def read_unit_input(raw: bytes) -> tuple[int, int, int, str, str, str] | None:
+    """A little-endian CDR ``packml_interfaces/msg/UnitInput`` as (sec, nanosec, index, unit,
+    name, args_json), about 20x faster than rclpy's deserialization (the input log of a long
+    recording holds tens of thousands); None for any other encoding (decode it with rclpy)."""
+    if raw[:2] != b"\x00\x01":
+        return None
+    try:
+        sec, nanosec, index = _TIME_INDEX.unpack_from(raw, 4)
+        p = 20  # origin 4 + Time (8) + uint64 (8)
+        texts = []
+        for _ in range(3):
+            p += -(p - 4) & 3
+            n = _U32_LE(raw, p)[0]
+            if n == 0 or p + 4 + n > len(raw):
+                return None
+            texts.append(raw[p + 4 : p + 3 + n].decode())  # without the terminating NUL
+            p += 4 + n
+    except (struct.error, UnicodeDecodeError):
+        return None
+    return sec, nanosec, index, texts[0], texts[1], texts[2]

@@ -19,6 +19,7 @@ from typing import Any
 
 from rclpy.serialization import deserialize_message
 
+from .cdr import read_unit_input
 from .topics import CUSTOM_KEY, OUTPUT_TOPICS, UNIT_TOPICS, msg_class, split_topic, typestore
 
 
@@ -99,12 +100,14 @@ def bag_path(path: str | Path) -> Path:
     return p
 
 
-def load(path: str | Path, keep_raw: bool = False) -> Recording:
-    """Read the bag at ``path``. ``keep_raw``: also keep every message (for ``--update``)."""
+def load(path: str | Path, keep_raw: bool = False, em_reports: bool = True) -> Recording:
+    """Read the bag at ``path``. ``keep_raw``: also keep every message (for ``--update``);
+    ``em_reports=False`` leaves the EM reports unread: the offline check does not need them (the
+    input log holds every report the unit applied), only ``--live`` publishes them."""
     p = bag_path(path)
     try:
         with _open(p) as bag:
-            return _load(bag, path, keep_raw)
+            return _load(bag, path, keep_raw, em_reports)
     except RecordingError:
         raise
     except (OSError, ValueError, KeyError, TypeError) as exc:
@@ -299,7 +302,7 @@ def _definition_hash(msgtype: str, fmt: str, data: str) -> str:
     return str(store.hash_rihs01(msgtype))
 
 
-def _load(bag: _Bag, path: str | Path, keep_raw: bool) -> Recording:
+def _load(bag: _Bag, path: str | Path, keep_raw: bool, em_reports: bool = True) -> Recording:
     store = typestore()
     units: dict[str, UnitRecording] = {}
     wanted = []
@@ -320,7 +323,8 @@ def _load(bag: _Bag, path: str | Path, keep_raw: bool) -> Recording:
         units.setdefault(split[0], UnitRecording(split[0]))
         if split[1] in OUTPUT_TOPICS:
             units[split[0]].outputs.setdefault(split[1], [])
-        wanted.append(conn)
+        if em_reports or split[1] != "em_reports":
+            wanted.append(conn)
     string_cls = msg_class("std_msgs/msg/String")
     input_cls = msg_class("packml_interfaces/msg/UnitInput")
     raw_messages: list[tuple[Any, int, bytes]] = []
@@ -337,10 +341,15 @@ def _load(bag: _Bag, path: str | Path, keep_raw: bool) -> Recording:
         unit = units[split[0]]
         name = split[1]
         if name == "input_log":
-            m = deserialize_message(raw, input_cls)
-            unit.inputs.append(
-                Input(m.index, m.stamp.sec + m.stamp.nanosec * 1e-9, m.name, m.args_json)
-            )
+            fast = read_unit_input(raw)
+            if fast is not None:
+                sec, nanosec, index, _, input_name, args_json = fast
+                unit.inputs.append(Input(index, sec + nanosec * 1e-9, input_name, args_json))
+            else:
+                m = deserialize_message(raw, input_cls)
+                unit.inputs.append(
+                    Input(m.index, m.stamp.sec + m.stamp.nanosec * 1e-9, m.name, m.args_json)
+                )
         elif name == "config":
             unit.config_json = deserialize_message(raw, string_cls).data
         elif name == "em_reports":
