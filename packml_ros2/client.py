@@ -59,6 +59,36 @@ class Unavailable(RuntimeError):
     """The unit (or cell) did not answer in time."""
 
 
+def call_future(client: Any, request: Any, path: str) -> Future[Any]:
+    """``client.call_async(request)`` as a concurrent.futures.Future, which any thread can wait
+    on; failed at once with :class:`Unavailable` when the service ``path`` is not there."""
+    result: Future[Any] = Future()
+    if not client.service_is_ready():
+        result.set_exception(Unavailable(f"{path} is not available"))
+        return result
+
+    def done(f: Any) -> None:
+        exc = f.exception()
+        if exc is not None:
+            result.set_exception(exc)
+        else:
+            result.set_result(f.result())
+
+    client.call_async(request).add_done_callback(done)
+    return result
+
+
+def call_blocking(client: Any, request: Any, timeout: float, path: str) -> Any:
+    """Wait up to ``timeout`` for the service ``path`` to appear, call it and wait for the answer
+    (from a thread that is not spinning the client's node); :class:`Unavailable` otherwise."""
+    if not client.wait_for_service(timeout_sec=timeout):
+        raise Unavailable(f"{path} is not available")
+    try:
+        return call_future(client, request, path).result(timeout)
+    except TimeoutError:
+        raise Unavailable(f"{path} did not answer within {timeout:g} s") from None
+
+
 def resolve_unit(name: str, cell: str | None = None) -> str:
     """``/cell/unit`` from ``unit`` (with ``cell``), ``cell/unit`` or ``/cell/unit``."""
     name = name.strip()
@@ -168,22 +198,8 @@ class UnitProxy:
 
     def call(self, service: str, **fields: Any) -> Future[Any]:
         """Call ``service`` with request ``fields``; a concurrent.futures.Future of the response."""
-        client = self.client(service)
-        result: Future[Any] = Future()
-        if not client.service_is_ready():
-            result.set_exception(Unavailable(f"{self.path}/{service} is not available"))
-            return result
-        ros_future = client.call_async(SERVICES[service].Request(**fields))
-
-        def done(f: Any) -> None:
-            exc = f.exception()
-            if exc is not None:
-                result.set_exception(exc)
-            else:
-                result.set_result(f.result())
-
-        ros_future.add_done_callback(done)
-        return result
+        request = SERVICES[service].Request(**fields)
+        return call_future(self.client(service), request, f"{self.path}/{service}")
 
     def call_sync(self, service: str, timeout: float = 10.0, **fields: Any) -> Any:
         """Wait for the service to appear, call it and wait for the answer (not from an executor

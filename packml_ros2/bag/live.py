@@ -39,6 +39,7 @@ from typing import Any
 from rclpy.serialization import deserialize_message, serialize_message
 
 from .. import convert, qos
+from ..client import Unavailable, call_blocking
 from ..core.numbers import state_name
 from .recording import Input, RecordingError, UnitRecording, load
 from .replay import checked_inputs, stamp_of
@@ -46,10 +47,6 @@ from .topics import UNIT_TOPICS, msg_class
 
 EM_INPUTS = frozenset({"em_complete", "em_seen", "em_lost", "em_interlock", "em_count"})
 NOT_LIVE = frozenset({"start", "advance", "step"})
-
-
-class Unavailable(RuntimeError):
-    """A unit of the recording is not running."""
 
 
 @dataclass
@@ -253,15 +250,7 @@ class _LiveUnit:
         return self.clients[name]
 
     def call(self, name: str, request: Any, timeout: float) -> Any:
-        client = self.client(name)
-        if not client.wait_for_service(timeout_sec=timeout):
-            raise Unavailable(f"{self.prefix}/{name} is not available")
-        future = client.call_async(request)
-        done = threading.Event()
-        future.add_done_callback(lambda _: done.set())
-        if not done.wait(timeout):
-            raise Unavailable(f"{self.prefix}/{name} did not answer within {timeout:g} s")
-        return future.result()
+        return call_blocking(self.client(name), request, timeout, f"{self.prefix}/{name}")
 
 
 def _actions(

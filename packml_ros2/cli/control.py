@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import threading
 import time
 from typing import Any
 
 from packml_interfaces.srv import Command, SetMode
 from std_srvs.srv import SetBool
 
-from ..client import Unavailable, command_number
+from ..client import Unavailable, call_blocking, command_number
 from .main import EXIT_OK, EXIT_REFUSED, EXIT_UNAVAILABLE, EXIT_USAGE
 from .session import Session, add_common, fail, session
 
@@ -78,12 +77,7 @@ def _coordinator(
         raise Unavailable(
             f"the coordinator of cell {cell} does not answer (/{cell}/coordinator/{service})"
         )
-    future = client.call_async(request)
-    deadline_event = threading.Event()
-    future.add_done_callback(lambda _: deadline_event.set())
-    if not deadline_event.wait(timeout):
-        raise Unavailable(f"/{cell}/coordinator/{service} did not answer within {timeout:g} s")
-    return future.result()
+    return call_blocking(client, request, timeout, f"/{cell}/coordinator/{service}")
 
 
 def _settled(unit: Any, resp: Command.Response, before: int, timeout: float) -> int:

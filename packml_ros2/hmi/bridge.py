@@ -31,7 +31,7 @@ from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
-from ..client import CellProxy, Unavailable
+from ..client import CellProxy, Unavailable, call_future
 from ..core import CellConfig
 from ..core.numbers import ACTING, Cmd, State, command_name, parse_command, state_name
 from ..core.reasons import Reason
@@ -535,25 +535,9 @@ class Bridge:
             return refusal(Reason.UNIT_UNAVAILABLE, f"{action}: no answer within {timeout:g} s")
 
     def _call_coordinator(self, service: str, fields: dict[str, Any]) -> Future[Any]:
-        client = self._coordinator[service]
-        result: Future[Any] = Future()
-        if not client.service_is_ready():
-            result.set_exception(
-                Unavailable(f"/{self.cell.cell}/coordinator/{service} is not available")
-            )
-            return result
-        srv_type = Command if service == "command" else SetMode
-        ros_future = client.call_async(srv_type.Request(**fields))
-
-        def done(f: Any) -> None:
-            exc = f.exception()
-            if exc is not None:
-                result.set_exception(exc)
-            else:
-                result.set_result(f.result())
-
-        ros_future.add_done_callback(done)
-        return result
+        request = (Command if service == "command" else SetMode).Request(**fields)
+        path = f"/{self.cell.cell}/coordinator/{service}"
+        return call_future(self._coordinator[service], request, path)
 
 
 # -- request builders: (args from the page) -> (service, request fields) ------------------------------
