@@ -17,7 +17,7 @@ FAST = {"durations": {"resetting": 0.05, "starting": 0.05, "completing": 0.05, "
 
 
 def _em(extra: dict | None = None, **sim) -> dict:
-    return {"sim": {**FAST, "lease": 0.5, **sim, **(extra or {})}}
+    return {"sim": {**FAST, "lease": 1.0, **sim, **(extra or {})}}
 
 
 def _online(status: Status, *names: str) -> bool:
@@ -78,7 +78,9 @@ def test_full_production_cycles_with_three_em_processes(ros, processes, tmp_path
 def test_em_killed_in_an_acting_state_triggers_the_reaction(
     ros, processes, tmp_path: Path, state: str
 ) -> None:
-    lease = 0.5
+    # 1 s: short enough to check "within the lease + 0.5 s", long enough that a stall of this
+    # shared 2-core machine does not lose the EMs before the kill (0.5 s did, once in ~30 runs)
+    lease = 1.0
     slow = {"durations": {**FAST["durations"], state.lower(): 30.0}} if state != "EXECUTE" else {}
     ems = {
         "gripper": _em(slow, cycle_time=5.0, lease=lease),
