@@ -56,29 +56,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 def launch(args: argparse.Namespace) -> int:
     from .. import launcher
 
+    hmi = getattr(args, "hmi", None)
+    opcua = getattr(args, "opcua", None)
     try:
         plan = launcher.plan(args.cell_file)
+        if hmi is not None:  # the optional faces' blocks are checked before anything starts
+            from ..hmi import hmi_settings
+
+            hmi_settings(plan.cell)
+        if opcua is not None:
+            from ..opcua import parse_opcua
+
+            parse_opcua(plan.cell)
     except ConfigError as exc:
         print(f"packml launch: invalid configuration\n{exc}", file=sys.stderr)
         return EXIT_USAGE
-    hmi = getattr(args, "hmi", None)
-    if hmi is not None:
-        from ..hmi import hmi_settings
-
-        try:
-            hmi_settings(plan.cell)
-        except ConfigError as exc:
-            print(f"packml launch: invalid configuration\n{exc}", file=sys.stderr)
-            return EXIT_USAGE
-    opcua = getattr(args, "opcua", None)
-    if opcua is not None:
-        from ..opcua import parse_opcua
-
-        try:
-            parse_opcua(plan.cell)
-        except ConfigError as exc:
-            print(f"packml launch: invalid configuration\n{exc}", file=sys.stderr)
-            return EXIT_USAGE
     if args.check:
         print(f"{args.cell_file}: valid ({plan.node_count} nodes)")
         return 0

@@ -94,6 +94,14 @@ def wait_note(node: Recorder, what: str, timeout: float = 5.0) -> None:
         time.sleep(0.01)
 
 
+def to_execute(client: UnitClient) -> None:
+    """Reset and Start the unit; back once it is in Execute."""
+    client.trigger("reset")
+    client.wait_state("IDLE")
+    client.trigger("start")
+    client.wait_state("EXECUTE")
+
+
 def online(client: UnitClient, name: str = "robot") -> None:
     client.wait_status(
         lambda s: any(e.name == name and e.online for e in s.equipment_modules),
@@ -120,10 +128,7 @@ def test_hold_in_the_middle_of_a_move_finishes_the_move_then_pauses(ros, cell) -
     cell_name, client = cell
     robot = em(ros, Robot, cell_name)
     online(client)
-    client.trigger("reset")
-    client.wait_state("IDLE")
-    client.trigger("start")
-    client.wait_state("EXECUTE")
+    to_execute(client)
     deadline = time.monotonic() + 5
     while (
         robot.names().count("move begin") <= robot.names().count("move end")
@@ -144,10 +149,7 @@ def test_a_plain_hook_sees_cancellation_when_the_unit_leaves_its_state(ros, cell
     cell_name, client = cell
     robot = em(ros, Robot, cell_name)
     online(client)
-    client.trigger("reset")
-    client.wait_state("IDLE")
-    client.trigger("start")
-    client.wait_state("EXECUTE")
+    to_execute(client)
     client.trigger("complete")
     client.wait_state("COMPLETING")
     wait_note(robot, "completing")  # the running move finishes first, then on_completing starts
@@ -182,10 +184,7 @@ def test_requests_counts_alarms_and_interlocks_reach_the_unit(ros, cell) -> None
     cell_name, client = cell
     node = em(ros, Plain, cell_name)
     online(client)
-    client.trigger("reset")
-    client.wait_state("IDLE")
-    client.trigger("start")
-    client.wait_state("EXECUTE")
+    to_execute(client)
     node.count("processed", 3)
     node.count("defective", 1)
     admin = client.admin.wait_for(lambda a: a.prod_processed_count[0].count == 3, 5, "counts")
