@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import functools
 import gc
 import json
+import operator
 import platform
 import statistics
 import sys
@@ -29,18 +31,15 @@ from packml_ros2.core.config import EmConfig
 CYCLE_TRANSITIONS = 6
 
 
-class FakeClock:
-    """A settable clock; the engine takes its clock as a parameter."""
-
-    def __init__(self) -> None:
-        self.t = 1_700_000_000.0
-
-    def __call__(self) -> float:
-        return self.t
+def settable_clock() -> tuple[list[float], Callable[[], float]]:
+    """The engine takes its clock as a parameter: here ``now[0]`` is the time and ``clock()``
+    reads it. (A C-level callable, so reading the clock runs no Python code of the bench.)"""
+    now = [1_700_000_000.0]
+    return now, functools.partial(operator.getitem, now, 0)
 
 
 def ours_cycle_runner() -> Callable[[int], int]:
-    clock = FakeClock()
+    now, clock = settable_clock()
     unit = Unit(unit_config("bench"), clock=clock)
     unit.command(Cmd.RESET)  # Stopped -> Resetting -> Idle
     assert unit.state is State.IDLE
@@ -48,11 +47,12 @@ def ours_cycle_runner() -> Callable[[int], int]:
     def run(cycles: int) -> int:
         before = unit.sequence
         command, drain = unit.command, unit.drain
+        start, complete, reset = Cmd.START, Cmd.COMPLETE, Cmd.RESET
         for _ in range(cycles):
-            clock.t += 0.001
-            command(Cmd.START)  # Idle -> Starting -> Execute
-            command(Cmd.COMPLETE)  # Execute -> Completing -> Complete
-            command(Cmd.RESET)  # Complete -> Resetting -> Idle
+            now[0] += 0.001
+            command(start)  # Idle -> Starting -> Execute
+            command(complete)  # Execute -> Completing -> Complete
+            command(reset)  # Complete -> Resetting -> Idle
             drain()
         assert unit.state is State.IDLE
         return unit.sequence - before
@@ -83,7 +83,7 @@ def packmlpy_cycle_runner() -> Callable[[int], int] | None:
 
 def ours_with_ems_runner(ems: int = 8, alarms: int = 32) -> Callable[[int], int]:
     """Resetting, Starting, Completing each wait for State Complete from every EM."""
-    clock = FakeClock()
+    now, clock = settable_clock()
     config = unit_config(
         "bench_ems",
         equipment_modules=tuple(EmConfig(f"em{i}") for i in range(ems)),
@@ -105,15 +105,17 @@ def ours_with_ems_runner(ems: int = 8, alarms: int = 32) -> Callable[[int], int]
 
     def run(cycles: int) -> int:
         before = unit.sequence
+        command, drain = unit.command, unit.drain
+        start, complete, reset = Cmd.START, Cmd.COMPLETE, Cmd.RESET
         for _ in range(cycles):
-            clock.t += 0.001
-            unit.command(Cmd.START)
+            now[0] += 0.001
+            command(start)
             complete_all()  # Starting -> Execute
-            unit.command(Cmd.COMPLETE)
+            command(complete)
             complete_all()  # Completing -> Complete
-            unit.command(Cmd.RESET)
+            command(reset)
             complete_all()  # Resetting -> Idle
-            unit.drain()
+            drain()
         assert unit.state is State.IDLE
         return unit.sequence - before
 

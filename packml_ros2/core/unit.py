@@ -17,7 +17,7 @@ import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
-from typing import Any, NamedTuple, cast
+from typing import Any, NamedTuple
 
 from .alarms import AlarmDef, AlarmEvent, AlarmManager, Kind
 from .config import Descriptor, Ingredient, Product, UnitConfig
@@ -108,6 +108,8 @@ ENTRY_FLAGS: dict[State, int] = {
     S.HOLDING: _STOP,
     S.SUSPENDING: _STOP,
 }
+#: A stop is planned (OEE) only while the unit stands in one of these.
+PLANNED_STOP_STATES = frozenset({S.STOPPED, S.IDLE, S.STOPPING})
 MODE_CHANGE_NOT_ALLOWED_SECONDS = 3.0
 #: Periodic deadlines (admin, save) missed by more than this many periods (the clock jumped, e.g.
 #: NTP after boot) are not replayed one by one: the next one is the last period point before now.
@@ -144,10 +146,10 @@ class Transition(NamedTuple):
 # Enum members as module globals for the hot paths below: attribute access on an Enum class costs
 # about 100 ns, a global about 20 ns, and these run on every transition.
 _ACCEPTED, _NOT_ALLOWED = Reason.ACCEPTED, Reason.COMMAND_NOT_ALLOWED
-_T_COMMAND, _T_SKIP, _T_INTERLOCK = Trigger.COMMAND, Trigger.SKIP, Trigger.INTERLOCK
-_T_STATE_COMPLETE = Trigger.STATE_COMPLETE
+_T_COMMAND, _T_INTERLOCK = Trigger.COMMAND, Trigger.INTERLOCK
 _EXECUTE, _SUSPENDING, _SUSPENDED = S.EXECUTE, S.SUSPENDING, S.SUSPENDED
 _UNSUSPEND = C.UNSUSPEND
+_PRODUCTION = Mode.PRODUCTION
 
 
 class StatusMark(NamedTuple):
@@ -181,6 +183,12 @@ class CompleteReport:
 Request = CommandRequest | ModeRequest | CompleteReport
 
 
+#: An accepted command: (final state, skipped, answer, command as int, its trigger).
+_Accepted = tuple[State, tuple[State, ...], Answer, int, "Trigger"]
+#: State Complete from an acting state: (final state, skipped, trigger, final state enabled).
+_ScStep = tuple[State, tuple[State, ...], "Trigger", bool]
+
+
 class _Cmd(NamedTuple):
     """A command inside the engine, with what caused it."""
 
@@ -192,7 +200,7 @@ class _Cmd(NamedTuple):
     stop_id: int = 0
 
 
-@dataclass
+@dataclass(slots=True)
 class Stats:
     """Counts for diagnostics."""
 
@@ -203,7 +211,7 @@ class Stats:
     bad_reports: int = 0
 
 
-@dataclass
+@dataclass(slots=True)
 class _Flags:
     mode_change_not_allowed_until: float = -math.inf
     interlocks: dict[str, tuple[str, int]] = field(default_factory=dict)  # key -> (reason, stop id)
@@ -227,6 +235,28 @@ class Unit:
     with an :class:`~.reasons.Answer`; outputs are taken with :meth:`drain`; :meth:`advance` fires
     due deadlines and should be called periodically (the node does, every 50 ms).
     """
+
+    # About 50 attributes: past 30, CPython gives up the compact per-instance dict and every
+    # attribute access on the hot paths gets slower; slots keep them fast (bench/engine.py).
+    __slots__ = (  # noqa: RUF023 (grouped by concern, not sorted)
+        # state and mode
+        "state", "mode", "mode_def", "sequence", "entered_at", "mode_requested",
+        "mode_change_in_process", "_mode_source",
+        # Command and Status tags
+        "remote_enabled", "cntrl_cmd", "command_unit_mode", "mach_speed", "parameters", "products",
+        "remote_commands", "stop_reason", "_stop_armed",
+        # parts
+        "config", "_clock", "store", "on_input", "restored", "flags", "stats", "times", "counters",
+        "alarms", "equipment",
+        # tables resolved at start
+        "_resolved", "_accepted", "_sc_resolved", "_timed",
+        # evaluation
+        "_t", "_out", "_deadlines", "_deadline_counter", "_advance_to", "_internal",
+        "_step_winner", "_restart_detail",
+        # caches and publication
+        "_valid_cache", "_missing_cache", "_rev", "_status_key", "_status_flush_due", "_admin_key",
+        "_admin_flush_due", "_alarms_seen",
+    )  # fmt: skip
 
     def __init__(self, config: UnitConfig, clock: Clock, store: Store | None = None) -> None:
         self.config = config
@@ -270,11 +300,15 @@ class Unit:
             em.lost_reaction = em_cfg.lost_reaction
             em.ignore_loss = not self._lost_reaction(em)
         self._resolved = self._resolve_all()
-        self._sc_resolved = {
-            (state, mode): resolve(nxt, mdef.disabled, config.table.state_complete)
-            for mode, mdef in config.modes.items()
-            for state, nxt in config.table.state_complete.items()
+        self._timed = frozenset(config.timeouts) | frozenset(config.min_dwell)
+        #: The accepted entries of _resolved: (final state, skipped, answer, command as a plain int,
+        #: trigger when an operator gave it).
+        self._accepted: dict[tuple[int, int, int], _Accepted] = {
+            key: (final, skipped, answer, int(key[2]), Trigger.SKIP if skipped else Trigger.COMMAND)
+            for key, (reason, final, skipped, answer) in self._resolved.items()
+            if reason is Reason.ACCEPTED and final is not None
         }
+        self._sc_resolved = self._resolve_state_complete()
         self._out: list[tuple[str, Any]] = []
         self._deadlines: list[tuple[float, int, str, Any]] = []
         self._deadline_counter = 0
@@ -329,6 +363,18 @@ class Unit:
                     )
         return out
 
+    def _resolve_state_complete(self) -> dict[tuple[int, int], _ScStep]:
+        """(acting state, mode) -> State Complete's (final state, skipped, trigger, whether the
+        final state is enabled in the mode)."""
+        table = self.config.table
+        out: dict[tuple[int, int], _ScStep] = {}
+        for mode, mdef in self.config.modes.items():
+            for state, nxt in table.state_complete.items():
+                final, skipped = resolve(nxt, mdef.disabled, table.state_complete)
+                trigger = Trigger.SKIP if skipped else Trigger.STATE_COMPLETE
+                out[(state, mode)] = (final, skipped, trigger, final not in mdef.disabled)
+        return out
+
     # ================================================================================================
     # Inputs. Each advances to the clock first; ``on_input`` sees (time, name, arguments) for replay.
     # ================================================================================================
@@ -358,12 +404,35 @@ class Unit:
         if self.on_input is not None:
             self.on_input(self._t, "command", {"cmd": cmd, "source": source})
         self._step_winner = None
-        answer = self._apply_command(int(cmd), source, self.state)
-        self._settle()
+        eq, flags = self.equipment, self.flags
+        entry = self._accepted.get((self.state, self.mode, cmd))
+        if (  # the fast path: the table alone decides (no guard can refuse, nothing remote)
+            entry is not None
+            and (
+                cmd not in ALARM_GUARDED
+                or not (eq.modules or self.alarms.current or flags.interlocks)
+            )
+            and not self.mode_change_in_process
+            and not source.startswith("remote")
+        ):
+            final, skipped, answer, cmd, trigger = entry
+            self.stats.commands_accepted += 1
+            self.cntrl_cmd = cmd
+            self._transition(final, trigger, cmd, source, skipped, "", None, True)
+        else:
+            answer = self._apply_command(cmd, source, self.state, None, True)
+        if (  # anything left for _settle? (the command followed immediate State Complete itself)
+            self._internal
+            or self.mode_change_in_process
+            or (eq.aggregating and not eq.pending)
+            or flags.interlocks
+            or flags.interlock_suspended
+        ):
+            self._settle()
         if self._status_key or self.alarms.version != self._alarms_seen:
             self._flush_status()
-        else:
-            self._status_key = self._key()
+        else:  # a transition published the status: what it shows is the new baseline
+            self._status_key = (self.sequence, self._rev, eq.version, self.alarms.version)
         return answer
 
     def set_mode(self, mode: int | str, source: str = "operator") -> Answer:
@@ -968,40 +1037,35 @@ class Unit:
         return f"{text} (valid now: {valid})"
 
     def _apply_command(
-        self, cmd: int, source: str, start_state: State, cause: _Cmd | None = None
+        self,
+        cmd: int,
+        source: str,
+        start_state: State,
+        cause: _Cmd | None = None,
+        follow: bool = False,
     ) -> Answer:
-        """Validate and apply one command; ``cause`` carries what raised an internal one."""
-        entry = self._resolved.get((self.state, self.mode, cmd))
-        if (
-            entry is not None
-            and entry[0] is _ACCEPTED
-            and (
-                cmd not in ALARM_GUARDED
-                or not (self.equipment.modules or self.alarms.current or self.flags.interlocks)
-            )
-            and not self.mode_change_in_process
-            and (self.remote_enabled or not source.startswith("remote"))
-        ):
-            _, final_or_none, skipped, answer = entry  # fast path: only the table decides
-        else:
-            reason, final_or_none, skipped, detail = self._check(cmd, source)
-            if reason is not _ACCEPTED or final_or_none is None:
-                return self._reject(cmd, source, start_state, cause, reason, final_or_none, detail)
-            answer = self._resolved[(self.state, self.mode, cmd)][3]
-            if self.mode_change_in_process:  # only Abort and Stop pass _check then
-                self._abandon_mode_change(f"{command_name(cmd)} from {source}")
-        final = cast(State, final_or_none)  # accepted entries always have a final state
+        """Validate and apply one command; ``cause`` carries what raised an internal one.
+        ``follow``: the command is alone in its step, so State Complete that is immediate follows
+        at once (see :meth:`_transition`). (:meth:`command` has the fast path.)"""
+        cmd = int(cmd)
+        reason, final_or_none, skipped, detail = self._check(cmd, source)
+        if reason is not _ACCEPTED or final_or_none is None:
+            return self._reject(cmd, source, start_state, cause, reason, final_or_none, detail)
+        final, skipped, answer, cmd, trigger = self._accepted[(self.state, self.mode, cmd)]
+        if self.mode_change_in_process:  # only Abort and Stop pass _check then
+            self._abandon_mode_change(f"{command_name(cmd)} from {source}")
         self.stats.commands_accepted += 1
         self.cntrl_cmd = cmd
         if source.startswith("remote"):
             self._note_remote(cmd, source)
         if cause is None:
-            trigger, detail = (_T_SKIP if skipped else _T_COMMAND), ""
+            detail = ""
         else:
-            trigger = _T_SKIP if skipped and cause.trigger is _T_COMMAND else cause.trigger
+            if cause.trigger is not _T_COMMAND:
+                trigger = cause.trigger
             detail = cause.detail
-        self._transition(final, trigger, cmd, source, skipped, detail, cause)
         self._step_winner = (cmd, source)
+        self._transition(final, trigger, cmd, source, skipped, detail, cause, follow)
         return answer
 
     def _reject(self, cmd: int, source: str, start_state: State, cause: _Cmd | None, reason: Reason,
@@ -1051,67 +1115,86 @@ class Unit:
         skipped: tuple[State, ...] = (),
         detail: str = "",
         cause: _Cmd | None = None,
+        follow: bool = False,
     ) -> None:
+        """Enter ``to``. With ``follow``, then take State Complete as long as it is immediate
+        (nothing to wait for: no EM owes it, no dwell, nothing queued, no mode change): exactly
+        what :meth:`_settle` would do next, in one loop. Only for a request alone in its step:
+        in a :meth:`step`, the other requests are judged in the state the first one reached."""
         t = self._t
-        frm = self.state
-        self.sequence = seq = self.sequence + 1
-        self.state = to
-        self.entered_at = t
-        if (
-            skipped
-            or to in ENTRY_FLAGS
-            or trigger is _T_INTERLOCK
-            or self.flags.interlock_suspended
-        ):
-            self._entry_actions(to, skipped, trigger, cmd, source, cause)
         mode = self.mode
-        # ModeStateTimes.enter(t, mode, to, planned), inlined: it runs on every transition.
         times = self.times
-        dt = t - times._since
-        if dt > 0.0:
-            m = times._mode
-            i = m * NUM_STATES + times._state
-            times.mode_current[m] += dt
-            times.mode_cumulative[m] += dt
-            times.state_current[i] += dt
-            times.state_cumulative[i] += dt
-            times.acc_time_since_reset += dt
-            if times._planned:
-                times.planned_stop += dt
-            times._since = t
-        times.state_current[mode * NUM_STATES + to] = 0.0
-        times._state = to
-        times._planned = self.stop_reason is not None and self._planned()  # OEE planned stops
         out = self._out
-        out.append(
-            (
-                "transition",
-                _new_tuple(
-                    Transition, (t, seq, frm, to, mode, mode, trigger, cmd, source, skipped, detail)
-                ),
-            )
-        )
         eq = self.equipment
-        if not eq.modules:  # Equipment.begin, inlined for units without EMs
-            eq.state, eq.sequence, eq.aggregating = to, seq, to in ACTING and to is not _EXECUTE
-        elif to is _EXECUTE:
-            eq.begin(to, seq, eq.active_count() > 0, False)
-        else:
-            eq.begin(to, seq, to in ACTING, to in EXCUSE_OFFLINE)
         config = self.config
-        if config.timeouts and to in config.timeouts:
-            self._at(t + config.timeouts[to], "timeout", (to, seq))
-        if config.min_dwell and to in config.min_dwell:
-            self._at(t + config.min_dwell[to], "dwell", (to, seq))
+        while True:
+            frm = self.state
+            self.sequence = seq = self.sequence + 1
+            self.state = to
+            self.entered_at = t
+            if (
+                skipped
+                or to in ENTRY_FLAGS
+                or trigger is _T_INTERLOCK
+                or self.flags.interlock_suspended
+            ):
+                self._entry_actions(to, skipped, trigger, cmd, source, cause)
+            # ModeStateTimes.enter(t, mode, to, planned), inlined: it runs on every transition.
+            dt = t - times._since
+            if dt > 0.0:
+                m = times._mode
+                i = m * NUM_STATES + times._state
+                times.mode_current[m] += dt
+                times.mode_cumulative[m] += dt
+                times.state_current[i] += dt
+                times.state_cumulative[i] += dt
+                times.acc_time_since_reset += dt
+                if times._planned:
+                    times.planned_stop += dt
+                times._since = t
+            times.state_current[mode * NUM_STATES + to] = 0.0
+            times._state = to
+            times._planned = self.stop_reason is not None and self._planned()  # OEE planned stops
+            out.append(
+                (
+                    "transition",
+                    _new_tuple(
+                        Transition,
+                        (t, seq, frm, to, mode, mode, trigger, cmd, source, skipped, detail),
+                    ),
+                )
+            )
+            if not eq.modules:  # Equipment.begin, inlined for units without EMs
+                eq.state, eq.sequence = to, seq
+                eq.aggregating = aggregating = to in ACTING and to is not _EXECUTE
+            else:
+                if to is _EXECUTE:
+                    eq.begin(to, seq, eq.active_count() > 0, False)
+                else:
+                    eq.begin(to, seq, to in ACTING, to in EXCUSE_OFFLINE)
+                aggregating = eq.aggregating and not eq.pending
+            if to in self._timed:
+                if to in config.timeouts:
+                    self._at(t + config.timeouts[to], "timeout", (to, seq))
+                if to in config.min_dwell:
+                    self._at(t + config.min_dwell[to], "dwell", (to, seq))
+                    aggregating = False  # State Complete waits for the dwell (_settle)
+            alarms_version = self.alarms.version
+            if alarms_version != self._alarms_seen:
+                self._alarms_seen = alarms_version
+                out.append(("alarms", alarms_version))
+            if self.store is not None:
+                self._save()
+            # State Complete, at once? (the order of _settle: queued commands, mode change, SC)
+            if not (follow and aggregating) or self._internal or self.mode_change_in_process:
+                break
+            to, skipped, trigger, enabled = self._sc_resolved[(to, mode)]
+            if not enabled:
+                break  # _settle refuses it (and says so)
+            cmd, source, detail, cause = 0, "unit", "", None
         # A status is published after every transition (never coalesced); the key of what it
         # shows is taken when the input is done (_flush_status).
         self._status_key = ()
-        alarms_version = self.alarms.version
-        if alarms_version != self._alarms_seen:
-            self._alarms_seen = alarms_version
-            out.append(("alarms", alarms_version))
-        if self.store is not None:
-            self._save()
 
     def _entry_actions(self, to: State, skipped: tuple[State, ...], trigger: Trigger, cmd: int,
                        source: str, cause: _Cmd | None) -> None:  # fmt: skip
@@ -1155,12 +1238,10 @@ class Unit:
     def _planned(self) -> bool:
         """Whether the unit is in a planned stop now (OEE): Production, stopped, and the stop
         reason is in ``planned_stop_ids`` (OMAC "out of service" 4000..4999 by default)."""
-        if self.stop_reason is None or self.mode != Mode.PRODUCTION:
-            return False
         if (
-            self.state is not S.STOPPED
-            and self.state is not S.IDLE
-            and self.state is not S.STOPPING
+            self.stop_reason is None
+            or self.mode != _PRODUCTION
+            or self.state not in PLANNED_STOP_STATES
         ):
             return False
         lo, hi = self.config.planned_stop_ids
@@ -1212,11 +1293,9 @@ class Unit:
                     or self._sc_ready()
                 )
             ):
-                final, skipped = self._sc_resolved[(self.state, self.mode)]
-                if final not in self.mode_def.disabled:
-                    self._transition(
-                        final, _T_SKIP if skipped else _T_STATE_COMPLETE, 0, "unit", skipped
-                    )
+                final, skipped, trigger, enabled = self._sc_resolved[(self.state, self.mode)]
+                if enabled:
+                    self._transition(final, trigger, 0, "unit", skipped, "", None, True)
                     continue
                 self._refuse_state_complete(final)
             if (flags.interlocks or flags.interlock_suspended) and self._interlock_action():

@@ -294,6 +294,30 @@ def test_unit_without_active_em_completes_acting_states_but_execute_waits() -> N
     assert [r.to_state for r in transitions(unit)] == [S.COMPLETING, S.COMPLETE]
 
 
+def test_a_step_judges_later_requests_in_the_acting_state_the_first_reached() -> None:
+    """A command alone follows immediate State Complete in the same input; in a step, the other
+    requests see the acting state the winner entered, and State Complete comes after them."""
+    unit, _ = make()
+    unit.drain()
+    answers = unit.step([CommandRequest(C.RESET), CommandRequest(C.START)])
+    assert answers[0].accepted
+    assert answers[1].reason is Reason.COMMAND_NOT_ALLOWED
+    assert answers[1].message.startswith("START not allowed in RESETTING")
+    assert unit.state is S.IDLE  # State Complete of Resetting, after the step's requests
+    records = transitions(unit)
+    assert [(r.to_state, r.trigger, r.source) for r in records] == [
+        (S.RESETTING, Trigger.COMMAND, "operator"),
+        (S.IDLE, Trigger.STATE_COMPLETE, "unit"),
+    ]
+    assert [r.sequence for r in records] == [records[0].sequence, records[0].sequence + 1]
+    answer = unit.command(C.START)
+    assert answer.accepted and unit.state is S.EXECUTE
+    assert [(r.from_state, r.to_state, r.trigger) for r in transitions(unit)] == [
+        (S.IDLE, S.STARTING, Trigger.COMMAND),
+        (S.STARTING, S.EXECUTE, Trigger.STATE_COMPLETE),
+    ]
+
+
 def test_execute_state_complete_ends_the_run() -> None:
     unit, _ = make({"equipment_modules": {"em1": {}}})
     online(unit, "em1")
