@@ -132,13 +132,14 @@ class Client:
         self._qos = qos.STATUS
         self._status_type = Status
         self._subs: dict[str, object] = {}
+        self._stop = threading.Event()
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
 
     def _spin(self) -> None:
         import rclpy
 
-        while rclpy.ok():
+        while not self._stop.is_set() and rclpy.ok():
             self.executor.spin_once(timeout_sec=0.1)
 
     def watch(self, topic: str) -> None:
@@ -186,8 +187,11 @@ class Client:
     def close(self) -> None:
         import rclpy
 
-        rclpy.try_shutdown()
+        self._stop.set()  # the spin thread ends before the context goes away
         self._thread.join(2)
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown()
 
 
 def measure_floor(client: Client, procs: Processes, cycles: int) -> list[float]:
