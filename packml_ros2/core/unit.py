@@ -1124,20 +1124,17 @@ class Unit:
         t = self._t
         mode = self.mode
         times = self.times
-        out = self._out
+        emit = self._out.append
         eq = self.equipment
-        config = self.config
+        flags = self.flags
+        alarms = self.alarms
+        timed = self._timed
         while True:
             frm = self.state
             self.sequence = seq = self.sequence + 1
             self.state = to
             self.entered_at = t
-            if (
-                skipped
-                or to in ENTRY_FLAGS
-                or trigger is _T_INTERLOCK
-                or self.flags.interlock_suspended
-            ):
+            if skipped or to in ENTRY_FLAGS or trigger is _T_INTERLOCK or flags.interlock_suspended:
                 self._entry_actions(to, skipped, trigger, cmd, source, cause)
             # ModeStateTimes.enter(t, mode, to, planned), inlined: it runs on every transition.
             dt = t - times._since
@@ -1155,7 +1152,7 @@ class Unit:
             times.state_current[mode * NUM_STATES + to] = 0.0
             times._state = to
             times._planned = self.stop_reason is not None and self._planned()  # OEE planned stops
-            out.append(
+            emit(
                 (
                     "transition",
                     _new_tuple(
@@ -1173,16 +1170,17 @@ class Unit:
                 else:
                     eq.begin(to, seq, to in ACTING, to in EXCUSE_OFFLINE)
                 aggregating = eq.aggregating and not eq.pending
-            if to in self._timed:
+            if to in timed:
+                config = self.config
                 if to in config.timeouts:
                     self._at(t + config.timeouts[to], "timeout", (to, seq))
                 if to in config.min_dwell:
                     self._at(t + config.min_dwell[to], "dwell", (to, seq))
                     aggregating = False  # State Complete waits for the dwell (_settle)
-            alarms_version = self.alarms.version
+            alarms_version = alarms.version
             if alarms_version != self._alarms_seen:
                 self._alarms_seen = alarms_version
-                out.append(("alarms", alarms_version))
+                emit(("alarms", alarms_version))
             if self.store is not None:
                 self._save()
             # State Complete, at once? (the order of _settle: queued commands, mode change, SC)

@@ -52,6 +52,7 @@ class UnitClient:
         )
 
     _since = 0  # status count at the last call: waits skip older statuses
+    _transitions_since = 0  # transition count at the last call
 
     def ready(self, timeout: float = 15.0) -> None:
         self.ros.wait_for_service(Command, f"{self.base}/command", timeout)
@@ -61,10 +62,11 @@ class UnitClient:
         """Drop everything received so far (e.g. before restarting the unit)."""
         for collector in (self.status, self.transitions, self.admin, self.alarms):
             collector.clear()
-        self._since = 0
+        self._since = self._transitions_since = 0
 
     def call(self, srv_type: Any, name: str, timeout: float = 10.0, **fields: Any) -> Any:
         self._since = len(self.status)
+        self._transitions_since = len(self.transitions)
         return self.ros.call(srv_type, f"{self.base}/{name}", srv_type.Request(**fields), timeout)
 
     def command(self, cmd: Cmd | int, source: str = "operator") -> Command.Response:
@@ -76,6 +78,15 @@ class UnitClient:
     def wait_state(self, state: str, timeout: float = 10.0) -> Status:
         """The unit reaches ``state`` at or after the last call made through this client."""
         return self.wait_status(lambda m: m.state_current_name == state, timeout, f"state {state}")
+
+    def wait_entered(self, state: str, timeout: float = 10.0) -> TransitionEvent:
+        """The unit entered ``state`` after the last call made through this client. For states the
+        unit leaves on its own: ``status`` keeps only the newest message (depth 1), so a status of
+        a short state can be overtaken before it is taken; every transition is kept (depth 100)."""
+        return self.transitions.wait_for(
+            lambda t: t.to_state_name == state, timeout, f"a transition into {state}",
+            self._transitions_since,
+        )  # fmt: skip
 
     def wait_status(self, predicate: Any, timeout: float = 10.0, what: str = "") -> Status:
         """A status for which ``predicate`` holds, from the last one before the last call on."""

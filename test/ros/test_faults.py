@@ -51,7 +51,7 @@ def test_full_production_cycles_with_three_em_processes(ros, processes, tmp_path
         assert client.trigger("reset").success
         client.wait_state("IDLE")
         assert client.trigger("start").success
-        client.wait_state("EXECUTE")
+        client.wait_entered("EXECUTE")  # for about 0.3 s: waited for as a transition
         # Execute completes when every EM finished its run; then Completing -> Complete
         client.wait_state("COMPLETE", timeout=10)
         runs = cycle + 1
