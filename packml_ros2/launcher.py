@@ -1,6 +1,7 @@
 """Start a whole PackML cell from its YAML file: units, simulated EMs and the coordinator, in one
 process (a multi-threaded executor) or one process per node (``processes=True``). It waits until
-every unit and the coordinator answer, prints what to try, and stops everything on Ctrl-C.
+every unit and the coordinator answer and every simulated EM is online at its unit (so the first
+``reset`` is not refused for a missing EM), prints what to try, and stops everything on Ctrl-C.
 """
 
 from __future__ import annotations
@@ -18,10 +19,11 @@ from pathlib import Path
 from typing import Any
 
 import rclpy
+from packml_interfaces.msg import Status
 from packml_interfaces.srv import Command
 from rclpy.node import Node
 
-from . import run
+from . import qos, run
 from .core import CellConfig, ConfigError, load_cell
 from .sim_em import SimConfig, parse_sim
 
@@ -62,24 +64,49 @@ def plan(file: str | os.PathLike[str]) -> Plan:
 
 # -- readiness and the summary ----------------------------------------------------------------------------
 def wait_ready(
-    node: Node, p: Plan, timeout: float = READY_TIMEOUT, alive: Callable[[], bool] = lambda: True
+    node: Node,
+    p: Plan,
+    timeout: float = READY_TIMEOUT,
+    alive: Callable[[], bool] = lambda: True,
+    spin: Callable[[float], None] = time.sleep,
 ) -> list[str]:
-    """Wait until every unit's and the coordinator's command service answers; returns what is
-    still missing (empty: all ready)."""
+    """Wait until every unit's and the coordinator's command service answers and every EM the
+    cell file simulates is online in its unit's status; returns what is still missing (empty:
+    all ready). ``spin(seconds)`` lets ``node``'s subscriptions run (default: another thread
+    spins it)."""
     cell = p.cell.cell
     services = [f"/{cell}/{u}/command" for u in p.cell.units]
     if p.cell.coordinator.enabled:
         services.append(f"/{cell}/coordinator/command")
     clients = {name: node.create_client(Command, name) for name in services}
+    latest: dict[str, Status] = {}
+    subscriptions = [
+        node.create_subscription(
+            Status, f"/{cell}/{u}/status", lambda m, u=u: latest.__setitem__(u, m), qos.STATUS
+        )
+        for u in {u for u, _ in p.sims}
+    ]
     deadline = time.monotonic() + timeout
-    missing = list(services)
-    while missing and time.monotonic() < deadline and alive():
-        missing = [name for name in missing if not clients[name].service_is_ready()]
-        if missing:
-            clients[missing[0]].wait_for_service(timeout_sec=0.2)
+    silent = list(services)
+    while silent and time.monotonic() < deadline and alive():
+        silent = [name for name in silent if not clients[name].service_is_ready()]
+        if silent:
+            clients[silent[0]].wait_for_service(timeout_sec=0.2)
+    missing = silent
+    while not silent and alive():
+        missing = [f"EM {u}/{em} (offline)" for u, em in p.sims if not _online(latest.get(u), em)]
+        if not missing or time.monotonic() >= deadline:
+            break
+        spin(0.05)
     for client in clients.values():
         node.destroy_client(client)
+    for subscription in subscriptions:
+        node.destroy_subscription(subscription)
     return missing
+
+
+def _online(status: Status | None, em: str) -> bool:
+    return status is not None and any(e.name == em and e.online for e in status.equipment_modules)
 
 
 def summary(p: Plan, mode: str) -> str:
@@ -224,6 +251,7 @@ def launch_processes(
             probe,
             p,
             alive=lambda: not stopping.is_set() and all(c.poll() is None for _, c in children),
+            spin=lambda seconds: rclpy.spin_once(probe, timeout_sec=seconds),
         )
         probe.destroy_node()
         rclpy.try_shutdown()
