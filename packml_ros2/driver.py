@@ -14,6 +14,8 @@ from typing import Any, TypeVar
 
 from . import convert
 from .core import Unit
+from .core.counters import KINDS
+from .core.liveliness import Liveliness
 from .core.unit import StatusMark, Transition
 
 T = TypeVar("T")
@@ -55,6 +57,30 @@ class UnitDriver:
         finally:
             self.flush()
             self.clock.frozen = None
+
+    def report(self, now: float, msg: Any, liveliness: Liveliness) -> None:
+        """An ``EmReport`` received at ``now``, applied as the engine inputs it stands for: every
+        report is a heartbeat (``em_seen`` when the EM was not alive), then its kind's input. The
+        unit node and the synthetic recorder (bag/synthetic.py) both come here."""
+        unit, run, name, kind, cls = self.unit, self.call, msg.em, msg.kind, type(msg)
+        if kind == cls.KIND_LEAVE:
+            if liveliness.left(name):
+                run(now, unit.em_lost, name, "left")
+            return
+        if liveliness.seen(name, now, msg.lease):
+            run(now, unit.em_seen, name)
+        if kind == cls.KIND_STATE_COMPLETE:
+            run(now, unit.em_complete, name, msg.state, msg.sequence)
+        elif kind == cls.KIND_COMMAND_REQUEST:
+            run(now, unit.em_request, name, msg.command)
+        elif kind == cls.KIND_INTERLOCK:
+            run(now, unit.em_interlock, name, msg.blocked, msg.starved, msg.material_interlock)
+        elif kind == cls.KIND_COUNT:
+            if msg.counter < len(KINDS):
+                run(now, unit.em_count, name, KINDS[msg.counter], msg.counter_index, msg.increment)
+        elif kind == cls.KIND_ALARM:
+            run(now, unit.em_alarm, name, msg.alarm_id, msg.alarm_value, msg.alarm_active,
+                msg.warning, msg.category, msg.message)  # fmt: skip
 
     def replay(self, now: float, name: str, args: dict[str, Any]) -> Any:
         """Apply a logged input again (name and arguments as ``Unit.on_input`` reported them)."""

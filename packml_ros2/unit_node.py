@@ -44,7 +44,6 @@ from std_srvs.srv import Trigger
 
 from . import convert, qos, run
 from .core import CellConfig, Cmd, Store, Unit, UnitConfig, load_cell, state_name
-from .core.counters import KINDS
 from .core.liveliness import Liveliness
 from .driver import FrozenClock, UnitDriver
 
@@ -300,28 +299,7 @@ class UnitNode(Node):
 
     # -- equipment modules ---------------------------------------------------------------------------
     def _on_report(self, msg: EmReport) -> None:
-        now = self._now()
-        name = msg.em
-        unit, run = self.unit, self.driver.call
-        if msg.kind == EmReport.KIND_LEAVE:
-            if self.liveliness.left(name):
-                run(now, unit.em_lost, name, "left")
-            return
-        if self.liveliness.seen(name, now, msg.lease):
-            run(now, unit.em_seen, name)
-        kind = msg.kind
-        if kind == EmReport.KIND_STATE_COMPLETE:
-            run(now, unit.em_complete, name, msg.state, msg.sequence)
-        elif kind == EmReport.KIND_COMMAND_REQUEST:
-            run(now, unit.em_request, name, msg.command)
-        elif kind == EmReport.KIND_INTERLOCK:
-            run(now, unit.em_interlock, name, msg.blocked, msg.starved, msg.material_interlock)
-        elif kind == EmReport.KIND_COUNT:
-            if msg.counter < len(KINDS):
-                run(now, unit.em_count, name, KINDS[msg.counter], msg.counter_index, msg.increment)
-        elif kind == EmReport.KIND_ALARM:
-            run(now, unit.em_alarm, name, msg.alarm_id, msg.alarm_value, msg.alarm_active,
-                msg.warning, msg.category, msg.message)  # fmt: skip
+        self.driver.report(self._now(), msg, self.liveliness)
 
     def _on_tick(self) -> None:
         now = self._now()

@@ -19,7 +19,6 @@ from rclpy.serialization import serialize_message
 
 from .. import convert
 from ..core import Unit, UnitConfig
-from ..core.counters import KINDS
 from ..core.liveliness import Liveliness
 from ..driver import FrozenClock, UnitDriver
 from .topics import (
@@ -103,24 +102,7 @@ class SyntheticUnit:
         cls = msg_class(UNIT_TOPICS["em_reports"])
         msg = cls(stamp=convert.stamp(self.now), em=em, kind=kind, lease=1.0, **fields)
         self.messages["em_reports"].append((self.now, serialize_message(msg)))
-        unit, run, now = self.unit, self.driver.call, self.now
-        if kind == cls.KIND_LEAVE:
-            if self.liveliness.left(em):
-                run(now, unit.em_lost, em, "left")
-            return
-        if self.liveliness.seen(em, now, msg.lease):
-            run(now, unit.em_seen, em)
-        if kind == cls.KIND_STATE_COMPLETE:
-            run(now, unit.em_complete, em, msg.state, msg.sequence)
-        elif kind == cls.KIND_COMMAND_REQUEST:
-            run(now, unit.em_request, em, msg.command)
-        elif kind == cls.KIND_INTERLOCK:
-            run(now, unit.em_interlock, em, msg.blocked, msg.starved, msg.material_interlock)
-        elif kind == cls.KIND_COUNT:
-            run(now, unit.em_count, em, KINDS[msg.counter], msg.counter_index, msg.increment)
-        elif kind == cls.KIND_ALARM:
-            run(now, unit.em_alarm, em, msg.alarm_id, msg.alarm_value, msg.alarm_active,
-                msg.warning, msg.category, msg.message)  # fmt: skip
+        self.driver.report(self.now, msg, self.liveliness)
 
     def write(self, path: str | os.PathLike[str], storage: str = "mcap") -> int:
         """Write the bag (outputs stamped at the time they were published); returns its size in

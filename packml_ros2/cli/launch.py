@@ -74,8 +74,8 @@ def launch(args: argparse.Namespace) -> int:
     if args.check:
         print(f"{args.cell_file}: valid ({plan.node_count} nodes)")
         return 0
-    server = _start_hmi(args.cell_file, hmi) if hmi is not None else None
-    opcua_server = _start_opcua(args.cell_file, opcua) if opcua is not None else None
+    server = _start_server("hmi", args.cell_file, hmi) if hmi is not None else None
+    opcua_server = _start_server("opcua", args.cell_file, opcua) if opcua is not None else None
     try:
         if args.processes:
             if args.logs:
@@ -89,19 +89,10 @@ def launch(args: argparse.Namespace) -> int:
             launcher._stop_children([("opcua", opcua_server)])
 
 
-def _start_hmi(cell_file: Path, port: int) -> subprocess.Popen[bytes]:
-    """``packml hmi`` as a child process (own session: Ctrl-C reaches the launcher, which stops
-    it last); it prints its address itself."""
-    argv = [sys.executable, "-m", "packml_ros2.cli.main", "hmi", str(cell_file)]
-    if port >= 0:
-        argv += ["--port", str(port)]
-    return subprocess.Popen(argv, start_new_session=True)
-
-
-def _start_opcua(cell_file: Path, port: int) -> subprocess.Popen[bytes]:
-    """``packml opcua`` as a child process (own session: Ctrl-C reaches the launcher, which stops
-    it last); it prints its endpoint itself."""
-    argv = [sys.executable, "-m", "packml_ros2.cli.main", "opcua", str(cell_file)]
+def _start_server(verb: str, cell_file: Path, port: int) -> subprocess.Popen[bytes]:
+    """``packml hmi`` or ``packml opcua`` as a child process (own session: Ctrl-C reaches the
+    launcher, which stops it last); it prints its address itself. ``port`` < 0: its default."""
+    argv = [sys.executable, "-m", "packml_ros2.cli.main", verb, str(cell_file)]
     if port >= 0:
         argv += ["--port", str(port)]
     return subprocess.Popen(argv, start_new_session=True)

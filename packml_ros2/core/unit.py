@@ -184,9 +184,9 @@ Request = CommandRequest | ModeRequest | CompleteReport
 
 
 #: An accepted command: (final state, skipped, answer, command as int, its trigger).
-_Accepted = tuple[State, tuple[State, ...], Answer, int, "Trigger"]
+_Accepted = tuple[State, tuple[State, ...], Answer, int, Trigger]
 #: State Complete from an acting state: (final state, skipped, trigger, final state enabled).
-_ScStep = tuple[State, tuple[State, ...], "Trigger", bool]
+_ScStep = tuple[State, tuple[State, ...], Trigger, bool]
 
 
 class _Cmd(NamedTuple):
