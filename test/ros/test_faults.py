@@ -135,8 +135,13 @@ def test_em_killed_in_an_acting_state_triggers_the_reaction(
 
 
 def test_unit_killed_and_restarted_keeps_its_admin_data(ros, processes, tmp_path: Path) -> None:
-    ems = {"robot": _em(cycle_time=0.05, counter="processed", defect_rate=0.2, lease=2.0)}
-    cell_file, cell = write_cell(tmp_path, {"packer": {"equipment_modules": ems, "em_lease": 2.0,
+    # The EM outlives the killed unit. Until DDS drops the dead participant (its 5 s lease in
+    # config/fastdds_localhost.xml), the EM's reports can stall towards the restarted unit (seen:
+    # 2 s without one, while this test process received them every 0.5 s), so the EM's lease
+    # must be longer than that, or the restarted unit loses it and aborts (1 run in ~10 loaded).
+    lease = 6.0
+    ems = {"robot": _em(cycle_time=0.05, counter="processed", defect_rate=0.2, lease=lease)}
+    cell_file, cell = write_cell(tmp_path, {"packer": {"equipment_modules": ems, "em_lease": lease,
                                                         "persistence": {"path": str(tmp_path / "packer.sqlite3"), "period": 0.5}}})  # fmt: skip
     unit = start_unit_process(processes, cell_file, "packer")
     start_em_process(processes, cell_file, "packer", "robot")
