@@ -7,7 +7,8 @@ docs/screenshots/), else to a temporary directory.
 
 Latency: the test subscribes to the unit's status itself and notes when each status arrives; the
 page notes when it has applied each status to the DOM (``window.__hmi.renders``, wall clock of
-the same machine). Every status of the Reset/Start sequence must be on screen within 200 ms."""
+the same machine). Every status of the Reset/Start sequence, or a newer one, must be on screen
+within 200 ms."""
 
 from __future__ import annotations
 
@@ -258,23 +259,29 @@ def test_reset_and_start_by_buttons_the_diagram_and_banner_follow_within_200_ms(
     expect(page.locator("#u-cmds button[data-cmd=START]")).to_be_disabled()
     env.status["robot_cell"].wait_for(lambda m: m.state_current_name == "EXECUTE", 10)
 
-    # status (received by this test) -> DOM updated by the page, for every status on the way
+    # status (received by this test) -> DOM updated by the page, for every status on the way. Status
+    # keeps only its newest message (latched, depth 1): one superseded a few ms later may never
+    # reach the page, and need not. What the operator must see within the limit is that status
+    # or a newer one.
     renders = page.evaluate("window.__hmi.renders")
     seen = [r for r in env.receipts[first:] if r[0] == "robot_cell"]
-    latencies, states, parts = [], [], []
+    latencies, parts = [], []
     for unit, seq, stamp, got in seen:
-        match = [r for r in renders if r["unit"] == unit and abs(r["stamp"] - stamp) < 0.01]
-        assert match, f"status {seq} ({stamp}) never rendered; the page rendered {renders[-12:]}"
-        latencies.append(match[0]["rendered"] - got)
+        match = [r for r in renders if r["unit"] == unit and r["stamp"] > stamp - 0.01]
+        assert match, f"status {seq} ({stamp}) nor a newer one rendered: {renders[-12:]}"
+        shown = min(match, key=lambda r: r["rendered"])
+        latencies.append(shown["rendered"] - got)
         parts.append(
             (
                 round(got - stamp, 1),
-                round(match[0]["received"] - got, 1),
-                round(match[0]["arrived"] - match[0]["received"], 1),
-                round(match[0]["rendered"] - match[0]["arrived"], 1),
+                round(shown["received"] - got, 1),
+                round(shown["arrived"] - shown["received"], 1),
+                round(shown["rendered"] - shown["arrived"], 1),
             )
         )
-        states.append(match[0]["state"])
+    states = [
+        r["state"] for r in renders if r["unit"] == "robot_cell" and r["stamp"] > seen[0][2] - 0.01
+    ]
     print("\n(publish->test, test->bridge, bridge->page, page->DOM) ms:", parts)
     assert {"RESETTING", "IDLE", "STARTING", "EXECUTE"} <= set(states), states
     worst = max(latencies)
