@@ -108,6 +108,9 @@ ENTRY_FLAGS: dict[State, int] = {
     S.HOLDING: _STOP,
     S.SUSPENDING: _STOP,
 }
+#: States whose entry only re-arms the stop reason when there are no alarms to reset and no
+#: first-outs to clear (the common case, inlined in Unit._transition).
+_REARMING = frozenset(s for s, f in ENTRY_FLAGS.items() if f & _REARM and not f & _STOP)
 #: A stop is planned (OEE) only while the unit stands in one of these.
 PLANNED_STOP_STATES = frozenset({S.STOPPED, S.IDLE, S.STOPPING})
 MODE_CHANGE_NOT_ALLOWED_SECONDS = 3.0
@@ -150,6 +153,9 @@ _T_COMMAND, _T_INTERLOCK = Trigger.COMMAND, Trigger.INTERLOCK
 _EXECUTE, _SUSPENDING, _SUSPENDED = S.EXECUTE, S.SUSPENDING, S.SUSPENDED
 _UNSUSPEND = C.UNSUSPEND
 _PRODUCTION = Mode.PRODUCTION
+_OPERATOR = "operator"  # the default source of commands
+#: Without EMs, every acting state completes at once except Execute (the run ends by command).
+_COMPLETE_AT_ONCE = ACTING - {S.EXECUTE}
 
 
 class StatusMark(NamedTuple):
@@ -251,7 +257,7 @@ class Unit:
         # tables resolved at start
         "_resolved", "_accepted", "_sc_resolved", "_timed",
         # evaluation
-        "_t", "_out", "_deadlines", "_deadline_counter", "_advance_to", "_internal",
+        "_t", "_out", "_deadlines", "_next_due", "_deadline_counter", "_advance_to", "_internal",
         "_step_winner", "_restart_detail",
         # caches and publication
         "_valid_cache", "_missing_cache", "_rev", "_status_key", "_status_flush_due", "_admin_key",
@@ -301,16 +307,20 @@ class Unit:
             em.ignore_loss = not self._lost_reaction(em)
         self._resolved = self._resolve_all()
         self._timed = frozenset(config.timeouts) | frozenset(config.min_dwell)
-        #: The accepted entries of _resolved: (final state, skipped, answer, command as a plain int,
-        #: trigger when an operator gave it).
-        self._accepted: dict[tuple[int, int, int], _Accepted] = {
-            key: (final, skipped, answer, int(key[2]), Trigger.SKIP if skipped else Trigger.COMMAND)
-            for key, (reason, final, skipped, answer) in self._resolved.items()
-            if reason is Reason.ACCEPTED and final is not None
+        #: The accepted entries of _resolved as mode -> [state] -> {command: (final state, skipped,
+        #: answer, command as a plain int, trigger when an operator gave it)}: indexing by state and
+        #: command is about twice as fast as hashing a (state, mode, command) key.
+        self._accepted: dict[int, list[dict[int, _Accepted]]] = {
+            mode: [{} for _ in range(NUM_STATES)] for mode in config.modes
         }
+        for (state, mode, cmd), (reason, final, skipped, answer) in self._resolved.items():
+            if reason is Reason.ACCEPTED and final is not None:
+                trigger = Trigger.SKIP if skipped else Trigger.COMMAND
+                self._accepted[mode][state][cmd] = (final, skipped, answer, int(cmd), trigger)
         self._sc_resolved = self._resolve_state_complete()
         self._out: list[tuple[str, Any]] = []
         self._deadlines: list[tuple[float, int, str, Any]] = []
+        self._next_due = math.inf  # the earliest deadline's time (the heap's top), inf when none
         self._deadline_counter = 0
         self._advance_to = now  # the time _advance is bringing the unit to
         self._internal: list[_Cmd] = []
@@ -363,24 +373,28 @@ class Unit:
                     )
         return out
 
-    def _resolve_state_complete(self) -> dict[tuple[int, int], _ScStep]:
-        """(acting state, mode) -> State Complete's (final state, skipped, trigger, whether the
-        final state is enabled in the mode)."""
+    def _resolve_state_complete(self) -> dict[int, list[_ScStep | None]]:
+        """mode -> [acting state] -> State Complete's (final state, skipped, trigger, whether the
+        final state is enabled in the mode); None for states State Complete does not leave."""
         table = self.config.table
-        out: dict[tuple[int, int], _ScStep] = {}
+        out: dict[int, list[_ScStep | None]] = {}
         for mode, mdef in self.config.modes.items():
+            steps: list[_ScStep | None] = [None] * NUM_STATES
             for state, nxt in table.state_complete.items():
                 final, skipped = resolve(nxt, mdef.disabled, table.state_complete)
                 trigger = Trigger.SKIP if skipped else Trigger.STATE_COMPLETE
-                out[(state, mode)] = (final, skipped, trigger, final not in mdef.disabled)
+                steps[state] = (final, skipped, trigger, final not in mdef.disabled)
+            out[mode] = steps
         return out
 
     # ================================================================================================
     # Inputs. Each advances to the clock first; ``on_input`` sees (time, name, arguments) for replay.
     # ================================================================================================
     def _enter(self) -> None:
+        if not self._status_key:  # the baseline of what the status shows (see _flush_status)
+            self._status_key = self._key()
         now = self._clock()
-        if self._deadlines and self._deadlines[0][0] <= now:
+        if now >= self._next_due:
             self._advance(now)
         elif now > self._t:
             self._t = now
@@ -393,19 +407,20 @@ class Unit:
         self._settle()
         self._flush_status()
 
-    def command(self, cmd: int, source: str = "operator") -> Answer:
+    def command(self, cmd: int, source: str = _OPERATOR) -> Answer:
         """A state command (``Command.CntrlCmd`` + ``CmdChangeRequest``)."""
         now = self._clock()
-        if self._deadlines and self._deadlines[0][0] <= now:
+        if now >= self._next_due:
+            if not self._status_key:
+                self._status_key = self._key()
             self._advance(now)
         elif now > self._t:
             self._t = now
-        source = source or "operator"
+        source = source or _OPERATOR
         if self.on_input is not None:
             self.on_input(self._t, "command", {"cmd": cmd, "source": source})
-        self._step_winner = None
         eq, flags = self.equipment, self.flags
-        entry = self._accepted.get((self.state, self.mode, cmd))
+        entry = self._accepted[self.mode][self.state].get(cmd)
         if (  # the fast path: the table alone decides (no guard can refuse, nothing remote)
             entry is not None
             and (
@@ -413,13 +428,21 @@ class Unit:
                 or not (eq.modules or self.alarms.current or flags.interlocks)
             )
             and not self.mode_change_in_process
-            and not source.startswith("remote")
+            and (source is _OPERATOR or not source.startswith("remote"))
         ):
             final, skipped, answer, cmd, trigger = entry
             self.stats.commands_accepted += 1
             self.cntrl_cmd = cmd
-            self._transition(final, trigger, cmd, source, skipped, "", None, True)
+            more = self._transition(final, trigger, cmd, source, skipped, "", None, True)
+            if not (more or flags.interlocks or flags.interlock_suspended):
+                # Nothing for _settle and nothing changed after the last transition, whose
+                # status is published with it: that is the baseline, and stays so until the
+                # next input begins (which takes the key then, see _flush_status).
+                return answer
         else:
+            if not self._status_key:
+                self._status_key = self._key()
+            self._step_winner = None  # (only a refusal reads it: not on the fast path)
             answer = self._apply_command(cmd, source, self.state, None, True)
         if (  # anything left for _settle? (the command followed immediate State Complete itself)
             self._internal
@@ -431,8 +454,6 @@ class Unit:
             self._settle()
         if self._status_key or self.alarms.version != self._alarms_seen:
             self._flush_status()
-        else:  # a transition published the status: what it shows is the new baseline
-            self._status_key = (self.sequence, self._rev, eq.version, self.alarms.version)
         return answer
 
     def set_mode(self, mode: int | str, source: str = "operator") -> Answer:
@@ -863,16 +884,19 @@ class Unit:
 
     def next_deadline(self) -> float | None:
         """When the engine has something to do next on its own (a timeout, a periodic admin...)."""
-        return self._deadlines[0][0] if self._deadlines else None
+        return None if self._next_due == math.inf else self._next_due
 
     def fire_next(self, until: float) -> bool:
         """Fire the earliest deadline if it is due by ``until``; False when none is. Driving the
         engine one deadline at a time (and publishing after each) is what makes a live node and a
         replay produce the same messages (see packml_ros2.driver)."""
-        if not self._deadlines or self._deadlines[0][0] > until:
+        if until < self._next_due:
             return False
+        if not self._status_key:
+            self._status_key = self._key()
         self._advance_to = until
         when, _, kind, data = heapq.heappop(self._deadlines)
+        self._next_due = self._deadlines[0][0] if self._deadlines else math.inf
         self._t = max(self._t, when)
         self._handlers()[kind](data)
         self._settle()
@@ -1051,7 +1075,7 @@ class Unit:
         reason, final_or_none, skipped, detail = self._check(cmd, source)
         if reason is not _ACCEPTED or final_or_none is None:
             return self._reject(cmd, source, start_state, cause, reason, final_or_none, detail)
-        final, skipped, answer, cmd, trigger = self._accepted[(self.state, self.mode, cmd)]
+        final, skipped, answer, cmd, trigger = self._accepted[self.mode][self.state][cmd]
         if self.mode_change_in_process:  # only Abort and Stop pass _check then
             self._abandon_mode_change(f"{command_name(cmd)} from {source}")
         self.stats.commands_accepted += 1
@@ -1116,11 +1140,15 @@ class Unit:
         detail: str = "",
         cause: _Cmd | None = None,
         follow: bool = False,
-    ) -> None:
+    ) -> bool:
         """Enter ``to``. With ``follow``, then take State Complete as long as it is immediate
         (nothing to wait for: no EM owes it, no dwell, nothing queued, no mode change): exactly
         what :meth:`_settle` would do next, in one loop. Only for a request alone in its step:
-        in a :meth:`step`, the other requests are judged in the state the first one reached."""
+        in a :meth:`step`, the other requests are judged in the state the first one reached.
+
+        Returns, with ``follow``, whether :meth:`_settle` may have something left (a queued
+        command, a mode change, a State Complete it must refuse); False when the unit stopped in
+        a state that waits (interlocks aside, which the caller checks)."""
         t = self._t
         mode = self.mode
         times = self.times
@@ -1129,13 +1157,21 @@ class Unit:
         flags = self.flags
         alarms = self.alarms
         timed = self._timed
+        sc_steps = self._sc_resolved[mode]
+        state_current = times.state_current
+        base = mode * NUM_STATES
         while True:
             frm = self.state
             self.sequence = seq = self.sequence + 1
             self.state = to
             self.entered_at = t
-            if skipped or to in ENTRY_FLAGS or trigger is _T_INTERLOCK or flags.interlock_suspended:
+            if skipped or trigger is _T_INTERLOCK or flags.interlock_suspended:
                 self._entry_actions(to, skipped, trigger, cmd, source, cause)
+            elif to in ENTRY_FLAGS:
+                if to in _REARMING and not alarms.current and not alarms.first_out_by_category:
+                    self._stop_armed = True  # all _entry_actions would do: nothing to reset
+                else:
+                    self._entry_actions(to, skipped, trigger, cmd, source, cause)
             # ModeStateTimes.enter(t, mode, to, planned), inlined: it runs on every transition.
             dt = t - times._since
             if dt > 0.0:
@@ -1149,7 +1185,7 @@ class Unit:
                 if times._planned:
                     times.planned_stop += dt
                 times._since = t
-            times.state_current[mode * NUM_STATES + to] = 0.0
+            state_current[base + to] = 0.0
             times._state = to
             times._planned = self.stop_reason is not None and self._planned()  # OEE planned stops
             emit(
@@ -1163,14 +1199,14 @@ class Unit:
             )
             if not eq.modules:  # Equipment.begin, inlined for units without EMs
                 eq.state, eq.sequence = to, seq
-                eq.aggregating = aggregating = to in ACTING and to is not _EXECUTE
+                eq.aggregating = aggregating = to in _COMPLETE_AT_ONCE
             else:
                 if to is _EXECUTE:
                     eq.begin(to, seq, eq.active_count() > 0, False)
                 else:
                     eq.begin(to, seq, to in ACTING, to in EXCUSE_OFFLINE)
                 aggregating = eq.aggregating and not eq.pending
-            if to in timed:
+            if timed and to in timed:  # (an empty set is cheaper to test than to search)
                 config = self.config
                 if to in config.timeouts:
                     self._at(t + config.timeouts[to], "timeout", (to, seq))
@@ -1184,15 +1220,21 @@ class Unit:
             if self.store is not None:
                 self._save()
             # State Complete, at once? (the order of _settle: queued commands, mode change, SC)
-            if not (follow and aggregating) or self._internal or self.mode_change_in_process:
+            if not (follow and aggregating):
+                more = False
                 break
-            to, skipped, trigger, enabled = self._sc_resolved[(to, mode)]
+            if self._internal or self.mode_change_in_process:
+                more = True
+                break
+            to, skipped, trigger, enabled = sc_steps[to]  # type: ignore[misc]  # acting: not None
             if not enabled:
-                break  # _settle refuses it (and says so)
+                more = True  # _settle refuses it (and says so)
+                break
             cmd, source, detail, cause = 0, "unit", "", None
         # A status is published after every transition (never coalesced); the key of what it
         # shows is taken when the input is done (_flush_status).
         self._status_key = ()
+        return more
 
     def _entry_actions(self, to: State, skipped: tuple[State, ...], trigger: Trigger, cmd: int,
                        source: str, cause: _Cmd | None) -> None:  # fmt: skip
@@ -1291,7 +1333,9 @@ class Unit:
                     or self._sc_ready()
                 )
             ):
-                final, skipped, trigger, enabled = self._sc_resolved[(self.state, self.mode)]
+                step = self._sc_resolved[self.mode][self.state]
+                assert step is not None  # aggregating: an acting state
+                final, skipped, trigger, enabled = step
                 if enabled:
                     self._transition(final, trigger, 0, "unit", skipped, "", None, True)
                     continue
@@ -1437,6 +1481,7 @@ class Unit:
     def _at(self, when: float, kind: str, data: Any) -> None:
         self._deadline_counter += 1
         heapq.heappush(self._deadlines, (when, self._deadline_counter, kind, data))
+        self._next_due = self._deadlines[0][0]
 
     def _every(self, kind: str, period: float) -> None:
         when = self._t + period
@@ -1460,8 +1505,9 @@ class Unit:
     def _advance(self, now: float) -> None:
         handlers = self._handlers()
         self._advance_to = now
-        while self._deadlines and self._deadlines[0][0] <= now:
+        while now >= self._next_due:
             when, _, kind, data = heapq.heappop(self._deadlines)
+            self._next_due = self._deadlines[0][0] if self._deadlines else math.inf
             self._t = max(self._t, when)
             handlers[kind](data)
             self._settle()
@@ -1547,7 +1593,12 @@ class Unit:
             self._out.append(("alarms", self.alarms.version))
 
     def _flush_status(self) -> None:
-        """Other changes (EM progress, alarms, speed...) are published at most every 50 ms."""
+        """Other changes (EM progress, alarms, speed...) are published at most every 50 ms.
+
+        ``_status_key`` is what the last published status showed; ``()`` after a transition (its
+        status is published with it) until the input ends, or, after a command's fast path, until
+        the next input begins: the key taken then is the baseline, since nothing changes between
+        inputs."""
         if not self._status_key:  # a transition published the status: that is the new baseline
             self._status_key = self._key()
         elif not self._status_flush_due and self._key() != self._status_key:

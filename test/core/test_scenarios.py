@@ -481,6 +481,41 @@ def test_timeout_category_is_configurable() -> None:
     assert unit.stop_reason is not None and unit.stop_reason.id == 33  # the Hold came first
 
 
+def published(unit: Unit) -> list[tuple[str, Any]]:
+    """The drained outputs that publish a status: transitions and status marks."""
+    return [(kind, x) for kind, x in unit.drain() if kind in ("transition", "status")]
+
+
+@pytest.mark.parametrize("refused_between", [False, True])
+def test_a_change_after_a_command_is_published_once_and_no_change_never(
+    refused_between: bool,
+) -> None:
+    """Each transition publishes the status itself. A later change that is not a transition
+    (MachSpeed here) is published once, 50 ms later (changes coalesce); inputs that change
+    nothing the status shows (a refused command, time passing) publish nothing."""
+    unit, clock = make()
+    unit.drain()
+    assert unit.command(C.RESET).accepted  # Stopped -> Resetting -> Idle
+    assert [kind for kind, _ in published(unit)] == ["transition", "transition"]
+    clock.advance(0.2)  # (no periodic admin due on the way: it flushes)
+    if refused_between:
+        assert not unit.command(C.UNHOLD).accepted  # not valid in Idle: changes nothing
+        assert published(unit) == []
+    assert unit.set_mach_speed(42.0).accepted
+    clock.advance(0.01)
+    unit.advance()
+    assert published(unit) == []  # not yet
+    clock.advance(0.05)
+    unit.advance()
+    marks = published(unit)
+    assert [kind for kind, _ in marks] == ["status"]
+    assert marks[0][1].time == pytest.approx(1_000.25)
+    assert unit.status_at(marks[0][1]).mach_speed == 42.0
+    clock.advance(5.0)
+    unit.advance()
+    assert published(unit) == []  # nothing changed since
+
+
 def test_min_dwell_without_ems() -> None:
     unit, clock = make({"min_dwell": {"Resetting": 2.0}})
     unit.drain()
