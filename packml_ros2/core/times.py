@@ -63,7 +63,8 @@ class ModeStateTimes:
 
     def enter(self, now: float, mode: int, state: int, planned: bool = False) -> None:
         """The unit entered ``state`` (and/or ``mode``) at ``now``: restart their current times.
-        (The engine's transition path inlines this; mode changes and tests come through here.)"""
+        (The engine's transition path calls ``_close`` and does the rest inline; mode changes and
+        tests come through here.)"""
         self._close(now)
         if mode != self._mode:
             self.mode_current[mode] = 0.0

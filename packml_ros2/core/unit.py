@@ -895,9 +895,7 @@ class Unit:
         if not self._status_key:
             self._status_key = self._key()
         self._advance_to = until
-        when, _, kind, data = heapq.heappop(self._deadlines)
-        self._next_due = self._deadlines[0][0] if self._deadlines else math.inf
-        self._t = max(self._t, when)
+        kind, data = self._pop_deadline()
         self._handlers()[kind](data)
         self._settle()
         self._flush_status()
@@ -1172,19 +1170,11 @@ class Unit:
                     self._stop_armed = True  # all _entry_actions would do: nothing to reset
                 else:
                     self._entry_actions(to, skipped, trigger, cmd, source, cause)
-            # ModeStateTimes.enter(t, mode, to, planned), inlined: it runs on every transition.
-            dt = t - times._since
-            if dt > 0.0:
-                m = times._mode
-                i = m * NUM_STATES + times._state
-                times.mode_current[m] += dt
-                times.mode_cumulative[m] += dt
-                times.state_current[i] += dt
-                times.state_cumulative[i] += dt
-                times.acc_time_since_reset += dt
-                if times._planned:
-                    times.planned_stop += dt
-                times._since = t
+            # ModeStateTimes.enter(t, mode, to, planned) for a transition within a mode, inlined:
+            # the call costs 13 % of a transition (bench/engine_instructions.py). Time has passed
+            # only before the first of a command's transitions.
+            if t > times._since:
+                times._close(t)
             state_current[base + to] = 0.0
             times._state = to
             times._planned = self.stop_reason is not None and self._planned()  # OEE planned stops
@@ -1483,6 +1473,13 @@ class Unit:
         heapq.heappush(self._deadlines, (when, self._deadline_counter, kind, data))
         self._next_due = self._deadlines[0][0]
 
+    def _pop_deadline(self) -> tuple[str, Any]:
+        """Take the earliest deadline and bring the unit's time to it: (kind, data)."""
+        when, _, kind, data = heapq.heappop(self._deadlines)
+        self._next_due = self._deadlines[0][0] if self._deadlines else math.inf
+        self._t = max(self._t, when)
+        return kind, data
+
     def _every(self, kind: str, period: float) -> None:
         when = self._t + period
         behind = self._advance_to - when
@@ -1506,9 +1503,7 @@ class Unit:
         handlers = self._handlers()
         self._advance_to = now
         while now >= self._next_due:
-            when, _, kind, data = heapq.heappop(self._deadlines)
-            self._next_due = self._deadlines[0][0] if self._deadlines else math.inf
-            self._t = max(self._t, when)
+            kind, data = self._pop_deadline()
             handlers[kind](data)
             self._settle()
             self._flush_status()
