@@ -66,7 +66,7 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from std_srvs.srv import Trigger
 
-from . import qos, run
+from . import qos, responses, run
 from .client import Unavailable, UnitProxy
 from .core import WAIT, CellConfig, Cmd, State, load_cell, state_name
 
@@ -184,12 +184,12 @@ class CoordinatorNode(Node):
         self.pub_status = self.create_publisher(CellStatus, "~/status", qos.CELL_STATUS)
         self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics,
                                  qos.DIAGNOSTICS, callback_group=self._group)  # fmt: skip
-        self.create_service(Command, "~/command", self._srv_command, callback_group=self._group)
-        self.create_service(SetMode, "~/set_mode", self._srv_set_mode, callback_group=self._group)
+        serve = partial(responses.create_service, self, callback_group=self._group)
+        serve(Command, "~/command", self._srv_command)
+        serve(SetMode, "~/set_mode", self._srv_set_mode)
         for cmd in Cmd:
             if cmd:
-                self.create_service(Trigger, f"~/{cmd.name.lower()}",
-                                    partial(self._srv_trigger, cmd), callback_group=self._group)  # fmt: skip
+                serve(Trigger, f"~/{cmd.name.lower()}", partial(self._srv_trigger, cmd))
         self._timer = self.create_timer(TICK, self._on_tick, callback_group=self._group)
         if self.config.unit_lease <= 1.0:
             self.get_logger().warning(

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import threading
 from collections.abc import Callable, Sequence
 
 import rclpy
@@ -18,6 +19,8 @@ from rclpy.executors import (
 from rclpy.node import Node
 
 from .paths import fastdds_profile
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 def default_environment() -> None:
@@ -53,15 +56,22 @@ def spin(
     executor = make_executor(len(nodes), threads)
     for node in nodes:
         executor.add_node(node)
-    signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
+    # Ctrl-C and SIGTERM only ask the loop to end: the nodes are shut down below, after the
+    # callback that was running has finished. (Shutting the context down from the handler would
+    # destroy the nodes under that callback: a traceback, and a half-done update saved.)
+    stop = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in STOP_SIGNALS}
     try:
         # spin_once in a loop, not spin(): the EventsExecutor's spin() does not return on
         # shutdown (see the notes); this loop does, for every executor.
-        while rclpy.ok():
+        while rclpy.ok() and not stop.is_set():
             executor.spin_once(timeout_sec=0.2)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        for s, handler in previous.items():
+            if handler is not None:  # None: installed outside Python, cannot be put back
+                signal.signal(s, handler)
         if on_shutdown is not None:
             on_shutdown()
         executor.shutdown(timeout_sec=2)

@@ -21,7 +21,7 @@ from typing import Any
 
 from std_srvs.srv import SetBool
 
-from . import run
+from . import responses, run
 from .core import schema as sc
 from .core.config import load_cell
 from .core.numbers import ACTING, State, parse_state
@@ -118,7 +118,9 @@ class SimulatedEm(EquipmentModule):
         )
         self.faults_on: set[str] = set()
         for fault in sim.faults.values():
-            self.create_service(SetBool, f"~/fault/{fault.name}", partial(self._srv_fault, fault))
+            responses.create_service(
+                self, SetBool, f"~/fault/{fault.name}", partial(self._srv_fault, fault)
+            )
 
     # -- acting states: wait for the configured duration --------------------------------------------------
     def hook_for(self, state: State):  # type: ignore[no-untyped-def]

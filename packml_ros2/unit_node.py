@@ -42,7 +42,7 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from . import convert, qos, run
+from . import convert, qos, responses, run
 from .core import CellConfig, Cmd, Store, Unit, UnitConfig, load_cell, state_name
 from .core.liveliness import Liveliness
 from .driver import FrozenClock, UnitDriver
@@ -169,7 +169,7 @@ class UnitNode(Node):
             if cmd:
                 services.append((Trigger, cmd.name.lower(), partial(self._srv_trigger, cmd)))
         for srv_type, name, handler in services:
-            self.create_service(srv_type, f"~/{name}", handler)
+            responses.create_service(self, srv_type, f"~/{name}", handler)
 
     @staticmethod
     def _answer(resp: Any, answer: Any, message_field: str = "message") -> Any:

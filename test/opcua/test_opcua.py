@@ -234,7 +234,9 @@ def filler(cell: Cell, ros: Any) -> UnitClient:
 
 
 def test_opc30050_structure_and_state_current(cell: Cell, filler: UnitClient) -> None:
-    endpoints, units, obj, status, admin, machines, base_sm, number, state_current, execute, version, modes, type_ = cell.run([
+    # the bridge's first status may still be on its way when the test begins: wait for it first
+    number, endpoints, units, obj, status, admin, machines, base_sm, state_current, execute, version, modes, type_ = cell.run([
+        {"op": "wait", "path": f"{MS}/0:CurrentState/0:Number", "value": 2},
         {"op": "endpoints"},
         {"op": "browse", "path": "P:PackMLObjects"},
         {"op": "browse", "path": UNIT},
@@ -242,7 +244,6 @@ def test_opc30050_structure_and_state_current(cell: Cell, filler: UnitClient) ->
         {"op": "browse", "path": f"{UNIT}/P:Admin"},
         {"op": "browse", "path": MS},
         {"op": "read", "path": f"{SM}/0:CurrentState"},
-        {"op": "wait", "path": f"{MS}/0:CurrentState/0:Number", "value": 2},
         {"op": "read", "path": f"{UNIT}/P:Status/U:StateCurrent"},
         {"op": "read", "path": f"{ES}/0:CurrentState"},
         {"op": "read", "path": f"{UNIT}/P:PackMLVersion"},
