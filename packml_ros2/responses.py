@@ -10,7 +10,9 @@ that reader, then drops the response: rclpy only prints ``RuntimeWarning: failed
 thread (every 50 ms; each attempt may wait up to 100 ms inside the middleware) until one is
 delivered, the client has gone away, or ``PACKML_RESPONSE_RESEND_S`` seconds (default 10) have
 passed; each loss and its outcome is logged by the node. Lost responses are recognised by that
-warning, seen through a ``warnings.showwarning`` hook that chains to the previous one.
+warning, seen through a ``warnings.showwarning`` hook that chains to the previous one. Inside
+``warnings.catch_warnings(record=True)`` (pytest wraps each test in one) that hook is bypassed and
+nothing is re-sent; node processes are not affected.
 """
 
 from __future__ import annotations
