@@ -192,8 +192,9 @@ def test_refusal_names_the_unit_and_ends_the_sequence(ros, tmp_path: Path) -> No
 
 
 def test_abort_reaches_every_unit_at_once_and_cancels_a_running_start(ros, tmp_path: Path) -> None:
-    units = {"infeed": _unit(), "filler": _unit(),
-             "capper": _unit(min_dwell={**DWELL, "starting": 20.0})}  # fmt: skip
+    slow_abort = {**DWELL, "aborting": 1.0}  # sent in sequence, the Abortings would be 1 s apart
+    units = {"infeed": _unit(min_dwell=slow_abort), "filler": _unit(min_dwell=slow_abort),
+             "capper": _unit(min_dwell={**slow_abort, "starting": 20.0})}  # fmt: skip
     cell = Cell(ros, tmp_path, units, {"start_order": ["capper", "filler", "infeed"],
                                        "step_timeout": 25.0})  # fmt: skip
     assert cell.trigger("reset").success
@@ -215,8 +216,8 @@ def test_abort_reaches_every_unit_at_once_and_cancels_a_running_start(ros, tmp_p
     for unit in units:
         cell.reached(unit, "ABORTED", since)
     stamps = [_ns(t.stamp) for t in aborting]
-    # sequential, each unit would have waited for the previous one's 0.3 s in Aborting
-    assert max(stamps) - min(stamps) < 0.2e9, [t.from_state_name for t in aborting]
+    # sequential, each unit would have waited for the previous one's 1 s in Aborting
+    assert max(stamps) - min(stamps) < 0.8e9, [t.from_state_name for t in aborting]
     assert [t.from_state_name for t in aborting] == ["IDLE", "IDLE", "STARTING"]
     cell.wait(lambda m: m.state_current_name == "ABORTED" and not m.busy, "cell aborted")
     # clear: start order again, back to Stopped
