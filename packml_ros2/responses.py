@@ -165,8 +165,8 @@ def create_service(node: Node, srv_type: Any, name: str, callback: Any, **kwargs
     log = node.get_logger()
 
     def send_response(response: Any, header: Any) -> None:
-        if not send_watched(send, response, header):
-            attempt = lambda: send_watched(send, response, header)  # noqa: E731
+        attempt = functools.partial(send_watched, send, response, header)
+        if not attempt():
             retries.add(service.service_name, attempt, log)
 
     service.send_response = send_response  # type: ignore[method-assign]  # both executors look it up
