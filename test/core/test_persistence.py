@@ -10,6 +10,7 @@ import random
 import signal
 import sqlite3
 import subprocess
+import sys
 import textwrap
 import time
 from pathlib import Path
@@ -23,7 +24,7 @@ from packml_ros2.core import Mode, Reason, State, Store, Trigger, Unit
 from .helpers import FakeClock, cell_unit, transitions
 
 S = State
-PYTHON = "/work/main/.venv/bin/python"
+PYTHON = sys.executable  # children run under the interpreter of this test run
 UNIT = {
     "alarms": [{"id": 42, "message": "guard door", "category": 3}],
     "counters": {"processed": [{"id": 1, "name": "cartons"}]},
