@@ -321,9 +321,11 @@ LOST_ADMIN = ua.StatusCodes.UncertainLastUsableValue
 def lost_status(path: str) -> int:
     """The status of a value while its unit is lost (:mod:`packml_ros2.presence`): the live status
     (Status, the state machines) is Bad_CommunicationError, a dead unit has no known state; the
-    accumulated Admin data (counts, times, alarms) keeps its last value as
-    Uncertain_LastUsableValue."""
-    return LOST_ADMIN if path.startswith("Admin/") else LOST_STATUS
+    accumulated Admin data (counts, times, alarms) and the speeds' EURange (from the unit's
+    configuration) keep their last value as Uncertain_LastUsableValue."""
+    if path.startswith("Admin/") or path.endswith("/EURange"):
+        return LOST_ADMIN
+    return LOST_STATUS
 
 
 # -- answers -----------------------------------------------------------------------------------------------

@@ -179,9 +179,9 @@ def test_extra_transitions_are_the_rules_the_nodeset_lacks() -> None:
 def test_a_lost_units_values_are_bad_or_uncertain() -> None:
     assert mapping.lost_status("Status/StateCurrent") == ua.StatusCodes.BadCommunicationError
     assert mapping.lost_status(f"{MACHINE}/Number") == ua.StatusCodes.BadCommunicationError
-    assert (
-        mapping.lost_status("Admin/ProdProcessedCount") == ua.StatusCodes.UncertainLastUsableValue
-    )
+    uncertain = ua.StatusCodes.UncertainLastUsableValue
+    assert mapping.lost_status("Admin/ProdProcessedCount") == uncertain
+    assert mapping.lost_status("Status/MachSpeed/EURange") == uncertain  # configuration
 
 
 def test_arguments_are_checked_against_the_nodeset_signature() -> None:
