@@ -32,7 +32,7 @@ from asyncua import Server, ua
 from ..core.config import CellConfig, UnitConfig
 from ..presence import Seen
 from . import security
-from .available import Graph, unit_graph
+from .available import unit_graph
 from .bridge import Methods, RosSide
 from .config import OpcUaConfig
 from .mapping import (
@@ -150,7 +150,7 @@ class PackMLServer:
         self._last: dict[tuple[str, str], tuple[Value, int]] = {}
         self._messages: dict[tuple[str, str], Any] = {}  # the newest status / admin per unit
         self._present: dict[str, bool | None] = dict.fromkeys(config.units)
-        self._graphs: dict[tuple[str, int], Graph] = {}
+        self._available: dict[tuple[str, int], dict[str, Value]] = {}  # per unit and mode
         self._pending: OrderedDict[tuple[str, str], Any] = OrderedDict()
         self._flushing: asyncio.Task[None] | None = None
         self.users: security.Users | None = None
@@ -248,12 +248,13 @@ class PackMLServer:
         if topic != "status":
             return admin_values(msg)
         values = status_values(msg, space.model, space.p)
-        mode = int(msg.unit_mode_current)
-        graph = self._graphs.get((unit, mode))
-        if graph is None:
-            graph = self._graphs[(unit, mode)] = unit_graph(self.cell.units[unit], mode)
-        extra = self.units[unit].extra_transitions
-        values.update(available_values(space.model, graph, space.p, extra))
+        key = (unit, int(msg.unit_mode_current))
+        available = self._available.get(key)
+        if available is None:
+            graph = unit_graph(self.cell.units[unit], key[1])
+            extra = self.units[unit].extra_transitions
+            available = self._available[key] = available_values(space.model, graph, space.p, extra)
+        values.update(available)
         return values
 
     async def _apply(self, unit: str, topic: str, msg: Any) -> None:
