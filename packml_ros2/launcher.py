@@ -152,7 +152,10 @@ def build_nodes(p: Plan, **node_kwargs: Any) -> list[Node]:
     from .sim_em import SimulatedEm
     from .unit_node import UnitNode
 
-    nodes: list[Node] = [UnitNode(u, source=p.source, **node_kwargs) for u in p.cell.units.values()]
+    lease = p.cell.coordinator.unit_lease
+    nodes: list[Node] = [
+        UnitNode(u, source=p.source, unit_lease=lease, **node_kwargs) for u in p.cell.units.values()
+    ]
     for (uname, em), sim in p.sims.items():
         nodes.append(SimulatedEm(em, uname, p.cell.cell, sim, **node_kwargs))
     if p.cell.coordinator.enabled:

@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.duration import Duration
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    LivelinessPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+)
 
 
 def _profile(depth: int, latched: bool) -> QoSProfile:
@@ -31,3 +38,28 @@ EM_REPORTS = _profile(200, latched=False)
 INPUT_LOG = _profile(5000, latched=True)
 #: ``/diagnostics`` (diagnostic_msgs), as the standard aggregator expects.
 DIAGNOSTICS = _profile(10, latched=False)
+
+
+def with_lease(profile: QoSProfile, lease: float) -> QoSProfile:
+    """``profile`` with DDS liveliness AUTOMATIC and a lease of ``lease`` seconds.
+
+    A unit publishes ``status`` with its ``unit_lease`` (:func:`status_publisher`): while its
+    process lives, DDS asserts the writer's liveliness by itself (every 2/3 of the lease); a
+    killed process or a cut network shows as lost liveliness within the lease, without a
+    message. Subscribers that keep the default (an infinite lease) stay compatible and see no
+    difference; a subscriber that wants to notice the loss asks for the same lease
+    (:mod:`packml_ros2.presence`): Fast DDS measures the silence with the reader's lease, and
+    a reader asking for a shorter lease than the writer offers does not match it."""
+    return QoSProfile(
+        history=profile.history,
+        depth=profile.depth,
+        reliability=profile.reliability,
+        durability=profile.durability,
+        liveliness=LivelinessPolicy.AUTOMATIC,
+        liveliness_lease_duration=Duration(nanoseconds=int(lease * 1e9)),
+    )
+
+
+def status_publisher(lease: float) -> QoSProfile:
+    """The unit's ``status`` writer: :data:`STATUS` with liveliness lease ``lease`` (seconds)."""
+    return with_lease(STATUS, lease)

@@ -44,6 +44,7 @@ from std_srvs.srv import Trigger
 
 from . import convert, qos, responses, run
 from .core import CellConfig, Cmd, Store, Unit, UnitConfig, load_cell, state_name
+from .core.config import CoordinatorConfig
 from .core.liveliness import Liveliness
 from .driver import FrozenClock, UnitDriver
 
@@ -58,7 +59,8 @@ class UnitNode(Node):
     """One PackML unit. ``UnitNode(config)`` names itself ``config.name`` in ``/<config.cell>``."""
 
     def __init__(self, config: UnitConfig, *, context: Any = None, store_path: str | None = None,
-                 source: str | None = None, **node_kwargs: Any) -> None:  # fmt: skip
+                 source: str | None = None, unit_lease: float | None = None,
+                 **node_kwargs: Any) -> None:  # fmt: skip
         namespace = node_kwargs.pop("namespace", f"/{config.cell}" if config.cell else "/")
         super().__init__(config.name, namespace=namespace, context=context, **node_kwargs)
         self.config = config
@@ -76,7 +78,9 @@ class UnitNode(Node):
         self._hardware_id = f"{config.cell}/{config.name}" if config.cell else config.name
         self.source = source
 
-        self.pub_status = self.create_publisher(Status, "~/status", qos.STATUS)
+        # liveliness: every face sees the unit gone within its lease (packml_ros2.presence)
+        lease = unit_lease if unit_lease is not None else CoordinatorConfig.unit_lease
+        self.pub_status = self.create_publisher(Status, "~/status", qos.status_publisher(lease))
         self.pub_transitions = self.create_publisher(
             TransitionEvent, "~/transitions", qos.TRANSITIONS
         )
@@ -413,12 +417,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(__doc__)
         return 0 if args else 2
     try:
-        config = load_unit(args[0], args[1] if len(args) > 1 else None)
+        cell = load_cell(args[0])
+        config = pick_unit(cell, args[0], args[1] if len(args) > 1 else None)
         source = Path(args[0]).read_text(encoding="utf-8")
     except Exception as exc:  # ConfigError and friends: one readable message, exit 2
         print(f"unit_node: {exc}", file=sys.stderr)
         return 2
-    node = UnitNode(config, source=source)
+    node = UnitNode(config, source=source, unit_lease=cell.coordinator.unit_lease)
     return run.spin([node], on_shutdown=node.close)
 
 

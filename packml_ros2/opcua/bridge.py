@@ -4,19 +4,24 @@
 :class:`~packml_ros2.client.CellProxy` subscribes to every exposed unit's latched ``status``,
 ``admin`` topics (the proxy also subscribes ``alarms``; the Admin message carries the same lists)
 and hands each status and admin message to the asyncio loop with ``call_soon_threadsafe`` (values
-follow the topics: no polling). Service calls go the other way:
-the proxy's concurrent future is awaited with ``asyncio.wrap_future``.
+follow the topics: no polling). A :class:`~packml_ros2.presence.Presence` follows each unit's
+liveliness (lease ``unit_lease``); its changes reach the loop the same way. Service calls go the
+other way: the proxy's concurrent future is awaited with ``asyncio.wrap_future`` and abandoned
+at once when the unit is lost meanwhile.
 
-:class:`Methods` builds the method callbacks of one unit: each checks the caller
-(:func:`.security.may_call`), calls the unit's service with source ``opcua:<user>`` (``opcua`` for
-an anonymous session allowed to write) and answers Good, or a Bad status code with the unit's
-message as the reason (:func:`.security.refuse`).
+:class:`Methods` builds the method callbacks of one unit from the NodeSet's method definitions:
+each checks that the method belongs to the object it is called on, the input arguments against
+the NodeSet's signature (count, type, array or scalar), the caller (:func:`.security.may_call`)
+and the unit's presence, then calls the unit's service with :func:`.security.command_source` as
+the source and answers Good, or a Bad status code with the unit's message as the reason
+(:func:`.security.refuse`).
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import threading
 import time
 from collections.abc import Awaitable, Callable, Mapping, Sequence
@@ -25,18 +30,23 @@ from typing import Any
 from asyncua import ua
 
 from ..client import CellProxy, Unavailable
+from ..core.config import UnitConfig
+from ..core.numbers import Cmd
+from ..presence import Presence, Seen
 from .config import OpcUaConfig
-from .mapping import GOOD, RESULT_NAMES, result_status
-from .model import MACHINE_PATHS, MODE_ENUM, MethodDef, machine_methods
-from .security import may_call, refuse
+from .mapping import COMMAND_METHODS, GOOD, RESULT_NAMES, result_status
+from .nodeset import MethodDef, PackMLModel
+from .security import command_source, may_call, refuse
 
 #: The unit services the methods use (clients are created before spinning starts).
 USED_SERVICES = ("command", "set_mode", "set_mach_speed", "set_unit_parameters", "set_product")
 S = ua.StatusCodes
+INSTANCE_NS = 1  # the units' objects live in the server's own namespace (see .model)
 
 
 class RosSide:
-    """An rclpy node in a thread of its own, feeding ``on_message(unit, topic, msg)`` into ``loop``."""
+    """An rclpy node in a thread of its own, feeding ``on_message(unit, topic, msg)`` and
+    ``on_presence(unit, seen)`` into ``loop``."""
 
     def __init__(
         self,
@@ -44,6 +54,8 @@ class RosSide:
         units: Sequence[str],
         loop: asyncio.AbstractEventLoop,
         on_message: Callable[[str, str, Any], None],
+        on_presence: Callable[[str, Seen], None],
+        lease: float,
     ) -> None:
         import rclpy
         from rclpy.context import Context
@@ -52,6 +64,10 @@ class RosSide:
 
         self.loop = loop
         self._on_message = on_message
+        self._on_presence = on_presence
+        #: the presence of each unit as the loop knows it, and an event set while it is lost
+        self.seen: dict[str, Seen] = {u: Seen(None, time.time()) for u in units}
+        self._lost = {u: asyncio.Event() for u in units}
         self.context = Context()
         rclpy.init(
             context=self.context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO
@@ -61,6 +77,12 @@ class RosSide:
         for proxy in self.cell.units.values():
             for service in USED_SERVICES:
                 proxy.client(service)
+        self.presence = Presence(
+            self.node,
+            [proxy.path for proxy in self.cell.units.values()],
+            lease,
+            on_change=self._presence_changed,
+        )
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._stopping = threading.Event()
@@ -80,29 +102,59 @@ class RosSide:
         with contextlib.suppress(RuntimeError):  # the loop is closed: shutting down
             self.loop.call_soon_threadsafe(self._on_message, unit, topic, msg)
 
+    def _presence_changed(self, path: str, seen: Seen) -> None:
+        with contextlib.suppress(RuntimeError):
+            self.loop.call_soon_threadsafe(self._apply_presence, path.rsplit("/", 1)[-1], seen)
+
+    def _apply_presence(self, unit: str, seen: Seen) -> None:
+        """In the loop: remember, wake the calls waiting on a lost unit, tell the server."""
+        self.seen[unit] = seen
+        if seen.present is False:
+            self._lost[unit].set()
+        else:
+            self._lost[unit].clear()
+        self._on_presence(unit, seen)
+
+    def gone(self, unit: str) -> str:
+        """Why ``unit`` cannot be called now ('' = it can)."""
+        seen = self.seen[unit]
+        return seen.describe(self.cell.units[unit].path) if seen.present is False else ""
+
     async def call(self, unit: str, service: str, timeout: float, **fields: Any) -> Any:
-        """Call a unit's service from the asyncio loop; Unavailable when it does not answer."""
+        """Call a unit's service from the asyncio loop; :class:`Unavailable` when it does not
+        answer in time, or at once when the unit is (or becomes) lost."""
         proxy = self.cell.units[unit]
         client = proxy.client(service)
+        lost = self._lost[unit]
         deadline = time.monotonic() + timeout
         while not client.service_is_ready():
+            if lost.is_set():
+                raise Unavailable(self.gone(unit))
             if time.monotonic() >= deadline:
                 raise Unavailable(f"{proxy.path}/{service} is not available")
             await asyncio.sleep(0.05)
-        future = proxy.call(service, **fields)
+        answer = asyncio.ensure_future(asyncio.wrap_future(proxy.call(service, **fields)))
+        went = asyncio.ensure_future(lost.wait())
         try:
-            return await asyncio.wait_for(
-                asyncio.wrap_future(future), max(0.1, deadline - time.monotonic())
+            await asyncio.wait(
+                (answer, went),
+                timeout=max(0.1, deadline - time.monotonic()),
+                return_when=asyncio.FIRST_COMPLETED,
             )
-        except TimeoutError:
-            raise Unavailable(
-                f"{proxy.path}/{service} did not answer within {timeout:g} s"
-            ) from None
+        finally:
+            went.cancel()
+        if answer.done():
+            return answer.result()
+        answer.cancel()
+        if lost.is_set():
+            raise Unavailable(self.gone(unit))
+        raise Unavailable(f"{proxy.path}/{service} did not answer within {timeout:g} s")
 
     def stop(self) -> None:
         self._stopping.set()
         if self._thread.is_alive():
             self._thread.join(5.0)
+        self.presence.destroy()
         self.executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
         self.context.try_shutdown()
@@ -110,28 +162,44 @@ class RosSide:
 
 # -- method arguments -------------------------------------------------------------------------------------
 class BadArguments(Exception):
-    def __init__(self, status: int, text: str) -> None:
+    def __init__(self, status: int, text: str, index: int | None = None) -> None:
         super().__init__(text)
         self.status = status
+        self.index = index
 
 
-def _args(args: Sequence[Any], names: Sequence[str], required: int) -> list[Any]:
-    values = [a.Value if isinstance(a, ua.Variant) else a for a in args]
-    if len(values) < required:
-        raise BadArguments(S.BadArgumentsMissing, f"expected {', '.join(names)}")
-    if len(values) > len(names):
-        raise BadArguments(S.BadTooManyArguments, f"expected only {', '.join(names) or 'nothing'}")
-    return values + [None] * (len(names) - len(values))
-
-
-def _struct_list(value: Any, type_name: str, what: str) -> list[Any]:
-    if value is None:
-        return []
-    items = value if isinstance(value, list) else [value]
-    for item in items:
-        if type(item).__name__ != type_name:
-            raise BadArguments(S.BadTypeMismatch, f"{what}: expected {type_name}[]")
-    return items
+def check_arguments(model: PackMLModel, method: MethodDef, args: Sequence[Any]) -> list[Any]:
+    """The values of ``args`` (Variants) after checking them against the NodeSet's signature of
+    ``method``: their number, each one's type and rank; BadArguments otherwise."""
+    expected = method.arguments
+    names = ", ".join(a.name for a in expected) or "no arguments"
+    if len(args) < len(expected):
+        raise BadArguments(S.BadArgumentsMissing, f"expected {names}")
+    if len(args) > len(expected):
+        raise BadArguments(S.BadTooManyArguments, f"expected {names}")
+    values = []
+    for i, (arg, spec) in enumerate(zip(args, expected, strict=True)):
+        variant = arg if isinstance(arg, ua.Variant) else ua.Variant(arg)
+        ns, ident = spec.data_type
+        type_name = model.data_types.get(ident, "?") if ns else ua.VariantType(ident).name
+        array = spec.value_rank > 0
+        what = f"{spec.name}: expected {type_name}{'[]' if array else ''}"
+        value = variant.Value
+        if array and variant.VariantType == ua.VariantType.Null:
+            values.append([])  # a null array: no elements
+            continue
+        if array != isinstance(value, list):
+            raise BadArguments(S.BadTypeMismatch, what, i)
+        items = value if array else [value]
+        if ns:  # a structure of the PackML model
+            if variant.VariantType != ua.VariantType.ExtensionObject or any(
+                type(item).__name__ != type_name for item in items
+            ):
+                raise BadArguments(S.BadTypeMismatch, what, i)
+        elif variant.VariantType != ua.VariantType(ident):
+            raise BadArguments(S.BadTypeMismatch, f"{what}, not {variant.VariantType.name}", i)
+        values.append(value)
+    return values
 
 
 def _unit_text(eu: Any) -> str:
@@ -163,8 +231,20 @@ def product_msg(p: Any) -> Any:
     )
 
 
+def max_mach_speed(config: OpcUaConfig, unit: UnitConfig) -> float | None:
+    """The highest speed SetMachSpeed accepts for ``unit``: ``opcua.max_mach_speed``, else the
+    unit's MachDesignSpeed (``mach_design_speed``), else none."""
+    limit = config.max_mach_speed.get(unit.name)
+    if limit is None and unit.mach_design_speed > 0:
+        limit = unit.mach_design_speed
+    return limit
+
+
 # -- the methods of one unit ------------------------------------------------------------------------------
 Callback = Callable[..., Awaitable[ua.CallMethodResult]]
+Steps = list[tuple[str, Mapping[str, Any]]]
+#: A handler gets the checked argument values and returns (what, service steps) or a refusal.
+Handler = Callable[[list[Any]], "tuple[str, Steps] | ua.CallMethodResult"]
 
 
 class Methods:
@@ -172,31 +252,62 @@ class Methods:
 
     def __init__(
         self,
-        unit: str,
+        unit: UnitConfig,
         config: OpcUaConfig,
+        model: PackMLModel,
         ros: Callable[[], RosSide | None],
-        mode_enum: Callable[[], ua.NodeId | None],
-        packml_ns: Callable[[], int],
     ) -> None:
-        self.unit = unit
+        self.unit = unit.name
+        self.unit_config = unit
         self.config = config
+        self.model = model
         self._ros = ros
-        self._mode_enum = mode_enum
-        self._packml_ns = packml_ns
+        self.max_speed = max_mach_speed(config, unit)
 
     def callbacks(self) -> dict[str, Callback]:
-        out: dict[str, Callback] = {}
-        for machine, method in machine_methods():
-            out[f"{MACHINE_PATHS[machine.name]}/{method.name}"] = self._state_command(method)
-        out["SetUnitMode"] = self._set_unit_mode
-        out["SetMachSpeed"] = self._set_mach_speed
-        out["SetParameter"] = self._set_parameter
-        out["SetProduct"] = self._set_product
-        return out
+        handlers: dict[str, Handler] = {}
+        for machine in self.model.machines:
+            for method in machine.methods:
+                handlers[f"{machine.path}/{method.name}"] = self._state_command(method.name)
+        handlers["SetUnitMode"] = self._set_unit_mode
+        handlers["SetMachSpeed"] = self._set_mach_speed
+        handlers["SetParameter"] = self._set_parameter
+        handlers["SetProduct"] = self._set_product
+        return {path: self._callback(path, handler) for path, handler in handlers.items()}
 
-    async def _invoke(
-        self, what: str, steps: Sequence[tuple[str, Mapping[str, Any]]]
-    ) -> ua.CallMethodResult:
+    def _callback(self, path: str, handler: Handler) -> Callback:
+        folder = path.rpartition("/")[0]
+        owner = ua.NodeId(f"{self.unit}.{folder.replace('/', '.')}" if folder else self.unit,
+                          INSTANCE_NS)  # fmt: skip
+        method = self.model.method(path)
+
+        async def call(parent: ua.NodeId, *args: Any) -> ua.CallMethodResult:
+            if parent != owner:  # OPC UA Part 4: the method must be a component of the object
+                return refuse(S.BadMethodInvalid, "INVALID_ARGUMENT",
+                              f"{method.name} is not a method of {parent.to_string()}")  # fmt: skip
+            try:
+                values = check_arguments(self.model, method, args)
+            except BadArguments as exc:
+                results = None
+                if exc.index is not None:
+                    results = [GOOD] * len(args)
+                    results[exc.index] = exc.status
+                status = S.BadInvalidArgument if exc.index is not None else exc.status
+                return refuse(status, "INVALID_ARGUMENT", f"{method.name}: {exc}", results)
+            outcome = handler(values)
+            if isinstance(outcome, ua.CallMethodResult):
+                return outcome
+            return await self._invoke(*outcome)
+
+        return call
+
+    def executable(self) -> bool:
+        """Whether the unit's methods can be executed now (the unit is not lost)."""
+        ros = self._ros()
+        return ros is not None and not ros.gone(self.unit)
+
+    async def _invoke(self, what: str, steps: Steps) -> ua.CallMethodResult:
+        """The one way a command or request goes from OPC UA to the unit."""
         allowed, user = may_call(self.config)
         if not allowed:
             return refuse(
@@ -208,91 +319,64 @@ class Methods:
         ros = self._ros()
         if ros is None:
             return refuse(S.BadNoCommunication, "UNIT_UNAVAILABLE", "the ROS side is not running")
-        source = f"opcua:{user}" if user else "opcua"
+        gone = ros.gone(self.unit)
+        if gone:
+            return refuse(S.BadNoCommunication, "UNIT_UNAVAILABLE", f"{what} refused: {gone}")
+        source = command_source(user)
         for service, fields in steps:
             try:
                 answer = await ros.call(
                     self.unit, service, self.config.call_timeout, source=source, **fields
                 )
             except Unavailable as exc:
-                return refuse(S.BadNoCommunication, "UNIT_UNAVAILABLE", str(exc))
+                return refuse(S.BadNoCommunication, "UNIT_UNAVAILABLE", f"{what} refused: {exc}")
             status = result_status(answer.accepted, answer.result)
             if status != GOOD:
                 message = getattr(answer, "message", "") or f"{what} refused"
                 return refuse(status, RESULT_NAMES.get(int(answer.result), "REFUSED"), message)
         return ua.CallMethodResult(StatusCode=ua.StatusCode(GOOD))
 
-    def _state_command(self, method: MethodDef) -> Callback:
-        async def call(parent: ua.NodeId, *args: Any) -> ua.CallMethodResult:
-            steps: list[tuple[str, Mapping[str, Any]]] = []
-            try:
-                if method.args:  # Start(Parameter[]): set the parameters, then start
-                    (params,) = _args(args, [a[0] for a in method.args], 0)
-                    items = _struct_list(params, "PackMLDescriptorDataType", "Parameter")
-                    if items:
-                        steps.append(
-                            (
-                                "set_unit_parameters",
-                                {"parameter": [descriptor_msg(d) for d in items]},
-                            )
-                        )
-                else:
-                    _args(args, [], 0)
-            except BadArguments as exc:
-                return refuse(exc.status, "INVALID_ARGUMENT", f"{method.name}: {exc}")
-            steps.append(("command", {"command": method.command}))
-            return await self._invoke(method.name, steps)
+    def _state_command(self, name: str) -> Handler:
+        command = next(c for c, m in COMMAND_METHODS.items() if m == name)
 
-        return call
+        def handle(values: list[Any]) -> tuple[str, Steps]:
+            steps: Steps = []
+            if values and values[0] and self._valid_now(command):
+                # Start(Parameter[]): the parameters, then Start (not when Start would be refused:
+                # a refused request changes nothing)
+                parameter = [descriptor_msg(d) for d in values[0]]
+                steps.append(("set_unit_parameters", {"parameter": parameter}))
+            steps.append(("command", {"command": int(command)}))
+            return name, steps
 
-    async def _set_unit_mode(self, parent: ua.NodeId, *args: Any) -> ua.CallMethodResult:
-        try:
-            selection, mode = _args(args, ["ModeSelection", "RequestedMode"], 2)
-            if not isinstance(mode, int) or isinstance(mode, bool):
-                raise BadArguments(S.BadTypeMismatch, "RequestedMode: expected an Int32")
-            enum = self._mode_enum()
-            accepted = {enum, ua.NodeId(MODE_ENUM, self._packml_ns())}
-            if (
-                isinstance(selection, ua.NodeId)
-                and not selection.is_null()
-                and selection not in accepted
-            ):
-                expected = enum.to_string() if enum is not None else "?"
-                raise BadArguments(
-                    S.BadInvalidArgument,
-                    f"ModeSelection: expected {expected} (the value of Status/UnitSupportedModes)",
-                )
-        except BadArguments as exc:
-            return refuse(exc.status, "INVALID_ARGUMENT", f"SetUnitMode: {exc}")
-        return await self._invoke(f"SetUnitMode({mode})", [("set_mode", {"mode": mode})])
+        return handle
 
-    async def _set_mach_speed(self, parent: ua.NodeId, *args: Any) -> ua.CallMethodResult:
-        try:
-            (speed,) = _args(args, ["RequestedMachineSpeed"], 1)
-            if not isinstance(speed, int | float) or isinstance(speed, bool):
-                raise BadArguments(S.BadTypeMismatch, "RequestedMachineSpeed: expected a Float")
-        except BadArguments as exc:
-            return refuse(exc.status, "INVALID_ARGUMENT", f"SetMachSpeed: {exc}")
-        return await self._invoke(
-            "SetMachSpeed", [("set_mach_speed", {"mach_speed": float(speed)})]
-        )
+    def _valid_now(self, command: Cmd) -> bool:
+        ros = self._ros()
+        status = ros.cell.units[self.unit].status if ros is not None else None
+        return status is not None and int(command) in status.commands_valid
 
-    async def _set_parameter(self, parent: ua.NodeId, *args: Any) -> ua.CallMethodResult:
-        try:
-            (params,) = _args(args, ["Parameter"], 1)
-            items = _struct_list(params, "PackMLDescriptorDataType", "Parameter")
-        except BadArguments as exc:
-            return refuse(exc.status, "INVALID_ARGUMENT", f"SetParameter: {exc}")
-        parameter = [descriptor_msg(d) for d in items]
-        return await self._invoke(
-            "SetParameter", [("set_unit_parameters", {"parameter": parameter})]
-        )
+    def _set_unit_mode(self, values: list[Any]) -> tuple[str, Steps]:
+        (mode,) = values
+        return f"SetUnitMode({mode})", [("set_mode", {"mode": mode})]
 
-    async def _set_product(self, parent: ua.NodeId, *args: Any) -> ua.CallMethodResult:
-        try:
-            (products,) = _args(args, ["Product"], 1)
-            items = _struct_list(products, "PackMLProductDataType", "Product")
-        except BadArguments as exc:
-            return refuse(exc.status, "INVALID_ARGUMENT", f"SetProduct: {exc}")
-        product = [product_msg(p) for p in items]
-        return await self._invoke("SetProduct", [("set_product", {"product": product})])
+    def _set_mach_speed(self, values: list[Any]) -> tuple[str, Steps] | ua.CallMethodResult:
+        (speed,) = values
+        limit = self.max_speed
+        if not math.isfinite(speed) or speed < 0 or (limit is not None and speed > limit):
+            bound = f"0 .. {limit:g}" if limit is not None else "a finite number >= 0"
+            configured = self.unit in self.config.max_mach_speed
+            origin = "opcua.max_mach_speed" if configured else "MachDesignSpeed"
+            text = f"SetMachSpeed({speed:g}) refused: {self.unit} accepts {bound}" + (
+                f" ({origin})" if limit is not None else ""
+            )
+            return refuse(S.BadInvalidArgument, "INVALID_ARGUMENT", text, [S.BadOutOfRange])
+        return "SetMachSpeed", [("set_mach_speed", {"mach_speed": float(speed)})]
+
+    def _set_parameter(self, values: list[Any]) -> tuple[str, Steps]:
+        parameter = [descriptor_msg(d) for d in values[0]]
+        return "SetParameter", [("set_unit_parameters", {"parameter": parameter})]
+
+    def _set_product(self, values: list[Any]) -> tuple[str, Steps]:
+        product = [product_msg(p) for p in values[0]]
+        return "SetProduct", [("set_product", {"product": product})]

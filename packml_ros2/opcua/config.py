@@ -19,6 +19,8 @@
       state_dir: ~/.local/state/packml_ros2/opcua
       application_uri: urn:packml_ros2:<cell>
       call_timeout: 10.0           # seconds a method waits for the unit's answer
+      max_mach_speed: 60           # highest speed SetMachSpeed accepts: a number for every unit,
+                                   #   or {unit: number}; default: each unit's mach_design_speed
 
 Relative paths are relative to the cell file. Errors name the key path (``opcua.users.mes``).
 """
@@ -53,6 +55,7 @@ KEYS = {
     "host", "port", "units", "allow_anonymous", "allow_anonymous_write", "users",
     "user_certificates", "security_policies", "certificate", "private_key",
     "trusted_client_certificates", "state_dir", "application_uri", "call_timeout",
+    "max_mach_speed",
 }  # fmt: skip
 HASH_PREFIX = "pbkdf2_sha256$"
 
@@ -74,6 +77,7 @@ class OpcUaConfig:
     state_dir: Path = Path(DEFAULT_STATE_DIR).expanduser() / "opcua"
     application_uri: str = ""
     call_timeout: float = 10.0
+    max_mach_speed: dict[str, float] = field(default_factory=dict)  # unit -> highest speed
 
     @property
     def endpoint(self) -> str:
@@ -149,6 +153,21 @@ def _policy(n: Node) -> str:
     return POLICIES[key]
 
 
+def _max_mach_speed(root: Node, cell: CellConfig) -> dict[str, float]:
+    """``max_mach_speed``: one number for every unit, or a number per unit."""
+    value = root.mapping().get("max_mach_speed")
+    speed = sc.number(lo=0)
+    if value is None or not isinstance(value, dict):
+        limit = root.get("max_mach_speed", speed, None)
+        return {} if limit is None else dict.fromkeys(cell.units, limit)
+    out = {}
+    for name, n in root.items_at("max_mach_speed"):
+        if name not in cell.units:
+            n.error(f"unknown unit {name!r}; the cell has {', '.join(cell.units)}")
+        out[name] = n.parse(speed, 0.0)
+    return out
+
+
 def parse_opcua(cell: CellConfig, base: Path | None = None) -> OpcUaConfig:
     """Validate ``cell.opcua``; :class:`ConfigError` lists every problem with its key path."""
     file = cell.file
@@ -182,6 +201,7 @@ def parse_opcua(cell: CellConfig, base: Path | None = None) -> OpcUaConfig:
     if (certificate is None) != (private_key is None):
         root.error("certificate and private_key go together: give both or neither")
     config = OpcUaConfig(
+        max_mach_speed=_max_mach_speed(root, cell),
         cell=cell.cell,
         units=units,
         host=root.get("host", _host, "127.0.0.1"),

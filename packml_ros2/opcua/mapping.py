@@ -3,30 +3,35 @@
 Pure functions (no server, no ROS node): :func:`status_values` and :func:`admin_values` return
 ``{relative browse path: Value}`` for one unit object (paths as in :class:`.model.UnitNodes`);
 structured values are :class:`Struct` (type name + fields) until the server turns them into the
-data type classes asyncua generated from the model. The dotted PackTags names of
-``packml_ros2.core.packtags.flat_tags`` correspond as follows::
+data type classes asyncua generated from the NodeSet. The state machines follow the official
+NodeSet (:mod:`.nodeset`): the Cleared and Running states, their NodeIds and StateNumbers are
+read from it. The dotted PackTags names of ``packml_ros2.core.packtags.flat_tags`` correspond as
+follows (OPC 30050 v1.01 names)::
 
     Status.UnitModeCurrent            Status/UnitModeCurrent (the unit's mode enumeration)
-    Status.UnitModeChangeInProcess    Status/UnitModeChangeInProgress
+    Status.UnitModeChangeInProcess    Status/UnitModeChangeInProcess
     Status.StateCurrent               BaseStateMachine/.../CurrentState/Number (+ Status/StateCurrent)
     Status.StateRequested             Status/StateRequested
-    Status.StateChangeInProcess       Status/StateChangeInProgress
+    Status.StateChangeInProcess       Status/StateChangeInProcess
     Status.EquipmentInterlock.Blocked Status/EquipmentBlocked (Starved likewise)
     Admin.Alarm[#] / AlarmExtent      Admin/Alarm (PackMLAlarmDataType[]) / Admin/AlarmExtent
     Admin.ProdProcessedCount[#]       Admin/ProdProcessedCount (PackMLCountDataType[])
     Admin.StateCurrentTime[m,s]       Admin/StateCurrentTime (Int32[32,18])
+    Admin.StatesDisabled / the model  */AvailableStates, */AvailableTransitions (:func:`available_values`)
 """
 
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from asyncua import ua
 
-from .model import BASE_SM, EXECUTE_SM, MACHINE_PATHS, MACHINE_SM
+from ..core.numbers import Cmd
+from .available import Graph
+from .nodeset import PackMLModel, TransitionDef
 
 UNECE_URI = "http://www.opcfoundation.org/UA/units/un/cefact"
 #: Engineering units of counters and descriptors -> UN/CEFACT Recommendation 20 common codes.
@@ -160,42 +165,82 @@ def alarm(a: Any | None) -> Struct:
 
 
 # -- the state machines -------------------------------------------------------------------------------------
-def _places() -> dict[int, tuple[str | None, str | None, str | None]]:
-    """PackML state number -> the current state of (BaseStateMachine, MachineState, ExecuteState);
-    None: that (sub) state machine is not active."""
-    out: dict[int, tuple[str | None, str | None, str | None]] = {}
-    for s in EXECUTE_SM.states:
-        out[s.number] = ("Cleared", "Running", s.name)
-    for s in MACHINE_SM.states:
-        if s.name != "Running":
-            out[s.number] = ("Cleared", s.name, None)
-    for s in BASE_SM.states:
-        if s.name != "Cleared":
-            out[s.number] = (s.name, None, None)
-    return out
-
-
-PLACES = _places()
-_STATE_IDS = {s.name: s.id for m in (BASE_SM, MACHINE_SM, EXECUTE_SM) for s in m.states}
-_STATE_NUMBERS = {s.name: s.number for m in (BASE_SM, MACHINE_SM, EXECUTE_SM) for s in m.states}
-
-
-def state_machine_values(state: int, packml_ns: int) -> dict[str, Value]:
-    """CurrentState (LocalizedText), its Id (the state object of the companion specification's
-    state machine type) and Number (StateNumber) of the three nested state machines."""
-    places = PLACES.get(int(state), (None, None, None))
+def state_machine_values(model: PackMLModel, state: int, packml_ns: int) -> dict[str, Value]:
+    """CurrentState (LocalizedText), its Id (the state object of the NodeSet's state machine type)
+    and Number (its StateNumber) of the three nested state machines; a sub state machine that is
+    not active is BadStateNotActive."""
     out: dict[str, Value] = {}
-    for machine, current in zip((BASE_SM, MACHINE_SM, EXECUTE_SM), places, strict=True):
-        path = f"{MACHINE_PATHS[machine.name]}/CurrentState"
+    for machine, current in zip(model.machines, model.places(state), strict=True):
+        path = f"{machine.path}/CurrentState"
         if current is None:
             out[path] = Value(ua.LocalizedText(""), ua.VariantType.LocalizedText, NOT_ACTIVE)
             out[f"{path}/Id"] = Value(ua.NodeId(), ua.VariantType.NodeId, NOT_ACTIVE)
             out[f"{path}/Number"] = Value(0, ua.VariantType.UInt32, NOT_ACTIVE)
             continue
-        out[path] = Value(ua.LocalizedText(current, "en"), ua.VariantType.LocalizedText)
-        out[f"{path}/Id"] = Value(ua.NodeId(_STATE_IDS[current], packml_ns), ua.VariantType.NodeId)
-        out[f"{path}/Number"] = Value(_STATE_NUMBERS[current], ua.VariantType.UInt32)
+        out[path] = Value(ua.LocalizedText(current.name, "en"), ua.VariantType.LocalizedText)
+        out[f"{path}/Id"] = Value(ua.NodeId(current.id, packml_ns), ua.VariantType.NodeId)
+        out[f"{path}/Number"] = Value(current.number, ua.VariantType.UInt32)
     return out
+
+
+#: The method that causes a command's transition (OPC 30050 names): Reset, Start, ..., ToComplete.
+COMMAND_METHODS: Mapping[Cmd, str] = {
+    c: "ToComplete" if c is Cmd.COMPLETE else c.name.title() for c in Cmd if c is not Cmd.UNDEFINED
+}
+#: A transition of one machine: (machine path, from state, to state) by their NodeSet names.
+Step = tuple[str, str, str]
+
+
+def transition_steps(model: PackMLModel, graph: Graph) -> dict[Step, str]:
+    """Each edge of ``graph`` as a transition of the machine where it happens (the outermost one
+    whose current state changes: Execute -> Stopping is MachineState's Running -> Stopping), with
+    the method that causes it ("" = State Complete)."""
+    out: dict[Step, str] = {}
+    for (frm, to), causes in graph.edges.items():
+        for machine, a, b in zip(model.machines, model.places(frm), model.places(to), strict=True):
+            if a != b:
+                if a is not None and b is not None:
+                    cause = min((COMMAND_METHODS[c] for c in causes), default="")
+                    out.setdefault((machine.path, a.name, b.name), cause)
+                break
+    return out
+
+
+def nodeset_transitions(model: PackMLModel) -> dict[Step, TransitionDef]:
+    return {(m.path, t.from_state, t.to_state): t for m in model.machines for t in m.transitions}
+
+
+def available_values(
+    model: PackMLModel, graph: Graph, packml_ns: int, extra: Mapping[Step, ua.NodeId]
+) -> dict[str, Value]:
+    """``AvailableStates`` and ``AvailableTransitions`` of the three machines for ``graph`` (the
+    unit's states and transitions in its current mode): NodeIds of the NodeSet's state and
+    transition objects, and of ``extra`` transitions for the edges the NodeSet does not model
+    (e.g. Held -> Completing of TR88-2022)."""
+    states: dict[str, set[int]] = {m.path: set() for m in model.machines}
+    for s in graph.states:
+        for machine, place in zip(model.machines, model.places(s), strict=True):
+            if place is not None:
+                states[machine.path].add(place.id)
+    modelled = nodeset_transitions(model)
+    transitions: dict[str, list[ua.NodeId]] = {m.path: [] for m in model.machines}
+    for step in sorted(transition_steps(model, graph)):
+        if step in modelled:
+            transitions[step[0]].append(ua.NodeId(modelled[step].id, packml_ns))
+        elif step in extra:
+            transitions[step[0]].append(extra[step])
+    out: dict[str, Value] = {}
+    for m in model.machines:
+        ids = [ua.NodeId(i, packml_ns) for i in sorted(states[m.path])]
+        out[f"{m.path}/AvailableStates"] = Value(ids, ua.VariantType.NodeId)
+        out[f"{m.path}/AvailableTransitions"] = Value(transitions[m.path], ua.VariantType.NodeId)
+    return out
+
+
+def version(model_name: str) -> str:
+    """``PackMLVersion`` (v1.01: a String, e.g. the NodeSet's default ``TR88.00.02-2015``): the
+    TR88 edition whose state model the unit follows."""
+    return f"TR88.00.02-{model_name}"
 
 
 # -- whole messages -----------------------------------------------------------------------------------------
@@ -203,7 +248,7 @@ I32, F, B = ua.VariantType.Int32, ua.VariantType.Float, ua.VariantType.Boolean
 EO = ua.VariantType.ExtensionObject
 
 
-def status_values(msg: Any, packml_ns: int) -> dict[str, Value]:
+def status_values(msg: Any, model: PackMLModel, packml_ns: int) -> dict[str, Value]:
     """packml_interfaces/Status -> the unit's Status object and state machines."""
     out = {
         "Status/UnitModeCurrent": Value(int(msg.unit_mode_current), I32),
@@ -213,9 +258,9 @@ def status_values(msg: Any, packml_ns: int) -> dict[str, Value]:
             or int(msg.unit_mode_requested) != int(msg.unit_mode_current),
             B,
         ),
-        "Status/UnitModeChangeInProgress": Value(bool(msg.unit_mode_change_in_process), B),
+        "Status/UnitModeChangeInProcess": Value(bool(msg.unit_mode_change_in_process), B),
         "Status/StateRequested": Value(int(msg.state_requested), I32),
-        "Status/StateChangeInProgress": Value(bool(msg.state_change_in_process), B),
+        "Status/StateChangeInProcess": Value(bool(msg.state_change_in_process), B),
         "Status/MachSpeed": Value(float(msg.mach_speed), F),
         "Status/CurMachSpeed": Value(float(msg.cur_mach_speed), F),
         "Status/EquipmentBlocked": Value(bool(msg.equipment_interlock.blocked), B),
@@ -225,7 +270,7 @@ def status_values(msg: Any, packml_ns: int) -> dict[str, Value]:
         "Status/RemoteParameter": Value([remote_interface(r) for r in msg.remote_interface], EO),
         "Status/StateCurrent": Value(int(msg.state_current), I32),
     }
-    out.update(state_machine_values(msg.state_current, packml_ns))
+    out.update(state_machine_values(model, msg.state_current, packml_ns))
     return out
 
 
@@ -266,6 +311,21 @@ def admin_values(msg: Any) -> dict[str, Value]:
                 ua.Range(Low=0.0, High=design), ua.VariantType.ExtensionObject
             )
     return out
+
+
+# -- a unit that is gone ----------------------------------------------------------------------------------
+LOST_STATUS = ua.StatusCodes.BadCommunicationError
+LOST_ADMIN = ua.StatusCodes.UncertainLastUsableValue
+
+
+def lost_status(path: str) -> int:
+    """The status of a value while its unit is lost (:mod:`packml_ros2.presence`): the live status
+    (Status, the state machines) is Bad_CommunicationError, a dead unit has no known state; the
+    accumulated Admin data (counts, times, alarms) and the speeds' EURange (from the unit's
+    configuration) keep their last value as Uncertain_LastUsableValue."""
+    if path.startswith("Admin/") or path.endswith("/EURange"):
+        return LOST_ADMIN
+    return LOST_STATUS
 
 
 # -- answers -----------------------------------------------------------------------------------------------

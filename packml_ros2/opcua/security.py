@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import contextvars
 import logging
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -125,9 +125,42 @@ def may_call(config: OpcUaConfig) -> tuple[bool, str]:
     return config.allow_anonymous_write, ""
 
 
-def refuse(status: int, symbol: str, text: str) -> ua.CallMethodResult:
-    """A refused method call: ``status`` and, for diagnostics, the reason."""
+def command_source(user: str) -> str:
+    """The ``source`` of every command and request sent from OPC UA: ``opcua:<user>`` for a user
+    session, ``opcua:anonymous`` for an anonymous one allowed to write. Units record it with every
+    transition; the unit's local/remote lock applies to it here, in one place."""
+    return f"opcua:{user or 'anonymous'}"
+
+
+def executable_callbacks(
+    server: Any, method: ua.NodeId, executable: Callable[[], bool], config: OpcUaConfig
+) -> None:
+    """``Executable`` of ``method``: ``executable()`` (e.g. the unit is not lost);
+    ``UserExecutable``: that and whether the reading session may call methods at all
+    (:func:`may_call`), so a read-only session sees false on every method it would be refused."""
+    aspace = server.iserver.aspace
+
+    def boolean(value: bool) -> ua.DataValue:
+        return ua.DataValue(ua.Variant(value, ua.VariantType.Boolean))
+
+    aspace.set_attribute_value_callback(
+        method, ua.AttributeIds.Executable, lambda *_: boolean(executable())
+    )
+    aspace.set_attribute_value_callback(
+        method,
+        ua.AttributeIds.UserExecutable,
+        lambda *_: boolean(executable() and may_call(config)[0]),
+    )
+
+
+def refuse(
+    status: int, symbol: str, text: str, argument_results: list[int] | None = None
+) -> ua.CallMethodResult:
+    """A refused method call: ``status`` (and per input argument, ``argument_results``) and, for
+    diagnostics, the reason."""
     result = ua.CallMethodResult(StatusCode=ua.StatusCode(status))
+    if argument_results is not None:
+        result.InputArgumentResults = [ua.StatusCode(code) for code in argument_results]
     refusals = _REFUSALS.get()
     if refusals is not None:
         refusals[id(result)] = (symbol, text)

@@ -1,10 +1,16 @@
 """``packml opcua``: a cell's units as OPC 30050 objects on an asyncua server.
 
-:class:`PackMLServer` builds the address space (:mod:`.model`), configures endpoints, users and
-certificates from the ``opcua:`` block (:mod:`.config`, :mod:`.security`), starts the ROS side
-(:mod:`.bridge`) and writes every status and admin message of a unit into its object as it
-arrives. Several messages that arrive while a write is in progress are coalesced per unit and
-topic: the newest one wins, so a slow client never makes the server fall behind the cell.
+:class:`PackMLServer` loads the official PackML NodeSet and instantiates one object per unit
+(:mod:`.model`), configures endpoints, users and certificates from the ``opcua:`` block
+(:mod:`.config`, :mod:`.security`), starts the ROS side (:mod:`.bridge`) and writes every status
+and admin message of a unit into its object as it arrives. Several messages that arrive while a
+write is in progress are coalesced per unit and topic: the newest one wins, so a slow client never
+makes the server fall behind the cell.
+
+A unit that is lost (:mod:`packml_ros2.presence`: no sign of life within ``unit_lease``) looks
+lost: its Status and state machine values turn Bad_CommunicationError, its Admin values keep their
+last value as Uncertain_LastUsableValue (:func:`.mapping.lost_status`), its methods are not
+Executable and fail at once. When it is back, its values are Good again.
 """
 
 from __future__ import annotations
@@ -23,12 +29,26 @@ from typing import Any
 
 from asyncua import Server, ua
 
-from ..core.config import CellConfig
+from ..core.config import CellConfig, UnitConfig
+from ..presence import Seen
 from . import security
+from .available import unit_graph
 from .bridge import Methods, RosSide
 from .config import OpcUaConfig
-from .mapping import Struct, Value, admin_values, status_values, utc
-from .model import PACKML_OPC, AddressSpace, UnitNodes
+from .mapping import (
+    Step,
+    Struct,
+    Value,
+    admin_values,
+    available_values,
+    lost_status,
+    nodeset_transitions,
+    status_values,
+    transition_steps,
+    utc,
+    version,
+)
+from .model import AddressSpace, UnitNodes, variable_paths
 
 _logger = logging.getLogger(__name__)
 
@@ -105,6 +125,18 @@ def warnings(config: OpcUaConfig) -> list[str]:
     return out
 
 
+def extra_steps(space: AddressSpace, unit: UnitConfig) -> dict[Step, str]:
+    """The transitions of ``unit``'s rules, over all its modes, that the NodeSet does not model
+    (e.g. Held -> Completing of TR88-2022): the unit object gets its own for them."""
+    modelled = nodeset_transitions(space.model)
+    out: dict[Step, str] = {}
+    for mode in unit.modes:
+        for step, cause in transition_steps(space.model, unit_graph(unit, mode)).items():
+            if step not in modelled:
+                out.setdefault(step, cause)
+    return out
+
+
 class PackMLServer:
     """The OPC UA server of one cell."""
 
@@ -115,7 +147,10 @@ class PackMLServer:
         self.space: AddressSpace | None = None
         self.units: dict[str, UnitNodes] = {}
         self.ros: RosSide | None = None
-        self._last: dict[tuple[str, str], Value] = {}
+        self._last: dict[tuple[str, str], tuple[Value, int]] = {}
+        self._messages: dict[tuple[str, str], Any] = {}  # the newest status / admin per unit
+        self._present: dict[str, bool | None] = dict.fromkeys(config.units)
+        self._available: dict[tuple[str, int], dict[str, Value]] = {}  # per unit and mode
         self._pending: OrderedDict[tuple[str, str], Any] = OrderedDict()
         self._flushing: asyncio.Task[None] | None = None
         self.users: security.Users | None = None
@@ -134,10 +169,6 @@ class PackMLServer:
         server.manufacturer_name = "packml_ros2"
         server.application_type = ua.ApplicationType.Server
         await server.set_application_uri(config.app_uri())
-        await server.set_build_info(
-            "urn:packml_ros2", "packml_ros2", "packml_ros2", f"OPC 30050 {PACKML_OPC}", "0",
-            dt.datetime.now(dt.UTC),
-        )  # fmt: skip
         if config.secure:
             cert, key = await ensure_certificate(config)
             await server.load_certificate(str(cert))
@@ -153,65 +184,117 @@ class PackMLServer:
             )
         self.server = server
         self.space = space = AddressSpace(server)
-        await space.build_types()
-        space.u = 1  # the instances live in the server's own namespace (its application URI)
+        await space.load_nodeset()
+        await server.set_build_info(
+            "urn:packml_ros2", "packml_ros2", "packml_ros2",
+            f"OPC 30050 PackML {space.model.version}", "0", dt.datetime.now(dt.UTC),
+        )  # fmt: skip
         for name in config.units:
             unit = self.cell.units[name]
-            methods = Methods(
-                name,
-                config,
-                ros=lambda: self.ros,
-                mode_enum=lambda n=name: self.units[n].mode_enum,
-                packml_ns=lambda: space.p,
-            )
-            self.units[name] = await space.build_unit(
+            methods = Methods(unit, config, space.model, ros=lambda: self.ros)
+            nodes = self.units[name] = await space.build_unit(
                 name,
                 f"/{self.cell.cell}/{name}",
                 unit.description,
                 {m.number: m.name for m in sorted(unit.modes.values(), key=lambda m: m.number)},
+                version(unit.table.model),
+                extra_steps(space, unit),
                 methods.callbacks(),
             )
+            for method in nodes.methods.values():
+                security.executable_callbacks(server, method, methods.executable, config)
         await server.start()
         self.ros = RosSide(
-            self.cell.cell, list(config.units), asyncio.get_running_loop(), self._on_message
+            self.cell.cell,
+            list(config.units),
+            asyncio.get_running_loop(),
+            self._on_message,
+            self._on_presence,
+            self.cell.coordinator.unit_lease,
         )
         self.ros.start()
 
     # -- ROS -> OPC UA ---------------------------------------------------------------------------------
     def _on_message(self, unit: str, topic: str, msg: Any) -> None:
         """In the loop: remember the newest message per (unit, topic), write them in order."""
-        self._pending.pop((unit, topic), None)
-        self._pending[(unit, topic)] = msg
+        self._messages[(unit, topic)] = msg
+        self._queue(unit, topic, msg)
+
+    def _on_presence(self, unit: str, seen: Seen) -> None:
+        """In the loop: the unit is lost or back; rewrite all its values with their status."""
+        self._present[unit] = seen.present
+        self._queue(unit, "presence", seen)
+
+    def _queue(self, unit: str, what: str, item: Any) -> None:
+        self._pending.pop((unit, what), None)
+        self._pending[(unit, what)] = item
         if self._flushing is None or self._flushing.done():
             self._flushing = asyncio.get_running_loop().create_task(self._flush())
 
     async def _flush(self) -> None:
         while self._pending:
-            (unit, topic), msg = self._pending.popitem(last=False)
+            (unit, what), item = self._pending.popitem(last=False)
             try:
-                await self._apply(unit, topic, msg)
+                if what == "presence":
+                    await self._rewrite(unit)
+                else:
+                    await self._apply(unit, what, item)
             except Exception:
-                _logger.exception("OPC UA: could not write %s of %s", topic, unit)
+                _logger.exception("OPC UA: could not write %s of %s", what, unit)
+
+    def _values(self, unit: str, topic: str, msg: Any) -> dict[str, Value]:
+        assert self.space is not None
+        space = self.space
+        if topic != "status":
+            return admin_values(msg)
+        values = status_values(msg, space.model, space.p)
+        key = (unit, int(msg.unit_mode_current))
+        available = self._available.get(key)
+        if available is None:
+            graph = unit_graph(self.cell.units[unit], key[1])
+            extra = self.units[unit].extra_transitions
+            available = self._available[key] = available_values(space.model, graph, space.p, extra)
+        values.update(available)
+        return values
 
     async def _apply(self, unit: str, topic: str, msg: Any) -> None:
-        assert self.server is not None and self.space is not None
-        values = status_values(msg, self.space.p) if topic == "status" else admin_values(msg)
+        assert self.server is not None
         stamp = utc(msg.stamp)
         source_time = None if stamp.year < 1971 else stamp
         nodes = self.units[unit].variables
-        for path, value in values.items():
+        lost = self._present[unit] is False
+        for path, value in self._values(unit, topic, msg).items():
             node = nodes.get(path)
-            if node is None or self._last.get((unit, path)) == value:
+            status = lost_status(path) if lost else value.status
+            if node is None or self._last.get((unit, path)) == (value, status):
                 continue
-            self._last[(unit, path)] = value
+            self._last[(unit, path)] = (value, status)
             await self.server.write_attribute_value(
                 node,
                 ua.DataValue(
-                    variant(value),
-                    StatusCode=ua.StatusCode(value.status),
-                    SourceTimestamp=source_time,
+                    variant(value), StatusCode=ua.StatusCode(status), SourceTimestamp=source_time
                 ),
             )
+
+    async def _rewrite(self, unit: str) -> None:
+        """Every value of ``unit`` again, with the status its presence gives it; values no message
+        brought yet are Bad_CommunicationError while the unit is lost."""
+        assert self.server is not None
+        for topic in ("status", "admin"):
+            msg = self._messages.get((unit, topic))
+            if msg is not None:
+                await self._apply(unit, topic, msg)
+        if self._present[unit] is False:
+            nodes = self.units[unit]
+            now = dt.datetime.now(dt.UTC)
+            for path in variable_paths(nodes):
+                if (unit, path) not in self._last:
+                    await self.server.write_attribute_value(
+                        nodes.variables[path],
+                        ua.DataValue(
+                            StatusCode=ua.StatusCode(lost_status(path)), SourceTimestamp=now
+                        ),
+                    )
 
     # -- the rest ----------------------------------------------------------------------------------
     def describe(self) -> str:
@@ -232,7 +315,8 @@ class PackMLServer:
         users = ", ".join([*config.users, *config.user_certificates]) or "none configured"
         lines = [
             f"OPC UA server for cell {config.cell} on {config.endpoint}",
-            f"  units: {', '.join(config.units)} under Objects/PackMLObjects (OPC 30050 PackMLBaseObjectType)",
+            f"  units: {', '.join(config.units)} under Objects/PackMLObjects (OPC 30050 v1.01 "
+            f"PackMLBaseObjectType; lost after {self.cell.coordinator.unit_lease:g} s without a sign of life)",
             f"  security policies: {policies}",
             f"  anonymous: {anonymous}; users for commands: {users}",
         ]  # fmt: skip

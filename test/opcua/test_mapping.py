@@ -1,5 +1,7 @@
-"""Issue 8, without a network: the OPC 30050 mapping of the unit's messages, the answer codes, the
-``opcua:`` configuration, users and permissions, and the diagnostics a refused call carries."""
+"""Issues 8 and 17, without a network: the OPC 30050 v1.01 mapping of the unit's messages (from the
+official NodeSet), AvailableStates/AvailableTransitions from the unit's rules, the argument checks,
+the status of a lost unit's values, the answer codes, the ``opcua:`` configuration, users and
+permissions, and the diagnostics a refused call carries."""
 
 from __future__ import annotations
 
@@ -15,10 +17,13 @@ from asyncua.ua.ua_binary import struct_from_binary, struct_to_binary
 from builtin_interfaces.msg import Time
 from packml_interfaces.msg import Admin, Alarm, Count, Descriptor, Product, Status
 
-from packml_ros2.core import ConfigError, load_cell
-from packml_ros2.opcua import mapping, security
+from packml_ros2.core import Cmd, ConfigError, State, load_cell, parse_cell
+from packml_ros2.opcua import bridge, mapping, nodeset, security
+from packml_ros2.opcua.available import unit_graph
 from packml_ros2.opcua.config import check_password, hash_password, parse_opcua
 from packml_ros2.opcua.mapping import NOT_ACTIVE, Struct, admin_values, status_values
+
+MODEL = nodeset.load()
 
 P = 2  # the PackML namespace index in these tests
 BASE = "BaseStateMachine/CurrentState"
@@ -26,22 +31,43 @@ MACHINE = "BaseStateMachine/MachineState/CurrentState"
 EXECUTE = "BaseStateMachine/MachineState/ExecuteState/CurrentState"
 
 
+def test_the_model_comes_from_the_official_nodeset() -> None:
+    assert MODEL.version == "1.01"
+    assert MODEL.publication_date == dt.datetime(2020, 10, 8, 11, 8, tzinfo=dt.UTC)
+    assert [m.path for m in MODEL.machines] == [
+        "BaseStateMachine",
+        "BaseStateMachine/MachineState",
+        "BaseStateMachine/MachineState/ExecuteState",
+    ]
+    # v1.01: Cleared is i=71 with StateNumber 19, Running i=75 with 18 (v1.00 had them swapped)
+    assert MODEL.machines[0].state("Cleared") == nodeset.StateDef("Cleared", 71, 19)
+    assert MODEL.machines[1].state("Running") == nodeset.StateDef("Running", 75, 18)
+    set_unit_mode = MODEL.method("SetUnitMode")
+    assert [(a.name, a.data_type, a.value_rank) for a in set_unit_mode.arguments] == [
+        ("RequestedMode", (0, 6), -1)
+    ]
+    start = MODEL.method("BaseStateMachine/MachineState/ExecuteState/Start")
+    assert [(a.name, a.data_type, a.value_rank) for a in start.arguments] == [
+        ("Parameter", (1, 16), 1)
+    ]
+
+
 @pytest.mark.parametrize(
     ("state", "base", "machine", "execute"),
     [
-        (6, ("Cleared", 18, 5001), ("Running", 19, 75), ("Execute", 6, 36)),
-        (4, ("Cleared", 18, 5001), ("Running", 19, 75), ("Idle", 4, 28)),
-        (15, ("Cleared", 18, 5001), ("Running", 19, 75), ("Resetting", 15, 27)),
-        (17, ("Cleared", 18, 5001), ("Running", 19, 75), ("Complete", 17, 38)),
-        (2, ("Cleared", 18, 5001), ("Stopped", 2, 53), None),
-        (7, ("Cleared", 18, 5001), ("Stopping", 7, 54), None),
-        (1, ("Cleared", 18, 5001), ("Clearing", 1, 55), None),
+        (6, ("Cleared", 19, 71), ("Running", 18, 75), ("Execute", 6, 36)),
+        (4, ("Cleared", 19, 71), ("Running", 18, 75), ("Idle", 4, 28)),
+        (15, ("Cleared", 19, 71), ("Running", 18, 75), ("Resetting", 15, 27)),
+        (17, ("Cleared", 19, 71), ("Running", 18, 75), ("Complete", 17, 38)),
+        (2, ("Cleared", 19, 71), ("Stopped", 2, 53), None),
+        (7, ("Cleared", 19, 71), ("Stopping", 7, 54), None),
+        (1, ("Cleared", 19, 71), ("Clearing", 1, 55), None),
         (8, ("Aborting", 8, 61), None, None),
         (9, ("Aborted", 9, 62), None, None),
     ],
 )
 def test_state_machines_nest_as_opc30050(state, base, machine, execute) -> None:
-    values = mapping.state_machine_values(state, P)
+    values = mapping.state_machine_values(MODEL, state, P)
     for path, want in ((BASE, base), (MACHINE, machine), (EXECUTE, execute)):
         if want is None:  # a sub state machine that is not active
             assert values[path].status == NOT_ACTIVE
@@ -54,15 +80,142 @@ def test_state_machines_nest_as_opc30050(state, base, machine, execute) -> None:
 
 
 def test_every_packml_state_has_a_place() -> None:
-    numbers = set(range(1, 18))
-    assert numbers <= set(mapping.PLACES)
     # the deepest active machine's Number is the PackML state number
-    for n in numbers:
-        values = mapping.state_machine_values(n, P)
+    for n in range(1, 18):
+        values = mapping.state_machine_values(MODEL, n, P)
         deepest = next(
             values[f"{p}/Number"] for p in (EXECUTE, MACHINE, BASE) if values[p].status == 0
         )
         assert deepest.value == n
+
+
+# -- AvailableStates / AvailableTransitions --------------------------------------------------------------
+def _unit(**keys) -> object:
+    return parse_cell({"cell": "c", "units": {"u": keys}}).units["u"]
+
+
+def _names(values: dict[str, mapping.Value], path: str) -> set[str]:
+    by_id = {s.id: s.name for m in MODEL.machines for s in m.states}
+    by_id |= {t.id: t.name for m in MODEL.machines for t in m.transitions}
+    return {
+        by_id[v.Identifier] if v.NamespaceIndex == P else f"u:{v.Identifier}"
+        for v in values[path].value
+    }
+
+
+ES_AVAILABLE = "BaseStateMachine/MachineState/ExecuteState/Available"
+
+
+def test_the_graph_follows_the_model_the_mode_and_hold_from() -> None:
+    production = unit_graph(_unit(), 1)
+    assert production.states == frozenset(State) - {State.UNDEFINED}
+    assert production.edges[(State.HELD, State.COMPLETING)] == {Cmd.COMPLETE}  # TR88-2022
+    assert production.edges[(State.EXECUTE, State.COMPLETING)] == {Cmd.COMPLETE}  # and SC
+    assert production.edges[(State.RESETTING, State.IDLE)] == frozenset()  # State Complete
+    maintenance = unit_graph(_unit(), 2)
+    assert State.SUSPENDED not in maintenance.states
+    assert not [e for e in maintenance.edges if State.SUSPENDING in e]
+    old = unit_graph(_unit(model="2015"), 1)
+    assert (State.HELD, State.COMPLETING) not in old.edges
+    assert (State.SUSPENDED, State.HOLDING) not in old.edges
+    starting = unit_graph(_unit(hold_from=["Execute", "Starting"]), 1)
+    assert (State.STARTING, State.HOLDING) in starting.edges
+    assert (State.SUSPENDED, State.HOLDING) not in starting.edges
+    # a command into a disabled acting state is an edge to where it ends
+    quick = _unit(modes={"fast": {"number": 4, "disabled_states": ["Resetting"],
+                                  "mode_change_states": ["Stopped"]}})  # fmt: skip
+    fast = unit_graph(quick, 4)
+    assert (State.STOPPED, State.IDLE) in fast.edges
+    assert State.RESETTING not in fast.states
+
+
+def test_available_values_name_the_nodeset_objects_and_extra_transitions() -> None:
+    unit = _unit()
+    extra = {
+        ("BaseStateMachine/MachineState/ExecuteState", "Held", "Completing"): ua.NodeId(
+            "x.HeldToCompleting", 1
+        )
+    }
+    values = mapping.available_values(MODEL, unit_graph(unit, 1), P, extra)
+    assert _names(values, "BaseStateMachine/AvailableStates") == {"Aborting", "Aborted", "Cleared"}
+    assert _names(values, "BaseStateMachine/AvailableTransitions") == {
+        "AbortedToCleared", "AbortingToAborted", "ClearedToAborting"
+    }  # fmt: skip
+    assert _names(values, "BaseStateMachine/MachineState/AvailableTransitions") == {
+        "ClearingToStopped", "RunningToStopping", "StoppedToRunning", "StoppingToStopped"
+    }  # fmt: skip
+    transitions = _names(values, f"{ES_AVAILABLE}Transitions")
+    assert {"SuspendedToHolding", "ExecuteToSuspending", "u:x.HeldToCompleting"} <= transitions
+    assert "StartingToHolding" not in transitions  # not in hold_from
+    manual = mapping.available_values(MODEL, unit_graph(unit, 3), P, extra)
+    assert _names(manual, f"{ES_AVAILABLE}States") == {
+        "Resetting", "Idle", "Starting", "Execute"
+    }  # fmt: skip
+    assert _names(manual, f"{ES_AVAILABLE}Transitions") == {
+        "ResettingToIdle", "IdleToStarting", "StartingToExecute"
+    }  # fmt: skip
+    # Resetting disabled: Reset from Stopped still leads into Running
+    fast = _unit(modes={"fast": {"number": 4, "disabled_states": ["Resetting"],
+                                 "mode_change_states": ["Stopped"]}})  # fmt: skip
+    values = mapping.available_values(MODEL, unit_graph(fast, 4), P, {})
+    assert "StoppedToRunning" in _names(
+        values, "BaseStateMachine/MachineState/AvailableTransitions"
+    )
+    assert "ResettingToIdle" not in _names(values, f"{ES_AVAILABLE}Transitions")
+
+
+def test_extra_transitions_are_the_rules_the_nodeset_lacks() -> None:
+    steps = mapping.transition_steps(MODEL, unit_graph(_unit(), 1))
+    modelled = mapping.nodeset_transitions(MODEL)
+    es = "BaseStateMachine/MachineState/ExecuteState"
+    assert {s: c for s, c in steps.items() if s not in modelled} == {
+        (es, "Held", "Completing"): "ToComplete",
+        (es, "Suspended", "Completing"): "ToComplete",
+    }
+    assert steps[("BaseStateMachine/MachineState", "Running", "Stopping")] == "Stop"
+    assert steps[("BaseStateMachine", "Cleared", "Aborting")] == "Abort"
+
+
+def test_a_lost_units_values_are_bad_or_uncertain() -> None:
+    assert mapping.lost_status("Status/StateCurrent") == ua.StatusCodes.BadCommunicationError
+    assert mapping.lost_status(f"{MACHINE}/Number") == ua.StatusCodes.BadCommunicationError
+    uncertain = ua.StatusCodes.UncertainLastUsableValue
+    assert mapping.lost_status("Admin/ProdProcessedCount") == uncertain
+    assert mapping.lost_status("Status/MachSpeed/EURange") == uncertain  # configuration
+
+
+def test_arguments_are_checked_against_the_nodeset_signature() -> None:
+    start = MODEL.method("BaseStateMachine/MachineState/ExecuteState/Start")
+    speed = MODEL.method("SetMachSpeed")
+    descriptor = type("PackMLDescriptorDataType", (), {})()  # as generated from the NodeSet
+    count = type("PackMLCountDataType", (), {})()
+    S = ua.StatusCodes
+
+    def status(method, *args) -> tuple[int, int | None]:
+        with pytest.raises(bridge.BadArguments) as err:
+            bridge.check_arguments(MODEL, method, args)
+        return err.value.status, err.value.index
+
+    assert status(start) == (S.BadArgumentsMissing, None)
+    assert status(start, ua.Variant([], ua.VariantType.ExtensionObject), ua.Variant(1)) == (
+        S.BadTooManyArguments, None
+    )  # fmt: skip
+    assert status(start, ua.Variant(1, ua.VariantType.Int32)) == (S.BadTypeMismatch, 0)
+    assert status(speed, ua.Variant(1.0, ua.VariantType.Double)) == (S.BadTypeMismatch, 0)
+    assert status(speed, ua.Variant([1.0], ua.VariantType.Float)) == (S.BadTypeMismatch, 0)
+    assert bridge.check_arguments(MODEL, speed, [ua.Variant(2.5, ua.VariantType.Float)]) == [2.5]
+    # an empty or null array is no parameter at all
+    assert bridge.check_arguments(
+        MODEL, start, [ua.Variant([], ua.VariantType.ExtensionObject)]
+    ) == [[]]
+    assert bridge.check_arguments(MODEL, start, [ua.Variant()]) == [[]]
+    assert bridge.check_arguments(MODEL, start, [ua.Variant([descriptor])]) == [[descriptor]]
+    assert status(start, ua.Variant([count])) == (S.BadTypeMismatch, 0)
+
+
+def test_commands_from_opc_ua_name_opc_ua_and_the_user() -> None:
+    assert security.command_source("operator") == "opcua:operator"
+    assert security.command_source("") == "opcua:anonymous"
 
 
 def _status(**kw) -> Status:
@@ -79,11 +232,11 @@ def _status(**kw) -> Status:
 
 
 def test_status_values() -> None:
-    v = status_values(_status(), P)
+    v = status_values(_status(), MODEL, P)
     assert v["Status/UnitModeCurrent"].value == 1
     assert v["Status/UnitModeRequested"].value is False
     assert v["Status/StateRequested"].value == 6
-    assert v["Status/StateChangeInProgress"].value is False
+    assert v["Status/StateChangeInProcess"].value is False
     assert v["Status/MachSpeed"] == mapping.Value(40.0, ua.VariantType.Float)
     assert (
         v["Status/EquipmentBlocked"].value is True and v["Status/EquipmentStarved"].value is False
@@ -96,9 +249,11 @@ def test_status_values() -> None:
     (product,) = v["Status/Product"].value
     assert product.fields["ProductID"] == 7 and len(product.fields["ProcessVariables"]) == 1
     # a requested mode change: OPC 30050's UnitModeRequested is a Boolean
-    changing = status_values(_status(unit_mode_requested=2, unit_mode_change_in_process=True), P)
+    changing = status_values(
+        _status(unit_mode_requested=2, unit_mode_change_in_process=True), MODEL, P
+    )
     assert changing["Status/UnitModeRequested"].value is True
-    assert changing["Status/UnitModeChangeInProgress"].value is True
+    assert changing["Status/UnitModeChangeInProcess"].value is True  # v1.01 name
 
 
 def _alarm(id_: int, trigger: bool = True, acked: bool = False) -> Alarm:
@@ -209,6 +364,23 @@ def test_config_errors_name_the_key(tmp_path: Path, monkeypatch: pytest.MonkeyPa
     assert "Basic256" in paths["opcua.security_policies[0]"]
     assert "no such file" in paths["opcua.certificate"]
     assert "give both or neither" in paths["opcua"]
+
+
+def test_max_mach_speed(tmp_path: Path) -> None:
+    cell = load_cell(_cell(tmp_path, {"max_mach_speed": 60}))
+    assert parse_opcua(cell).max_mach_speed == {"filler": 60.0, "capper": 60.0}
+    cell = load_cell(_cell(tmp_path, {"max_mach_speed": {"filler": 80}}))
+    config = parse_opcua(cell)
+    assert config.max_mach_speed == {"filler": 80.0}
+    assert bridge.max_mach_speed(config, cell.units["filler"]) == 80.0
+    assert bridge.max_mach_speed(config, cell.units["capper"]) is None  # no design speed either
+    designed = parse_cell({"cell": "c", "units": {"u": {"mach_design_speed": 50}}})
+    assert bridge.max_mach_speed(parse_opcua(designed), designed.units["u"]) == 50.0
+    with pytest.raises(ConfigError) as err:
+        parse_opcua(load_cell(_cell(tmp_path, {"max_mach_speed": {"nope": 1, "filler": -2}})))
+    problems = dict(err.value.problems)
+    assert "unknown unit 'nope'" in problems["opcua.max_mach_speed.nope"]
+    assert "opcua.max_mach_speed.filler" in problems
 
 
 def test_passwords(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:

@@ -18,13 +18,16 @@
 //   "P:PackMLObjects/U:filler/P:BaseStateMachine/0:CurrentState/0:Number"
 // Steps (each answers one JSON object, in order):
 //   {"op": "endpoints"}                            the server's endpoints
-//   {"op": "read", "path": P}                      {status, value[, dimensions]}
+//   {"op": "read", "path": P[, "attribute": "UserExecutable"]}   {nodeId, status, value[, dimensions]}
 //   {"op": "browse", "path": P}                    the browse names below P
-//   {"op": "call", "path": P, "args": [{"type": "Int32", "value": 1}, ...]}
-//        P is the method; its parent is the object. {status, diagnostics, outputs}. Structures:
+//   {"op": "call", "path": P, "args": [{"type": "Int32", "value": 1}, ...][, "object": P2]}
+//        P is the method; its parent is the object (or P2). {status, diagnostics, outputs,
+//        inputArgumentResults}. Structures:
 //        {"type": "ExtensionObject", "dataType": "P:i=16", "array": true, "value": [{fields}]}
 //   {"op": "wait", "path": P, "value": V, "timeout": ms}   a subscription until the value is V
-//   {"op": "wait", "path": P, "until": "<JS expression of v>"}  ... until the expression holds
+//   {"op": "wait", "path": P, "until": "<JS expression of v (value) and s (status name)>"}
+//        ... until the expression holds: {value, status, at (ms since the epoch), seen}
+//   {"op": "namespaces"}                           Server/Namespaces: uri, version, publication date
 // Prints {"ok": true, "results": [...]} or {"ok": false, "error": "...", "results": [...]}.
 
 import fs from "node:fs";
@@ -197,7 +200,25 @@ async function run(session, step, resolve, client, alias) {
         }
         case "read": {
             const nodeId = await resolve(step.path);
-            return { nodeId: nodeId.toString(), ...dataValueJson(await session.read({ nodeId, attributeId: AttributeIds.Value })) };
+            const attributeId = AttributeIds[step.attribute ?? "Value"];
+            return { nodeId: nodeId.toString(), ...dataValueJson(await session.read({ nodeId, attributeId })) };
+        }
+        case "namespaces": {
+            const folder = await resolve("/0:Objects/0:Server/0:Namespaces");
+            const out = [];
+            for (const ref of (await session.browse(folder)).references) {
+                const field = async (name) => {
+                    const res = await session.translateBrowsePath(makeBrowsePath(ref.nodeId, `/0:${name}`));
+                    if (!res.targets || res.targets.length === 0) return null;
+                    return plain((await session.read({ nodeId: res.targets[0].targetId, attributeId: AttributeIds.Value })).value.value);
+                };
+                out.push({
+                    uri: await field("NamespaceUri"),
+                    version: await field("NamespaceVersion"),
+                    publicationDate: await field("NamespacePublicationDate"),
+                });
+            }
+            return { namespaces: out };
         }
         case "browse": {
             const nodeId = await resolve(step.path);
@@ -206,7 +227,7 @@ async function run(session, step, resolve, client, alias) {
         }
         case "call": {
             const methodId = await resolve(step.path);
-            const objectId = await resolve(step.path.split("/").slice(0, -1).join("/"));
+            const objectId = await resolve(step.object ?? step.path.split("/").slice(0, -1).join("/"));
             const inputArguments = [];
             for (const arg of step.args || []) inputArguments.push(await argument(session, arg, alias));
             // operation level: SymbolicId | LocalizedText | AdditionalInfo
@@ -227,12 +248,13 @@ async function run(session, step, resolve, client, alias) {
                       }
                     : null,
                 outputs: (r.outputArguments || []).map((v) => plain(v.value)),
+                inputArgumentResults: (r.inputArgumentResults || []).map((c) => c.name),
             };
         }
         case "wait": {
             const nodeId = await resolve(step.path);
             const want = JSON.stringify(step.value);
-            const until = step.until ? new Function("v", `return (${step.until});`) : (v) => JSON.stringify(v) === want;
+            const until = step.until ? new Function("v", "s", `return (${step.until});`) : (v) => JSON.stringify(v) === want;
             const subscription = ClientSubscription.create(session, {
                 requestedPublishingInterval: 50,
                 requestedLifetimeCount: 1000,
@@ -253,17 +275,19 @@ async function run(session, step, resolve, client, alias) {
                         TimestampsToReturn.Both,
                     );
                     item.on("changed", (dv) => {
+                        const at = Date.now();
                         const value = plain(dv.value ? dv.value.value : null);
+                        const status = dv.statusCode.name;
                         seen.push(value);
                         let done = false;
                         try {
-                            done = Boolean(until(value));
+                            done = Boolean(until(value, status));
                         } catch {
                             done = false;
                         }
                         if (done) {
                             clearTimeout(timer);
-                            resolvePromise({ value, seen });
+                            resolvePromise({ value, status, at, seen });
                         }
                     });
                     item.on("err", (message) => {
