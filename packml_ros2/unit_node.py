@@ -43,8 +43,19 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from . import convert, qos, responses, run
-from .core import CellConfig, Cmd, Store, Unit, UnitConfig, load_cell, state_name
+from .core import (
+    CellConfig,
+    Cmd,
+    ConfigError,
+    Store,
+    StoreError,
+    Unit,
+    UnitConfig,
+    load_cell,
+    state_name,
+)
 from .core.liveliness import Liveliness
+from .core.secrets import redacted_yaml
 from .driver import FrozenClock, UnitDriver
 
 T = TypeVar("T")
@@ -74,7 +85,8 @@ class UnitNode(Node):
         self._record = bool(self.get_parameter("record_inputs").value)
         self.unit.on_input = self._on_input if self._record else None
         self._hardware_id = f"{config.cell}/{config.name}" if config.cell else config.name
-        self.source = source
+        # the cell file as published on ~/config and recorded: never with its secrets
+        self.source = redacted_yaml(source) if source is not None else None
 
         self.pub_status = self.create_publisher(Status, "~/status", qos.STATUS)
         self.pub_transitions = self.create_publisher(
@@ -415,10 +427,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         config = load_unit(args[0], args[1] if len(args) > 1 else None)
         source = Path(args[0]).read_text(encoding="utf-8")
-    except Exception as exc:  # ConfigError and friends: one readable message, exit 2
+    except ConfigError as exc:
+        print(exc.prefixed("unit_node"), file=sys.stderr)
+        return 2
+    except Exception as exc:  # one readable message, exit 2
         print(f"unit_node: {exc}", file=sys.stderr)
         return 2
-    node = UnitNode(config, source=source)
+    try:
+        node = UnitNode(config, source=source)
+    except StoreError as exc:
+        print(f"unit_node: {exc}", file=sys.stderr)
+        return 2
     return run.spin([node], on_shutdown=node.close)
 
 
