@@ -307,8 +307,10 @@ def test_a_token_guards_every_action_and_nothing_reaches_the_unit_without_it(mak
         refused = http.post(f"/api/units/{UNIT}/command", json={"command": "start"}, headers=auth)
         assert refused.status_code == 200 and refused.json()["result_name"] == "COMMAND_NOT_ALLOWED"
         assert http.post("/api/units/nope/command", json={}, headers=auth).status_code == 404
+        as_json = {**auth, "Content-Type": "application/json"}
         assert (
-            http.post(f"/api/units/{UNIT}/command", content=b"{", headers=auth).status_code == 400
+            http.post(f"/api/units/{UNIT}/command", content=b"{", headers=as_json).status_code
+            == 400
         )
         page = http.get("/")
         assert (
