@@ -106,8 +106,8 @@ def test_an_alias_bomb_is_refused_at_once_in_bounded_memory(tmp_path: Path) -> N
                          timeout=60, check=True)  # fmt: skip
     result = json.loads(out.stdout)
     assert "alias bomb" in result["text"] and len(result["text"]) < 500, result["text"][:1000]
-    assert result["seconds"] < 1.0  # was: minutes and a 522 MB message
-    assert result["rss_mb"] < 150  # was: 2.1 GB (a bare interpreter with the package: ~60 MB)
+    # was: minutes, a 522 MB message and 2.1 GB; now a few ms, ~60 MB (the interpreter and package)
+    assert result["seconds"] < 2.0 and result["rss_mb"] < 150, {**result, "text": ""}
 
 
 def test_aliases_of_ordinary_size_are_fine_and_self_reference_is_refused() -> None:
