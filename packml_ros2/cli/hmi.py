@@ -106,7 +106,7 @@ def serve(cell: CellConfig, settings: HmiSettings) -> int:
     bridge = Bridge(cell, token=settings.token, title=settings.title)
     try:
         bridge.spin_in_background()
-        server = Server(bridge, sock)
+        server = Server(bridge, sock, allowed_hosts=(*settings.allowed_hosts, settings.host))
         access = (
             "an access token is required for commands (read-only without it)"
             if settings.token

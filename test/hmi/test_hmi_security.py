@@ -11,7 +11,11 @@ import json
 import logging
 import math
 import os
+import re
+import signal
 import socket
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack
@@ -20,6 +24,7 @@ from typing import Any
 
 import httpx
 import pytest
+import yaml
 from packml_interfaces.msg import Descriptor, Status
 
 from packml_ros2 import qos
@@ -123,6 +128,35 @@ def test_a_foreign_host_name_is_refused(make_cell: Any) -> None:
                 assert http.get("/api/config", headers={"Host": host}).status_code == 200, host
     finally:
         server.stop()
+
+
+def test_packml_hmi_serves_the_names_of_hmi_allowed_hosts(tmp_path: Path) -> None:
+    path = tmp_path / "cell.yaml"
+    path.write_text(yaml.safe_dump({"cell": f"hosts{os.getpid()}", "units": {"u": {"persistence": False}},
+                                    "hmi": {"port": 0, "allowed_hosts": ["hmi.line3.example"]}}))  # fmt: skip
+    log = tmp_path / "hmi.log"
+    with log.open("wb") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "packml_ros2.cli.main", "hmi", str(path)],
+                                stdout=out, stderr=subprocess.STDOUT,
+                                env=dict(os.environ, PYTHONUNBUFFERED="1"))  # fmt: skip
+    try:
+        found: list[str] = []
+
+        def served() -> bool:
+            found[:] = re.findall(r"http://127\.0\.0\.1:\d+/", log.read_text())
+            assert proc.poll() is None, log.read_text()
+            return bool(found)
+
+        _wait(served, "packml hmi", 30)
+        url = found[0]
+        assert (
+            httpx.get(f"{url}api/config", headers={"Host": "hmi.line3.example"}).status_code == 200
+        )
+        refused(httpx.get(f"{url}api/config", headers={"Host": "other.example"}), 403,
+                "HOST_NOT_ALLOWED")  # fmt: skip
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(15)
 
 
 # -- bodies ---------------------------------------------------------------------------------------------
