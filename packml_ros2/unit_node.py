@@ -75,7 +75,11 @@ class UnitNode(Node):
         self.config = config
         self._declare_parameters(config, store_path)
         path = self.get_parameter("persistence_path").value
-        self.store = Store(path, config.name) if path else None
+        try:
+            self.store = Store(path, config.name) if path else None
+        except StoreError:
+            Node.destroy_node(self)  # half-built: nothing of ours to close
+            raise
         self.clock = FrozenClock(self._now)
         self.unit = Unit(config, clock=self.clock, store=self.store)
         self.driver = UnitDriver(self.unit, self.clock, self._emit)

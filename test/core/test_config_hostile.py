@@ -183,14 +183,15 @@ def test_an_unwritable_store_is_one_line_and_exit_code_2(tmp_path: Path) -> None
     garbage.write_bytes(b"this is not SQLite" * 100)
     with pytest.raises(StoreError, match="file is not a database"):
         Store(garbage, "u")
-    f = _write(tmp_path, f"cell: c\nunits:\n  u: {{persistence: {{path: '{blocker}/u.db'}}}}\n")
+    f = _write(tmp_path, f"cell: c\nunits:\n  u: {{persistence: {{path: '{blocker}/u.db'}}}}\n"
+                         "coordinator: {enabled: false}\n")  # fmt: skip
     started = time.monotonic()
-    result = subprocess.run(
-        [sys.executable, "-m", "packml_ros2.unit_node", str(f)],
-        capture_output=True, text=True, timeout=60, check=False,
-    )  # fmt: skip
-    assert result.returncode == 2, result
-    assert "Traceback" not in result.stderr, result.stderr
-    lines = [x for x in result.stderr.splitlines() if x.startswith("unit_node:")]
-    assert len(lines) == 1 and "cannot open the admin store" in lines[0], result.stderr
-    assert time.monotonic() - started < 30
+    for prefix, argv in (("unit_node", ["-m", "packml_ros2.unit_node", str(f)]),
+                         ("packml launch", ["-m", "packml_ros2.cli.main", "launch", str(f)])):  # fmt: skip
+        result = subprocess.run([sys.executable, *argv], capture_output=True, text=True,
+                                timeout=60, check=False)  # fmt: skip
+        assert result.returncode == 2, result
+        assert "Traceback" not in result.stderr, result.stderr
+        lines = [x for x in result.stderr.splitlines() if x.startswith(f"{prefix}:")]
+        assert len(lines) == 1 and "cannot open the admin store" in lines[0], result.stderr
+    assert time.monotonic() - started < 60
