@@ -4,6 +4,7 @@ bags record is redacted."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -103,3 +104,19 @@ def test_the_published_configuration_is_redacted(tmp_path: Path) -> None:
     assert "pbkdf2" not in redacted_yaml(text)
     cell = parse_cell(redacted)  # a recording still loads (replay needs its units)
     assert cell.units["u"].description == "filler"
+
+
+def test_packml_hmi_token_option_points_to_the_token_too(tmp_path: Path) -> None:
+    path = write(tmp_path, {})
+
+    def hmi(*args: str, **env: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, "-m", "packml_ros2.cli.main", "hmi", str(path), *args,
+                               "--check"], capture_output=True, text=True, timeout=60, check=False,
+                              env={**os.environ, **env})  # fmt: skip
+
+    plain = hmi("--token", TOKEN)  # would be in every user's process list
+    assert plain.returncode == 2 and "--token: give env:VARIABLE or file:PATH" in plain.stderr
+    assert TOKEN not in plain.stderr + plain.stdout
+    assert hmi("--token", "env:PACKML_TEST_TOKEN", PACKML_TEST_TOKEN=TOKEN).returncode == 0
+    short = hmi(PACKML_HMI_TOKEN="abc")
+    assert short.returncode == 2 and "$PACKML_HMI_TOKEN: a token needs at least 8" in short.stderr
