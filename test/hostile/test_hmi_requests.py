@@ -74,16 +74,13 @@ def test_thousands_of_hostile_requests_change_nothing(
             clients = {"main": http, "guesser": guesser}
             started = time.monotonic()
             counts: dict[str, int] = {}
-            took: dict[str, float] = {}
             before = 0.0
             for i, h in enumerate(hostile_requests(SEED, COUNT, UNIT, TOKEN)):
                 if i == WARM_UP:
                     before = rss_mb()
-                t = time.monotonic()
                 check(h, send(clients[h.client], h))
                 key = h.code.split("|")[0]
                 counts[key] = counts.get(key, 0) + 1
-                took[key] = took.get(key, 0.0) + time.monotonic() - t
                 assert time.monotonic() - started < MAX_SECONDS, f"{i} requests: {counts}"
             grown = rss_mb() - before
             # what a client library cannot send: 100 MB announced, 50 MB streamed
@@ -104,7 +101,6 @@ def test_thousands_of_hostile_requests_change_nothing(
         elapsed = time.monotonic() - started
         with capfd.disabled():
             print(f"\n{COUNT} hostile requests in {elapsed:.1f} s, RSS +{grown:.1f} MB: {counts}")
-            print({k: round(v / counts[k] * 1000, 1) for k, v in took.items()})
         assert len(counts) == 10, counts  # every kind of fault was sent
         assert grown < MAX_RSS_GROWTH_MB, f"RSS grew {grown:.1f} MB"
         # nothing reached the unit
