@@ -68,7 +68,7 @@ from std_srvs.srv import Trigger
 
 from . import qos, responses, run
 from .client import Unavailable, UnitProxy
-from .core import WAIT, CellConfig, Cmd, State, load_cell, state_name
+from .core import WAIT, CellConfig, Cmd, ConfigError, State, load_cell, state_name
 
 #: Source of the unit commands the coordinator sends (the units' remote path).
 SOURCE = "remote:coordinator"
@@ -840,7 +840,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0 if args else 2
     try:
         cell = load_cell(args[0])
-    except Exception as exc:  # ConfigError and friends: one readable message, exit 2
+    except ConfigError as exc:
+        print(exc.prefixed("coordinator"), file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
+    except Exception as exc:  # one readable message, exit 2
         print(f"coordinator: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 2

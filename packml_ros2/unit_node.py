@@ -43,9 +43,20 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from . import convert, qos, responses, run
-from .core import CellConfig, Cmd, Store, Unit, UnitConfig, load_cell, state_name
+from .core import (
+    CellConfig,
+    Cmd,
+    ConfigError,
+    Store,
+    StoreError,
+    Unit,
+    UnitConfig,
+    load_cell,
+    state_name,
+)
 from .core.config import CoordinatorConfig
 from .core.liveliness import Liveliness
+from .core.secrets import redacted_yaml
 from .driver import FrozenClock, UnitDriver
 
 T = TypeVar("T")
@@ -66,7 +77,11 @@ class UnitNode(Node):
         self.config = config
         self._declare_parameters(config, store_path)
         path = self.get_parameter("persistence_path").value
-        self.store = Store(path, config.name) if path else None
+        try:
+            self.store = Store(path, config.name) if path else None
+        except StoreError:
+            Node.destroy_node(self)  # half-built: nothing of ours to close
+            raise
         self.clock = FrozenClock(self._now)
         self.unit = Unit(config, clock=self.clock, store=self.store)
         self.driver = UnitDriver(self.unit, self.clock, self._emit)
@@ -76,7 +91,8 @@ class UnitNode(Node):
         self._record = bool(self.get_parameter("record_inputs").value)
         self.unit.on_input = self._on_input if self._record else None
         self._hardware_id = f"{config.cell}/{config.name}" if config.cell else config.name
-        self.source = source
+        # the cell file as published on ~/config and recorded: never with its secrets
+        self.source = redacted_yaml(source) if source is not None else None
 
         # liveliness: every face sees the unit gone within its lease (packml_ros2.presence)
         lease = unit_lease if unit_lease is not None else CoordinatorConfig.unit_lease
@@ -393,12 +409,6 @@ class UnitNode(Node):
         super().destroy_node()
 
 
-def load_unit(cell_file: str, unit: str | None) -> UnitConfig:
-    """The configuration of ``unit`` in ``cell_file`` (the only unit if not given)."""
-    cell = load_cell(cell_file)
-    return pick_unit(cell, cell_file, unit)
-
-
 def pick_unit(cell: CellConfig, cell_file: str, unit: str | None) -> UnitConfig:
     if unit is None:
         if len(cell.units) != 1:
@@ -420,10 +430,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         cell = load_cell(args[0])
         config = pick_unit(cell, args[0], args[1] if len(args) > 1 else None)
         source = Path(args[0]).read_text(encoding="utf-8")
-    except Exception as exc:  # ConfigError and friends: one readable message, exit 2
+    except ConfigError as exc:
+        print(exc.prefixed("unit_node"), file=sys.stderr)
+        return 2
+    except Exception as exc:  # one readable message, exit 2
         print(f"unit_node: {exc}", file=sys.stderr)
         return 2
-    node = UnitNode(config, source=source, unit_lease=cell.coordinator.unit_lease)
+    try:
+        node = UnitNode(config, source=source, unit_lease=cell.coordinator.unit_lease)
+    except StoreError as exc:
+        print(f"unit_node: {exc}", file=sys.stderr)
+        return 2
     return run.spin([node], on_shutdown=node.close)
 
 

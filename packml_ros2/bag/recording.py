@@ -162,15 +162,18 @@ class _Bag:
 def _open(p: Path) -> _Bag:
     """Open a bag: its single storage file directly when that is all there is (fast: no YAML
     parsing by rosbags, no definition parsing per open), otherwise rosbags' AnyReader."""
-    import yaml
     from rosbags.rosbag2.storage_mcap import McapReader
+
+    from ..core.safe_yaml import read_document
 
     bag = _Bag(p)
     file = p
     if p.is_dir():
-        loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
-        info = yaml.load((p / "metadata.yaml").read_text(encoding="utf-8"), Loader=loader)
-        info = info["rosbag2_bagfile_information"]
+        # bounded and never recursive on hostile nesting (libyaml's composer crashes the process)
+        document = read_document(p / "metadata.yaml")
+        info = document.get("rosbag2_bagfile_information") if isinstance(document, dict) else None
+        if not isinstance(info, dict):
+            raise ValueError("metadata.yaml has no rosbag2_bagfile_information mapping")
         bag.storage = str(info.get("storage_identifier", "mcap"))
         notes = (info.get("custom_data") or {}).get(CUSTOM_KEY)
         if notes:
@@ -208,7 +211,6 @@ class _Sqlite:
     which costs more than the whole replay of a small bag."""
 
     def __init__(self, file: Path) -> None:
-        import yaml
         from rosbags.interfaces import (
             Connection,
             ConnectionExtRosbag2,
@@ -217,12 +219,13 @@ class _Sqlite:
         )
         from rosbags.rosbag2.metadata import parse_qos
 
+        from ..core.safe_yaml import parse_document
+
         self.db = sqlite3.connect(f"file:{file}?immutable=1", uri=True)
         try:
             (schema,) = self.db.execute("SELECT schema_version FROM schema").fetchone()
             if int(schema) < 4:
                 raise ValueError("old schema")
-            loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
             formats = {
                 "ros2msg": MessageDefinitionFormat.MSG,
                 "ros2idl": MessageDefinitionFormat.IDL,
@@ -249,7 +252,7 @@ class _Sqlite:
                     digest or "",
                     count,
                     ConnectionExtRosbag2(
-                        fmt, parse_qos(yaml.load(qos or "[]", Loader=loader) or [])
+                        fmt, parse_qos(parse_document(qos or "[]", f"{file}: {topic}") or [])
                     ),
                     self,
                 )

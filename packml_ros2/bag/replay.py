@@ -329,10 +329,11 @@ def explain(u: UnitResult) -> list[str]:
 # -- replaying one unit ----------------------------------------------------------------------------
 @functools.lru_cache(maxsize=32)
 def _recorded_cell(text: str, source: str) -> CellConfig:
-    import yaml
+    from ..core.safe_yaml import parse_document
+    from ..core.secrets import redact
 
-    loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
-    return parse_cell(yaml.load(text, Loader=loader), source)
+    # (a bag recorded before units redacted their configuration may hold a secret: drop it)
+    return parse_cell(redact(parse_document(text, source)), source)
 
 
 def unit_config(rec: UnitRecording, config_file: str | Path | None, bag: Path) -> UnitConfig:

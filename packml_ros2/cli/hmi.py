@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import signal
 import sys
 from dataclasses import replace
 from pathlib import Path
 
-from ..core import CellConfig, ConfigError, load_cell
-from ..hmi.settings import HmiSettings, hmi_settings
+from ..core import CellConfig, ConfigError, load_cell, secrets
+from ..core.schema import Node
+from ..hmi.settings import HmiSettings, check_token, hmi_settings
 from .main import EXIT_OK, EXIT_USAGE
 
 TOKEN_ENV = "PACKML_HMI_TOKEN"
@@ -35,8 +37,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--port", type=int, help="TCP port (default: hmi.port, else 8080; 0 = any free)")
     p.add_argument(
         "--token",
-        help=f"access token required for actions (default: ${TOKEN_ENV}, else hmi.token); "
-        "without a token the page can operate freely",
+        metavar="env:VAR|file:PATH",
+        help=f"where the access token required for actions is (default: ${TOKEN_ENV}, else "
+        "hmi.token); never the token itself, which every user of this machine could read in the "
+        "process list; without a token the page can operate freely",
     )
     p.add_argument("--check", action="store_true", help="only validate the hmi: block and exit")
     p.set_defaults(func=hmi)
@@ -46,10 +50,10 @@ def hmi(args: argparse.Namespace) -> int:
     try:
         cell = load_cell(args.cell_file)
         settings = hmi_settings(cell)
+        token = _token_override(args.token)
     except ConfigError as exc:
-        print(f"packml hmi: invalid configuration\n{exc}", file=sys.stderr)
+        print(exc.prefixed("packml hmi"), file=sys.stderr)
         return EXIT_USAGE
-    token = args.token if args.token is not None else os.environ.get(TOKEN_ENV)
     settings = replace(
         settings,
         host=args.host or settings.host,
@@ -65,12 +69,32 @@ def hmi(args: argparse.Namespace) -> int:
     return serve(cell, settings)
 
 
+def _token_override(option: str | None) -> str | None:
+    """The token from ``--token env:VAR|file:PATH``, else ``$PACKML_HMI_TOKEN`` (``""``: none),
+    else None (the cell file's)."""
+    if option is not None:
+        node = Node(option, "--token")
+        token = node.parse(lambda n: check_token(secrets.resolve(n, Path.cwd())), "")
+        if node.problems:
+            raise ConfigError("packml hmi", node.problems)
+        return token
+    value = os.environ.get(TOKEN_ENV)
+    if not value:
+        return value
+    node = Node(value, f"${TOKEN_ENV}")
+    node.parse(lambda n: check_token(n.value), "")
+    if node.problems:
+        raise ConfigError("environment", node.problems)
+    return value
+
+
 def serve(cell: CellConfig, settings: HmiSettings) -> int:
     from .. import run
     from ..hmi.bridge import Bridge
     from ..hmi.server import Server, bind, url_of
 
     run.default_environment()
+    logging.basicConfig(level=logging.WARNING, format="packml hmi: %(message)s")
     try:
         sock = bind(settings.host, settings.port)
     except OSError as exc:
@@ -82,7 +106,7 @@ def serve(cell: CellConfig, settings: HmiSettings) -> int:
     bridge = Bridge(cell, token=settings.token, title=settings.title)
     try:
         bridge.spin_in_background()
-        server = Server(bridge, sock)
+        server = Server(bridge, sock, allowed_hosts=(*settings.allowed_hosts, settings.host))
         access = (
             "an access token is required for commands (read-only without it)"
             if settings.token
@@ -93,7 +117,7 @@ def serve(cell: CellConfig, settings: HmiSettings) -> int:
         if not settings.loopback and not settings.token:
             print(
                 f"packml hmi: warning: serving on {settings.host} without a token: other "
-                "machines can operate the cell (set hmi.token or --token)",
+                "machines can operate the cell (set hmi.token: env:VAR or file:PATH)",
                 file=sys.stderr,
                 flush=True,
             )

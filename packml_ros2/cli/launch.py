@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from ..core import ConfigError
+from ..core import ConfigError, StoreError
 from .main import EXIT_USAGE
 
 
@@ -69,7 +69,7 @@ def launch(args: argparse.Namespace) -> int:
 
             parse_opcua(plan.cell)
     except ConfigError as exc:
-        print(f"packml launch: invalid configuration\n{exc}", file=sys.stderr)
+        print(exc.prefixed("packml launch"), file=sys.stderr)
         return EXIT_USAGE
     if args.check:
         print(f"{args.cell_file}: valid ({plan.node_count} nodes)")
@@ -82,6 +82,9 @@ def launch(args: argparse.Namespace) -> int:
                 args.logs.mkdir(parents=True, exist_ok=True)
             return launcher.launch_processes(plan, ready=_ready, log_dir=args.logs)
         return launcher.launch_in_process(plan, threads=args.threads, ready=_ready)
+    except StoreError as exc:
+        print(f"packml launch: {exc}", file=sys.stderr)
+        return EXIT_USAGE
     finally:
         if server is not None:
             launcher._stop_children([("hmi", server)])

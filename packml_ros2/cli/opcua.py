@@ -52,7 +52,7 @@ def opcua(args: argparse.Namespace) -> int:
             parse_opcua(cell), host=args.host, port=args.port, state_dir=args.state_dir
         )
     except ConfigError as exc:
-        print(f"packml opcua: invalid configuration\n{exc}", file=sys.stderr)
+        print(exc.prefixed("packml opcua"), file=sys.stderr)
         return EXIT_USAGE
     if args.check:
         print(

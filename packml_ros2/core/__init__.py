@@ -31,7 +31,7 @@ from .numbers import (
     state_name,
 )
 from .packtags import AdminView, StatusView, flat_tags
-from .persistence import Store
+from .persistence import Store, StoreError
 from .reasons import Answer, Reason
 from .unit import CommandRequest, CompleteReport, ModeRequest, Transition, Trigger, Unit
 
@@ -55,6 +55,7 @@ __all__ = [
     "State",
     "StatusView",
     "Store",
+    "StoreError",
     "Transition",
     "Trigger",
     "Unit",

@@ -13,14 +13,14 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from . import schema as sc
 from .alarms import DEFAULT_REACTIONS, NUM_CATEGORIES, REACTIONS, AlarmDef
 from .counters import KINDS, CounterDef
 from .modes import GROUPS, ModeDef, corrected_disabled, default_modes, make_mode
 from .numbers import ACTING, MANDATORY, MAX_MODE, WAIT, Cmd, Mode, State, parse_state
+from .safe_yaml import read_document
 from .schema import ConfigError, Node, invalid
+from .secrets import plain_secrets
 from .transitions import MODELS, TransitionTable, build_table
 
 __all__ = [
@@ -177,6 +177,8 @@ class CellConfig:
 
 # -- parsing ---------------------------------------------------------------------------------------------
 def _state(n: Node) -> State:
+    if isinstance(n.value, bool) or not isinstance(n.value, str | int) or len(str(n.value)) > 40:
+        raise invalid(f"{sc.shown(n.value)} is not a PackML state")
     return sc.via(parse_state)(n)
 
 
@@ -416,13 +418,23 @@ def _unit(name: str, n: Node, cell: str, base_dir: Path) -> UnitConfig:
             continue
         reactions[cat] = child.parse(_REACTION, reactions[cat])
 
-    alarms = tuple(e.parse(_alarm, None) for e in n.list_at("alarms"))
-    alarm_defs = tuple(a for a in alarms if a is not None)
+    ems: tuple[EmConfig, ...] = n.get("equipment_modules", _ems, ())
+    em_names = {e.name for e in ems}
+    alarm_nodes = n.list_at("alarms")
+    alarms = [(e, e.parse(_alarm, None)) for e in alarm_nodes]
     seen: set[tuple[int, int]] = set()
-    for i, a in enumerate(alarm_defs):
+    for e, a in alarms:
+        if a is None:
+            continue
         if (a.id, a.value) in seen:
-            n.child("alarms", None).child(i, None).error(f"alarm {a.id}/{a.value} is defined twice")
+            e.error(f"alarm {a.id}/{a.value} is defined twice")
         seen.add((a.id, a.value))
+        if a.em and a.em not in em_names:
+            listed = ", ".join(sorted(em_names)) or "none"
+            e.child("em", a.em).error(
+                f"no equipment module {sc.shown(a.em)} in this unit (equipment_modules: {listed})"
+            )
+    alarm_defs = tuple(a for _, a in alarms if a is not None)
 
     persistence_path: str | None = str(Path(DEFAULT_STATE_DIR) / "{cell}" / "{unit}.sqlite3")
     persistence_period = d.persistence_period
@@ -435,7 +447,8 @@ def _unit(name: str, n: Node, cell: str, base_dir: Path) -> UnitConfig:
         persistence_path = pnode.get("path", sc.text, persistence_path)
         persistence_period = pnode.get("period", sc.number(positive=True), persistence_period)
     if persistence_path is not None:
-        p = Path(os.path.expanduser(persistence_path.format(cell=cell or "cell", unit=name)))
+        named = persistence_path.replace("{cell}", cell or "cell").replace("{unit}", name)
+        p = Path(os.path.expanduser(named))
         persistence_path = str(p if p.is_absolute() else base_dir / p)
 
     sys_node = n.mapping().get("system_alarms")
@@ -484,24 +497,31 @@ def _unit(name: str, n: Node, cell: str, base_dir: Path) -> UnitConfig:
     interlock_reaction = n.get(
         "interlock_reaction", sc.choice({"suspend": int(Cmd.SUSPEND), "none": 0}), int(Cmd.SUSPEND)
     )
+    initial_mode = n.get(
+        "initial_mode",
+        mode_ref,
+        Mode.PRODUCTION if Mode.PRODUCTION in modes else min(modes, default=1),
+    )
+    mode = modes.get(initial_mode)
+    if mode is not None and State.STOPPED in mode.disabled:
+        n.child("initial_mode", None).error("the unit starts in STOPPED, which is disabled there")
+    min_dwell: dict[State, float] = n.get(
+        "min_dwell", lambda x: _state_seconds(x, ACTING - {State.EXECUTE}), {}
+    )
     return UnitConfig(
         name=name,
         cell=cell,
         description=n.get("description", sc.text, ""),
         modes=modes,
-        initial_mode=n.get(
-            "initial_mode",
-            mode_ref,
-            Mode.PRODUCTION if Mode.PRODUCTION in modes else min(modes, default=1),
-        ),
+        initial_mode=initial_mode,
         table=build_table(model, hold_from, complete_from),
         remote_commands_enabled=n.get("remote_commands_enabled", sc.boolean, False),
-        equipment_modules=n.get("equipment_modules", _ems, ()),
+        equipment_modules=ems,
         allow_registration=n.get("allow_registration", sc.boolean, True),
         em_lease=n.get("em_lease", sc.number(positive=True), d.em_lease),
         em_lost_reaction=n.get("em_lost_reaction", _LOST_REACTION, int(Cmd.ABORT)),
         timeouts=n.get("timeouts", lambda x: _state_seconds(x, ACTING), {}),
-        min_dwell=n.get("min_dwell", lambda x: _state_seconds(x, ACTING - {State.EXECUTE}), {}),
+        min_dwell=min_dwell,
         mode_change_timeout=n.get(
             "mode_change_timeout", sc.number(positive=True), d.mode_change_timeout
         ),
@@ -587,16 +607,19 @@ def parse_cell(data: Any, file: str = "<memory>", base_dir: Path | None = None) 
     units: dict[str, UnitConfig] = {}
     for uname, un in units_node.items():
         Node(uname, un.path, un.problems).parse(sc.name, "")
-        merged = {**defaults, **un.mapping()}
+        own = un.mapping()
+        merged = {**defaults, **own}
+        # a unit's entry taken from defaults: is reported where it is written
+        origins = {str(k): f"defaults.{k}" for k in defaults if k not in own}
         units[uname] = _unit(
-            uname, Node(merged, un.path, un.problems), cell, base_dir or Path.cwd()
+            uname, Node(merged, un.path, un.problems, origins), cell, base_dir or Path.cwd()
         )
     coord = root.get(
         "coordinator",
         lambda x: _coordinator(x, units),
         CoordinatorConfig(start_order=tuple(units), stop_order=tuple(reversed(list(units)))),
     )
-    _cross_checks(root, units)
+    root.problems.extend(plain_secrets(data))
     if root.problems:
         raise ConfigError(file, root.problems)
     extras = {k: dict(root.child(k, root.mapping().get(k)).mapping()) for k in ("hmi", "opcua")}
@@ -605,41 +628,10 @@ def parse_cell(data: Any, file: str = "<memory>", base_dir: Path | None = None) 
     return CellConfig(cell, units, coord, file, **extras)
 
 
-def _cross_checks(root: Node, units: Mapping[str, UnitConfig]) -> None:
-    for uname, u in units.items():
-        path = f"units.{uname}"
-        ems = {e.name for e in u.equipment_modules}
-        for i, a in enumerate(u.alarms):
-            if a.em and a.em not in ems and not u.allow_registration:
-                root.problems.append(
-                    (f"{path}.alarms[{i}].em", f"no equipment module {a.em!r} in this unit")
-                )
-        mode = u.modes.get(u.initial_mode)
-        if mode is not None and State.STOPPED in mode.disabled:
-            root.problems.append(
-                (f"{path}.initial_mode", "the unit starts in STOPPED, which is disabled there")
-            )
-        for s in u.min_dwell:
-            if s in WAIT:
-                root.problems.append((f"{path}.min_dwell", f"{s.name} is a wait state"))
-
-
 def load_cell(path: str | os.PathLike[str]) -> CellConfig:
     """Read and validate a cell YAML file."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(str(p), [("", f"cannot read: {exc.strerror}")]) from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}" if mark else ""
-        raise ConfigError(
-            str(p), [(where, f"not valid YAML: {getattr(exc, 'problem', exc)}")]
-        ) from None
-    return parse_cell(data, str(p), p.resolve().parent)
+    return parse_cell(read_document(p), str(p), p.resolve().parent)
 
 
 def unit_config(name: str = "unit", **overrides: Any) -> UnitConfig:

@@ -17,23 +17,45 @@ from typing import Any
 SCHEMA_VERSION = 1
 
 
+class StoreError(RuntimeError):
+    """The admin store cannot be opened: one line naming the file and why."""
+
+
+def _why(exc: BaseException) -> str:
+    if isinstance(exc, OSError):
+        return exc.strerror or type(exc).__name__
+    return str(exc) or type(exc).__name__
+
+
 class Store:
-    """``Store(path, unit)``; :meth:`load` returns the last saved document or None."""
+    """``Store(path, unit)``; :meth:`load` returns the last saved document or None.
+
+    Raises :class:`StoreError` when the file cannot be created, opened or written (the unit would
+    otherwise lose its counts at the first save)."""
 
     def __init__(self, path: str | os.PathLike[str], unit: str) -> None:
         self.path = Path(path)
         self.unit = unit
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        # NORMAL in WAL mode: a commit survives the process being killed (not a power loss) and
-        # costs no fsync, so saving at every transition stays cheap.
-        self._db.execute("PRAGMA synchronous=NORMAL")
-        self._db.execute(
-            "CREATE TABLE IF NOT EXISTS unit_admin ("
-            " unit TEXT PRIMARY KEY, schema INTEGER NOT NULL, saved_at REAL NOT NULL,"
-            " document TEXT NOT NULL)"
-        )
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            for where in (self.path.parent, self.path):  # (root passes access(): sqlite decides)
+                if where.exists() and not os.access(where, os.W_OK):
+                    raise PermissionError(13, f"{where} is not writable")
+            self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+            self._db.execute("PRAGMA journal_mode=WAL")
+            # NORMAL in WAL mode: a commit survives the process being killed (not a power loss)
+            # and costs no fsync, so saving at every transition stays cheap.
+            self._db.execute("PRAGMA synchronous=NORMAL")
+            self._db.execute(
+                "CREATE TABLE IF NOT EXISTS unit_admin ("
+                " unit TEXT PRIMARY KEY, schema INTEGER NOT NULL, saved_at REAL NOT NULL,"
+                " document TEXT NOT NULL)"
+            )
+        except (OSError, ValueError, sqlite3.Error) as exc:
+            raise StoreError(
+                f"{self.path}: cannot open the admin store of unit {unit}: {_why(exc)} "
+                "(persistence.path of the cell file; persistence: false runs without one)"
+            ) from None
         self.saves = 0
 
     def load(self) -> dict[str, Any] | None:

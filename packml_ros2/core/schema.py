@@ -4,21 +4,55 @@ and what is wrong, and all errors of a file are reported together."""
 from __future__ import annotations
 
 import difflib
+import math
+import reprlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 T = TypeVar("T")
 
+#: Bounds of an error report: a hostile file must not turn into megabytes of message.
+MAX_PROBLEMS = 50
+MAX_PATH = 200
+MAX_PROBLEM = 400
+
+_repr = reprlib.Repr()
+_repr.maxstring = _repr.maxother = 60
+_repr.maxlist = _repr.maxtuple = _repr.maxset = _repr.maxdict = 6
+_repr.maxlevel = 3
+
+
+def shown(value: Any) -> str:
+    """``repr(value)`` cut to a few dozen characters (a value quoted in an error message)."""
+    return _repr.repr(value)
+
+
+def _cut(text: str, limit: int) -> str:
+    return text if len(text) <= limit else f"{text[: limit - 15]}... ({len(text)} chars)"
+
 
 class ConfigError(ValueError):
-    """Bad configuration. ``problems`` lists ``(key path, problem)``; str() is one line each."""
+    """Bad configuration. ``problems`` lists ``(key path, problem)``; str() is one line each.
+
+    Bounded: each path and problem is cut, the same problem is listed once (a ``defaults:`` entry
+    seen by every unit), and past :data:`MAX_PROBLEMS` one last line says how many more there are.
+    """
 
     def __init__(self, file: str, problems: list[tuple[str, str]]) -> None:
-        self.file = file
-        self.problems = problems
-        lines = [f"{file}: {path or '<top>'}: {problem}" for path, problem in problems]
+        unique = list(dict.fromkeys(problems))
+        kept = [(_cut(p, MAX_PATH), _cut(" ".join(x.splitlines()), MAX_PROBLEM))
+                for p, x in unique[:MAX_PROBLEMS]]  # fmt: skip
+        if len(unique) > MAX_PROBLEMS:
+            kept.append(("", f"... and {len(unique) - MAX_PROBLEMS} more problems"))
+        self.file = file = _cut(file, MAX_PATH)
+        self.problems = kept
+        lines = [f"{file}: {path or '<top>'}: {problem}" for path, problem in kept]
         super().__init__("\n".join(lines))
+
+    def prefixed(self, prefix: str) -> str:
+        """The report for a command line: ``<prefix>: <file>: <path>: <problem>`` per line."""
+        return "\n".join(f"{prefix}: {line}" for line in str(self).splitlines())
 
 
 class _Invalid(Exception):
@@ -31,13 +65,19 @@ def invalid(problem: str) -> _Invalid:
 
 @dataclass
 class Node:
-    """A value in the document with its key path; parse children with :meth:`get`."""
+    """A value in the document with its key path; parse children with :meth:`get`.
+
+    ``origins`` maps keys of a merged mapping to where they are written in the file (a unit's
+    entries taken from ``defaults:`` are reported as ``defaults.<key>``)."""
 
     value: Any
     path: str
     problems: list[tuple[str, str]] = field(default_factory=list)
+    origins: Mapping[str, str] | None = None
 
     def child(self, key: str | int, value: Any) -> Node:
+        if self.origins and isinstance(key, str) and key in self.origins:
+            return Node(value, self.origins[key], self.problems)
         path = (
             f"{self.path}[{key}]"
             if isinstance(key, int)
@@ -54,14 +94,14 @@ class Node:
         if self.value is None:
             return {}
         if not isinstance(self.value, Mapping):
-            self.error(f"expected a mapping, got {type(self.value).__name__} {self.value!r}")
+            self.error(f"expected a mapping, got {type(self.value).__name__} {shown(self.value)}")
             return {}
         return self.value
 
     def check_keys(self, allowed: set[str] | Mapping[str, Any]) -> None:
         for key in self.mapping():
             if str(key) not in allowed:
-                close = difflib.get_close_matches(str(key), list(allowed), n=1)
+                close = difflib.get_close_matches(str(key)[:100], list(allowed), n=1)
                 hint = f" (did you mean {close[0]!r}?)" if close else ""
                 self.child(str(key), None).error(
                     f"unknown key{hint}; valid keys: {', '.join(sorted(allowed))}"
@@ -97,7 +137,7 @@ class Node:
         if self.value is None:
             return []
         if not isinstance(self.value, list):
-            self.error(f"expected a list, got {type(self.value).__name__} {self.value!r}")
+            self.error(f"expected a list, got {type(self.value).__name__} {shown(self.value)}")
             return []
         return [self.child(i, v) for i, v in enumerate(self.value)]
 
@@ -105,17 +145,17 @@ class Node:
 # -- leaf parsers ------------------------------------------------------------------------------------
 def boolean(n: Node) -> bool:
     if not isinstance(n.value, bool):
-        raise invalid(f"expected true or false, got {n.value!r}")
+        raise invalid(f"expected true or false, got {shown(n.value)}")
     return n.value
 
 
 def integer(lo: int | None = None, hi: int | None = None) -> Callable[[Node], int]:
     def parse(n: Node) -> int:
         if isinstance(n.value, bool) or not isinstance(n.value, int):
-            raise invalid(f"expected an integer, got {n.value!r}")
+            raise invalid(f"expected an integer, got {shown(n.value)}")
         if (lo is not None and n.value < lo) or (hi is not None and n.value > hi):
             raise invalid(
-                f"{n.value} is outside {lo if lo is not None else '-inf'}..{hi if hi is not None else 'inf'}"
+                f"{shown(n.value)} is outside {lo if lo is not None else '-inf'}..{hi if hi is not None else 'inf'}"
             )
         return int(n.value)
 
@@ -127,8 +167,13 @@ def number(
 ) -> Callable[[Node], float]:
     def parse(n: Node) -> float:
         if isinstance(n.value, bool) or not isinstance(n.value, int | float):
-            raise invalid(f"expected a number, got {n.value!r}")
-        v = float(n.value)
+            raise invalid(f"expected a number, got {shown(n.value)}")
+        try:
+            v = float(n.value)
+        except OverflowError:
+            raise invalid(f"{shown(n.value)} is out of range") from None
+        if not math.isfinite(v):
+            raise invalid(f"expected a finite number, got {v}")
         if positive and v <= 0:
             raise invalid(f"must be greater than 0, got {v:g}")
         if (lo is not None and v < lo) or (hi is not None and v > hi):
@@ -144,7 +189,7 @@ def number(
 
 def text(n: Node) -> str:
     if not isinstance(n.value, str | int | float) or isinstance(n.value, bool):
-        raise invalid(f"expected a string, got {n.value!r}")
+        raise invalid(f"expected a string, got {shown(n.value)}")
     return str(n.value)
 
 
@@ -153,18 +198,20 @@ def name(n: Node) -> str:
     s = text(n)
     if not s or not (s[0].isalpha() or s[0] == "_") or not all(c.isalnum() or c == "_" for c in s):
         raise invalid(
-            f"{s!r} is not a valid ROS name (letters, digits and _, not starting with a digit)"
+            f"{shown(s)} is not a valid ROS name (letters, digits and _, not starting with a digit)"
         )
     return s
 
 
 def choice(options: Mapping[str, T]) -> Callable[[Node], T]:
     def parse(n: Node) -> T:
+        if not isinstance(n.value, str | int | float) or isinstance(n.value, bool):
+            raise invalid(f"expected one of {', '.join(options)}, got {shown(n.value)}")
         key = str(n.value).strip().lower()
         if key not in options:
-            close = difflib.get_close_matches(key, list(options), n=1)
+            close = difflib.get_close_matches(key[:100], list(options), n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
-            raise invalid(f"{n.value!r} is not one of {', '.join(options)}{hint}")
+            raise invalid(f"{shown(n.value)} is not one of {', '.join(options)}{hint}")
         return options[key]
 
     return parse

@@ -14,8 +14,8 @@ thread and must not block (the web server hands events to its event loop).
 
 from __future__ import annotations
 
-import hmac
 import itertools
+import math
 import os
 import threading
 import time
@@ -33,8 +33,10 @@ from rclpy.node import Node
 
 from ..client import CellProxy, Unavailable, call_future
 from ..core import CellConfig
-from ..core.numbers import ACTING, Cmd, State, command_name, parse_command, state_name
+from ..core.numbers import ACTING, MAX_MODE, Cmd, State, command_name, parse_command, state_name
 from ..core.reasons import Reason
+from ..core.schema import shown
+from .access import Access, Principal
 
 Event = dict[str, Any]
 Listener = Callable[[Event], None]
@@ -44,6 +46,7 @@ STALE_AFTER = 3.0  # s without any message from a unit (it publishes admin every
 TRANSITIONS_KEPT = 30
 HISTORY_KEPT = 50
 CALL_TIMEOUT = 10.0
+BAD_ARGUMENT = "BAD_ARGUMENT"  # ``code`` of an answer refused here for its arguments (HTTP 400)
 OPERATOR_STATES = ("active_unacknowledged", "inactive_unacknowledged", "acknowledged")
 KINDS = ("alarm", "warning", "command", "event")
 OEE_FIELDS = (
@@ -315,8 +318,8 @@ class Bridge:
         stale_after: float = STALE_AFTER,
     ) -> None:
         self.cell = cell
-        self.token = token or None
-        self.config = config_dict(cell, title, self.token is not None)
+        self.access = Access(token or None)
+        self.config = config_dict(cell, title, self.access.required)
         self._modes = {name: sorted(m for m in u.modes if m < 32) for name, u in cell.units.items()}
         self._own_context = context is None
         if context is None:
@@ -467,16 +470,20 @@ class Bridge:
     # -- actions -------------------------------------------------------------------------------------
     def authorized(self, token: str | None) -> dict[str, Any] | None:
         """None when ``token`` may operate; otherwise the refusal to show."""
-        if self.token is None:
-            return None
-        if not token:
-            return refusal(
-                Reason.UNAUTHORIZED,
-                "this HMI is read-only without the access token: enter it to operate",
+        result = self.access.verify(token)
+        return None if isinstance(result, Principal) else result.body()
+
+    def builder(self, unit: str | None, action: str) -> Builder:
+        """The request builder of ``action`` on ``unit`` (None: the cell); raises
+        :class:`ActionError` for an unknown unit or action."""
+        if unit is not None and unit not in self._units:
+            raise ActionError(f"no unit {shown(unit)} in cell {self.cell.cell}")
+        builders = UNIT_ACTIONS if unit is not None else CELL_ACTIONS
+        if action not in builders:
+            raise ActionError(
+                f"unknown action {shown(action)} (valid: {', '.join(sorted(builders))})"
             )
-        if not hmac.compare_digest(token.encode(), self.token.encode()):
-            return refusal(Reason.UNAUTHORIZED, "wrong access token: nothing was sent to the unit")
-        return None
+        return builders[action]
 
     def act(
         self,
@@ -488,21 +495,18 @@ class Bridge:
         """Call ``action`` of ``unit`` (None: the cell coordinator) with source ``hmi``; a future
         of the answer dict. Raises :class:`ActionError` for an unknown unit or action."""
         args = dict(args or {})
-        if unit is not None and unit not in self._units:
-            raise ActionError(f"no unit {unit!r} in cell {self.cell.cell}")
-        builders = UNIT_ACTIONS if unit is not None else CELL_ACTIONS
-        if action not in builders:
-            raise ActionError(f"unknown action {action!r} (valid: {', '.join(sorted(builders))})")
+        builder = self.builder(unit, action)
         done: Future[dict[str, Any]] = Future()
         denied = self.authorized(token)
         if denied is not None:
             done.set_result(denied)
             return done
         try:
-            service, fields = builders[action](args)
+            service, fields = builder(args)
         except (ValueError, TypeError, KeyError) as exc:
             text = exc.args[0] if exc.args and isinstance(exc.args[0], str) else str(exc)
-            done.set_result(refusal(Reason.INVALID_ARGUMENT, f"{action}: {text}"))
+            answer = refusal(Reason.INVALID_ARGUMENT, f"{action}: {text[:300]}")
+            done.set_result({**answer, "code": BAD_ARGUMENT})
             return done
         fields["source"] = SOURCE
         if unit is not None:
@@ -541,21 +545,61 @@ class Bridge:
 
 
 # -- request builders: (args from the page) -> (service, request fields) ------------------------------
+# Every argument is checked here, before anything is sent: only the keys the action takes, integers
+# within the range of their field (no wrap-around: 4294967298 is not mode 2), finite numbers,
+# short strings.
+INT32 = (-(2**31), 2**31 - 1)
+MAX_TEXT = 64
+
+
+def _only(args: Mapping[str, Any], *keys: str) -> None:
+    extra = sorted(k for k in args if k not in keys)
+    if extra:
+        takes = ", ".join(f"'{k}'" for k in keys) or "no arguments"
+        raise ValueError(f"unknown argument {shown(extra[0])} (it takes {takes})")
+
+
+def _int(args: Mapping[str, Any], key: str, default: int = 0, lo: int = INT32[0],
+         hi: int = INT32[1]) -> int:  # fmt: skip
+    value = args.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ValueError(f"'{key}' must be an integer")
+    if not lo <= value <= hi:
+        raise ValueError(f"'{key}' must be {lo}..{hi}, not {shown(value)}")
+    return value
+
+
+def _text(args: Mapping[str, Any], key: str) -> str:
+    value = args.get(key)
+    if not isinstance(value, str) or not value.strip():
+        raise ValueError(f"'{key}' must be a non-empty string")
+    if len(value) > MAX_TEXT or not value.isprintable():
+        raise ValueError(f"'{key}' must be at most {MAX_TEXT} printable characters")
+    return value
+
+
 def _command(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    _only(args, "command")
     cmd = args.get("command")
-    if isinstance(cmd, bool) or cmd is None:
+    if isinstance(cmd, int) and not isinstance(cmd, bool):
+        return "command", {"command": _int(args, "command", lo=1, hi=max(Cmd))}
+    if not isinstance(cmd, str):
         raise ValueError("give 'command': a name (start) or a number (2)")
-    number = int(cmd) if isinstance(cmd, int) else int(parse_command(str(cmd)))
-    return "command", {"command": number}
+    return "command", {"command": int(parse_command(_text(args, "command")))}
 
 
 def _set_mode(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    _only(args, "mode")
     mode = args.get("mode")
-    if isinstance(mode, bool) or mode is None or mode == "":
+    if isinstance(mode, str) and mode.strip().isascii() and mode.strip().isdigit():
+        if len(mode) > 12:
+            raise ValueError(f"'mode' must be 1..{MAX_MODE}")
+        mode = args["mode"] = int(mode.strip())
+    if isinstance(mode, int) and not isinstance(mode, bool):
+        return "set_mode", {"mode": _int(args, "mode", lo=1, hi=MAX_MODE)}
+    if not isinstance(mode, str) or not mode:
         raise ValueError("give 'mode': a number (2) or a configured name (maintenance)")
-    if isinstance(mode, int) or (isinstance(mode, str) and mode.strip().isdigit()):
-        return "set_mode", {"mode": int(mode)}
-    return "set_mode", {"mode_name": str(mode)}
+    return "set_mode", {"mode_name": _text(args, "mode")}
 
 
 def _flag(args: dict[str, Any], key: str, default: bool) -> bool:
@@ -565,46 +609,57 @@ def _flag(args: dict[str, Any], key: str, default: bool) -> bool:
     return value
 
 
-def _int(args: dict[str, Any], key: str, default: int = 0) -> int:
-    value = args.get(key, default)
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise ValueError(f"'{key}' must be an integer")
-    return value
-
-
 def _ack(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    _only(args, "all", "id", "value")
     everything = _flag(args, "all", "id" not in args)
     return "ack_alarms", {"all": everything, "id": _int(args, "id"), "value": _int(args, "value")}
 
 
 def _reset_alarms(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    _only(args, "clear_first_out")
     return "reset_alarms", {"clear_first_out": _flag(args, "clear_first_out", False)}
 
 
 def _reset_times(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    _only(args, "scope")
     scope = args.get("scope", "mode")
     scopes = {"mode": 0, "all": 1}
-    if scope not in scopes:
+    if not isinstance(scope, str) or scope not in scopes:
         raise ValueError("'scope' must be 'mode' (the current mode) or 'all'")
     return "reset_times", {"scope": scopes[scope]}
 
 
 def _reset_counters(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    _only(args)
     return "reset_counters", {}
 
 
 def _set_em_active(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    _only(args, "em", "active")
     em = args.get("em")
     if not isinstance(em, str) or not em:
         raise ValueError("give 'em': the equipment module's name")
+    if (
+        len(em) > 255
+        or not (em[0].isalpha() or em[0] == "_")
+        or not all(c.isascii() and (c.isalnum() or c == "_") for c in em)
+    ):
+        raise ValueError("'em' must be an equipment module's name (letters, digits and _)")
     return "set_em_active", {"em": em, "active": _flag(args, "active", True)}
 
 
 def _set_mach_speed(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    _only(args, "mach_speed")
     speed = args.get("mach_speed")
     if isinstance(speed, bool) or not isinstance(speed, int | float):
         raise ValueError("'mach_speed' must be a number")
-    return "set_mach_speed", {"mach_speed": float(speed)}
+    try:
+        value = float(speed)
+    except OverflowError:
+        raise ValueError("'mach_speed' is out of range") from None
+    if not math.isfinite(value) or value < 0:
+        raise ValueError("'mach_speed' must be a finite number, 0 or more")
+    return "set_mach_speed", {"mach_speed": value}
 
 
 Builder = Callable[[dict[str, Any]], tuple[str, dict[str, Any]]]

@@ -14,33 +14,43 @@ forbids it):
   ``{accepted, result, result_name, message, ...}`` (200 also when the unit refuses);
 - ``POST /api/auth``: 200 when the token is right (or none is configured), else 403.
 
-Access control: with a token configured every POST needs ``Authorization: Bearer <token>``;
-without it, or with a wrong one, the answer is 403 with the reason in ``message`` and nothing
-reaches the unit. Reading (page, snapshot, events) needs no token: the page is read-only then.
+Access control (:mod:`.access`): with a token configured every POST needs ``Authorization:
+Bearer <token>``; without it, or with a wrong one, the answer is 403 with the reason in
+``message`` and nothing reaches the unit; wrong tokens are throttled per client (429). Reading
+(page, snapshot, events) needs no token: the page is read-only then.
+
+Requests (:mod:`.guard`): the Host header is checked on every request, a POST from another site is
+refused, an action's body is read only after its token is checked, and only if it is JSON and at
+most 64 kB. Every refusal is JSON ``{accepted: false, result, result_name, code, message}`` with a
+4xx status; an answer of the unit is 200 (also a refusal), an argument refused here 400.
 """
 
 from __future__ import annotations
 
 import asyncio
-import json
+import logging
 import socket
 import threading
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterable
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI, Request
-from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
+from fastapi.responses import FileResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException
 
 from ..core.reasons import Reason
-from .bridge import ActionError, Bridge, Event
+from .access import Principal, Refusal
+from .bridge import BAD_ARGUMENT, ActionError, Bridge, Event
+from .guard import HostGuard, Json, dumps, json_content, parse_object, read_body, refuse
 from .settings import HmiSettings
 
 STATIC = Path(str(resources.files("packml_ros2.hmi") / "static"))
 KEEPALIVE = 15.0  # s between comments on an idle event stream
 QUEUE_LIMIT = 2000  # events waiting for one slow browser before it is sent a fresh snapshot
+MAX_STREAMS = 64  # event streams open at once (each holds a queue)
 ACTION_TIMEOUT = 10.0
 CELL_ACTION_TIMEOUT = 120.0  # a cell command waits for the whole sequence
 CSP = (
@@ -93,7 +103,7 @@ class Hub:
 
 
 def _sse(kind: str, data: Any) -> str:
-    return f"event: {kind}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n"
+    return f"event: {kind}\ndata: {dumps(data)}\n\n"
 
 
 def _token(request: Request) -> str | None:
@@ -103,17 +113,44 @@ def _token(request: Request) -> str | None:
     return request.headers.get("x-packml-token") or None
 
 
-def create_app(bridge: Bridge) -> FastAPI:
-    """The HMI app for ``bridge`` (the caller spins the bridge and closes it)."""
+def _client(request: Request) -> str:
+    return request.client.host if request.client else "unknown"
+
+
+LOG = logging.getLogger("packml_ros2.hmi")
+_STATUS_CODES = {404: "NOT_FOUND", 405: "METHOD_NOT_ALLOWED"}
+
+
+def create_app(bridge: Bridge, allowed_hosts: Iterable[str] = ()) -> FastAPI:
+    """The HMI app for ``bridge`` (the caller spins the bridge and closes it); ``allowed_hosts``:
+    host names besides IP addresses, localhost and this machine's name (:class:`.guard.HostGuard`)."""
     app = FastAPI(title=f"PackML HMI {bridge.cell.cell}", docs_url=None, redoc_url=None,
-                  openapi_url=None)  # fmt: skip
+                  openapi_url=None, default_response_class=Json)  # fmt: skip
     hub = Hub(bridge)
     app.state.hub = hub
     app.state.bridge = bridge
+    guard = HostGuard(allowed_hosts)
+    access = bridge.access
+
+    @app.exception_handler(HTTPException)
+    async def http_error(request: Request, exc: HTTPException) -> Response:
+        code = _STATUS_CODES.get(exc.status_code, "BAD_REQUEST")
+        text = "no such page or action" if exc.status_code == 404 else f"{exc.detail}".lower()
+        return refuse(Refusal(exc.status_code, Reason.INVALID_ARGUMENT, code, text))
+
+    @app.exception_handler(Exception)
+    async def internal_error(request: Request, exc: Exception) -> Response:
+        # a defect, never the user's fault: one line in the log, no traceback on the wire
+        LOG.error("HMI: %s %s failed: %s", request.method, request.url.path, type(exc).__name__)
+        return refuse(Refusal(500, Reason.UNIT_UNAVAILABLE, "INTERNAL_ERROR",
+                              "the HMI server failed on this request (see its log)"))  # fmt: skip
 
     @app.middleware("http")
     async def headers(request: Request, call_next: Any) -> Response:
-        response: Response = await call_next(request)
+        refusal = guard.host(request)
+        if refusal is None and request.method not in ("GET", "HEAD"):
+            refusal = guard.cross_site(request)
+        response: Response = refuse(refusal) if refusal is not None else await call_next(request)
         response.headers["Content-Security-Policy"] = CSP
         response.headers["X-Content-Type-Options"] = "nosniff"
         response.headers["Referrer-Policy"] = "no-referrer"
@@ -130,15 +167,18 @@ def create_app(bridge: Bridge) -> FastAPI:
         return FileResponse(STATIC / "favicon.svg", media_type="image/svg+xml")
 
     @app.get("/api/config")
-    async def config() -> dict[str, Any]:
-        return bridge.config
+    async def config() -> Json:
+        return Json(bridge.config)
 
     @app.get("/api/snapshot")
-    async def snapshot() -> dict[str, Any]:
-        return bridge.snapshot()
+    async def snapshot() -> Json:
+        return Json(bridge.snapshot())
 
-    @app.get("/api/events")
-    async def events(request: Request) -> StreamingResponse:
+    @app.get("/api/events", response_model=None)
+    async def events(request: Request) -> Response:
+        if len(hub.queues) >= MAX_STREAMS:
+            return refuse(Refusal(503, Reason.UNIT_UNAVAILABLE, "TOO_MANY_STREAMS",
+                                  f"{MAX_STREAMS} event streams are open: close a page"))  # fmt: skip
         snap, queue, unsubscribe = hub.open()
 
         async def stream() -> AsyncIterator[str]:
@@ -165,25 +205,26 @@ def create_app(bridge: Bridge) -> FastAPI:
             headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"},
         )
 
-    async def run_action(unit: str | None, action: str, request: Request) -> JSONResponse:
+    async def run_action(unit: str | None, action: str, request: Request) -> Json:
+        # the order matters: who asks (before a byte of the body is read), what is asked, then
+        # the body, bounded
+        token = _token(request)
+        who = access.authorize(token, _client(request))
+        if isinstance(who, Refusal):
+            return refuse(who)
         try:
-            body = await request.json() if await request.body() else {}
-        except json.JSONDecodeError:
-            return JSONResponse(
-                {"accepted": False, "result": int(Reason.INVALID_ARGUMENT),
-                 "result_name": "INVALID_ARGUMENT", "message": "the body is not JSON"},
-                status_code=400,
-            )  # fmt: skip
-        if not isinstance(body, dict):
-            body = {}
-        try:
-            future = bridge.act(unit, action, body, _token(request))
+            bridge.builder(unit, action)
         except ActionError as exc:
-            return JSONResponse(
-                {"accepted": False, "result": int(Reason.INVALID_ARGUMENT),
-                 "result_name": "INVALID_ARGUMENT", "message": str(exc.args[0])},
-                status_code=404,
-            )  # fmt: skip
+            return refuse(Refusal(404, Reason.INVALID_ARGUMENT, "NOT_FOUND", str(exc.args[0])))
+        refusal = json_content(request)
+        body = await read_body(request) if refusal is None else refusal
+        args = parse_object(body) if isinstance(body, bytes) else body
+        if isinstance(args, Refusal):
+            return refuse(args)
+        try:
+            future = bridge.act(unit, action, args, token)
+        except ActionError as exc:
+            return refuse(Refusal(404, Reason.INVALID_ARGUMENT, "NOT_FOUND", str(exc.args[0])))
         timeout = CELL_ACTION_TIMEOUT if unit is None else ACTION_TIMEOUT
         try:
             answer = await asyncio.wait_for(asyncio.wrap_future(future), timeout)
@@ -191,24 +232,31 @@ def create_app(bridge: Bridge) -> FastAPI:
             answer = {"accepted": False, "result": int(Reason.UNIT_UNAVAILABLE),
                       "result_name": "UNIT_UNAVAILABLE",
                       "message": f"{unit or 'the coordinator'}: no answer within {timeout:g} s"}  # fmt: skip
-        status = 403 if answer.get("result") == Reason.UNAUTHORIZED else 200
-        return JSONResponse(answer, status_code=status)
+        status = (
+            403
+            if answer.get("result") == Reason.UNAUTHORIZED
+            else 400
+            if answer.get("code") == BAD_ARGUMENT
+            else 200
+        )
+        return Json(answer, status_code=status)
 
     @app.post("/api/units/{unit}/{action}")
-    async def unit_action(unit: str, action: str, request: Request) -> JSONResponse:
+    async def unit_action(unit: str, action: str, request: Request) -> Json:
         return await run_action(unit, action, request)
 
     @app.post("/api/cell/{action}")
-    async def cell_action(action: str, request: Request) -> JSONResponse:
+    async def cell_action(action: str, request: Request) -> Json:
         return await run_action(None, action, request)
 
     @app.post("/api/auth")
-    async def auth(request: Request) -> JSONResponse:
-        denied = bridge.authorized(_token(request))
-        if denied is not None:
-            return JSONResponse(denied, status_code=403)
-        return JSONResponse({"accepted": True, "result": 0, "result_name": "ACCEPTED",
-                             "message": "operating"})  # fmt: skip
+    async def auth(request: Request) -> Json:
+        who = access.authorize(_token(request), _client(request))
+        if isinstance(who, Refusal):
+            return refuse(who)
+        assert isinstance(who, Principal)
+        return Json({"accepted": True, "result": 0, "result_name": "ACCEPTED",
+                     "message": "operating", "user": who.name, "level": who.level})  # fmt: skip
 
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     return app
@@ -219,7 +267,9 @@ def bind(host: str, port: int) -> socket.socket:
     """A listening socket (port 0: any free port; read it with ``getsockname()``)."""
     infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
     family, _, _, _, address = infos[0]
-    sock = socket.socket(family, socket.SOCK_STREAM)
+    # proto=TCP: asyncio sets TCP_NODELAY only on sockets that say so (accepted ones inherit
+    # it); without it every answer waited ~40 ms for a delayed ACK (Nagle)
+    sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     if family == socket.AF_INET6:
         sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
@@ -243,10 +293,11 @@ class Server:
     """uvicorn serving the HMI app on ``sock``; :meth:`run` blocks (signals: Ctrl-C stops it when
     run in the main thread), :meth:`start` runs it in a thread, :meth:`stop` ends it."""
 
-    def __init__(self, bridge: Bridge, sock: socket.socket, log_level: str = "warning") -> None:
+    def __init__(self, bridge: Bridge, sock: socket.socket, log_level: str = "warning",
+                 allowed_hosts: Iterable[str] = ()) -> None:  # fmt: skip
         import uvicorn
 
-        self.app = create_app(bridge)
+        self.app = create_app(bridge, allowed_hosts)
         self.sock = sock
         hub: Hub = self.app.state.hub
 
@@ -261,6 +312,10 @@ class Server:
             access_log=False,
             ws="none",
             lifespan="off",
+            # the client's address is the socket's: an X-Forwarded-For from a local process
+            # must not pick the address the throttle counts (or write it into the log)
+            proxy_headers=False,
+            server_header=False,
             timeout_graceful_shutdown=2,
         )
         self.server = _Server(config)
@@ -288,4 +343,5 @@ class Server:
 
 def serve(bridge: Bridge, settings: HmiSettings) -> Server:
     """A :class:`Server` for ``bridge`` bound to ``settings.host``/``port`` (not started)."""
-    return Server(bridge, bind(settings.host, settings.port))
+    return Server(bridge, bind(settings.host, settings.port),
+                  allowed_hosts=(*settings.allowed_hosts, settings.host))  # fmt: skip

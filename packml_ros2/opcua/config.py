@@ -8,7 +8,9 @@
       allow_anonymous_write: false # anonymous sessions may also call methods (commands)
       users:                       # user name -> password, for methods (commands, mode, speed)
         operator: env:PACKML_OPCUA_OPERATOR   # from the environment, or
-        mes: pbkdf2_sha256$...                # a hash (packml opcua --hash-password), or plain text
+        scada: file:secrets/scada.pw          # from a file, or
+        mes: pbkdf2_sha256$...                # a hash (packml opcua --hash-password);
+                                              # never plain text (packml_ros2.core.secrets)
       user_certificates:           # user name -> certificate (DER or PEM): X509 identity tokens,
         scada: certs/scada.der     #   or the client's application instance certificate
       security_policies: [None, Basic256Sha256_Sign, Basic256Sha256_SignAndEncrypt]
@@ -30,13 +32,13 @@ from __future__ import annotations
 import base64
 import hashlib
 import hmac
-import os
 import secrets
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from ..core import schema as sc
+from ..core import secrets as secret_sources
 from ..core.config import DEFAULT_STATE_DIR, CellConfig
 from ..core.schema import ConfigError, Node, invalid
 
@@ -68,7 +70,7 @@ class OpcUaConfig:
     port: int = 4840
     allow_anonymous: bool = True
     allow_anonymous_write: bool = False
-    users: dict[str, str] = field(default_factory=dict)  # name -> password or hash
+    users: dict[str, str] = field(default_factory=dict, repr=False)  # name -> password or hash
     user_certificates: dict[str, Path] = field(default_factory=dict)
     security_policies: tuple[str, ...] = DEFAULT_POLICIES
     certificate: Path | None = None
@@ -107,7 +109,8 @@ def hash_password(password: str, iterations: int = 200_000) -> str:
 
 
 def check_password(password: str | None, stored: str) -> bool:
-    """Constant-time comparison with a plain or hashed password (``env:`` is resolved at load)."""
+    """Constant-time comparison with a plain or hashed password (``env:``/``file:`` are resolved
+    at load)."""
     if password is None:
         return False
     if stored.startswith(HASH_PREFIX):
@@ -123,13 +126,8 @@ def check_password(password: str | None, stored: str) -> bool:
     return hmac.compare_digest(password.encode(), stored.encode())
 
 
-def _password(n: Node) -> str:
-    s = sc.text(n)
-    if s.startswith("env:"):
-        var = s[4:]
-        if var not in os.environ:
-            raise invalid(f"environment variable {var} is not set")
-        s = os.environ[var]
+def _password(n: Node, base: Path) -> str:
+    s = secret_sources.resolve(n, base, hashed=True)
     if s.startswith(HASH_PREFIX):
         parts = s[len(HASH_PREFIX) :].split("$")
         if len(parts) != 3 or not parts[0].isdigit():
@@ -191,7 +189,7 @@ def parse_opcua(cell: CellConfig, base: Path | None = None) -> OpcUaConfig:
             root.child("units", None).child(i, u).error(
                 f"unknown unit {u!r}; the cell has {', '.join(cell.units)}"
             )
-    users = {name: n.parse(_password, "") for name, n in root.items_at("users")}
+    users = {name: n.parse(lambda x: _password(x, base), "") for name, n in root.items_at("users")}
     certs = {name: n.parse(existing, Path()) for name, n in root.items_at("user_certificates")}
     policies = tuple(n.parse(_policy, "") for n in root.list_at("security_policies"))
     if "security_policies" in root.mapping() and not policies:

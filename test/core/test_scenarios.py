@@ -542,6 +542,8 @@ def test_min_dwell_with_ems_waits_for_both() -> None:
 
 
 # -- alarms -----------------------------------------------------------------------------------------------
+# The EMs that own ALARM_CELL's alarms, inactive: they take no part in State Complete.
+QUIET_EMS = {"em1": {"active": False}, "em2": {"active": False}}
 ALARM_CELL = {
     "equipment_modules": {"em1": {}, "em2": {}},
     "alarms": [
@@ -657,7 +659,7 @@ def test_alarm_query_filter_and_sort() -> None:
 
 @pytest.fixture
 def running() -> tuple[Unit, FakeClock]:
-    unit, clock = make({"alarms": ALARM_CELL["alarms"]})
+    unit, clock = make({"alarms": ALARM_CELL["alarms"], "equipment_modules": QUIET_EMS})
     to_execute(unit)
     return unit, clock
 
@@ -747,7 +749,7 @@ def test_remote_enabled_by_configuration() -> None:
 
 
 def test_stop_reason_alarm_and_rearm() -> None:
-    unit, _ = make({"alarms": ALARM_CELL["alarms"]})
+    unit, _ = make({"alarms": ALARM_CELL["alarms"], "equipment_modules": QUIET_EMS})
     to_execute(unit)
     unit.set_alarm(13)  # Hold reaction
     reason = unit.admin().stop_reason

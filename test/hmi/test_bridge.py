@@ -307,8 +307,10 @@ def test_a_token_guards_every_action_and_nothing_reaches_the_unit_without_it(mak
         refused = http.post(f"/api/units/{UNIT}/command", json={"command": "start"}, headers=auth)
         assert refused.status_code == 200 and refused.json()["result_name"] == "COMMAND_NOT_ALLOWED"
         assert http.post("/api/units/nope/command", json={}, headers=auth).status_code == 404
+        as_json = {**auth, "Content-Type": "application/json"}
         assert (
-            http.post(f"/api/units/{UNIT}/command", content=b"{", headers=auth).status_code == 400
+            http.post(f"/api/units/{UNIT}/command", content=b"{", headers=as_json).status_code
+            == 400
         )
         page = http.get("/")
         assert (
@@ -366,15 +368,19 @@ def test_the_event_stream_sends_a_snapshot_then_each_change_at_once(make_cell) -
 
 
 # -- configuration -----------------------------------------------------------------------------------------
-def test_the_hmi_block_is_validated_with_key_paths(tmp_path: Path) -> None:
+def test_the_hmi_block_is_validated_with_key_paths(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     base = {"cell": "c", "units": {"u": {}}}
     assert hmi_settings(parse_cell(base)).port == 8080
+    monkeypatch.setenv("PACKML_TEST_HMI_TOKEN", "abcd-efgh")
     settings = hmi_settings(
-        parse_cell({**base, "hmi": {"port": 0, "token": "abcd", "title": "Line 3"}})
-    )
+        parse_cell({**base, "hmi": {"port": 0, "token": "env:PACKML_TEST_HMI_TOKEN",
+                                    "title": "Line 3"}})
+    )  # fmt: skip
     assert (settings.port, settings.token, settings.title, settings.loopback) == (
         0,
-        "abcd",
+        "abcd-efgh",
         "Line 3",
         True,
     )

@@ -67,7 +67,8 @@ def demo_like_cell(tmp: Path) -> tuple[Path, str]:
             sim["lease"] = 3.0  # 10 nodes in one process on a busy 2-core machine: no false EM loss
         for key in ("mach_speed", "mach_design_speed"):  # OEE performance as in the real demo
             unit[key] = round(unit[key] / SPEEDUP, 3)
-    doc["hmi"] = {"host": "127.0.0.1", "port": 0, "token": TOKEN, "title": "Demo line"}
+    (tmp / "hmi.token").write_text(TOKEN + "\n")  # a secret is pointed to, never written in
+    doc["hmi"] = {"host": "127.0.0.1", "port": 0, "token": "file:hmi.token", "title": "Demo line"}
     path = tmp / "cell.yaml"
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path, cell

@@ -343,11 +343,12 @@ def test_config_defaults(tmp_path: Path) -> None:
 
 def test_config_errors_name_the_key(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("NO_SUCH_PACKML_VAR", raising=False)
+    monkeypatch.setenv("PACKML_SHORT_PW", "xy")
     bad = {
         "prot": 1,
         "port": 70000,
         "units": ["filler", "nope"],
-        "users": {"a": "xy", "b": "env:NO_SUCH_PACKML_VAR"},
+        "users": {"a": "env:PACKML_SHORT_PW", "b": "env:NO_SUCH_PACKML_VAR"},
         "security_policies": ["Basic256"],
         "certificate": "missing.der",
         "private_key": "key.pem",  # a key without its certificate
@@ -457,8 +458,12 @@ def test_refusal_diagnostics_follow_part6_encoding() -> None:
     assert struct_from_binary(ua.DiagnosticInfo, Buffer(raw)).AdditionalInfo == "START not allowed"
 
 
-def test_security_warnings_and_trusted_client_certificates(tmp_path: Path) -> None:
+def test_security_warnings_and_trusted_client_certificates(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     import asyncio
+
+    monkeypatch.setenv("PACKML_TEST_PW", "abcd")
 
     from asyncua.crypto import cert_gen
     from cryptography import x509
@@ -469,7 +474,8 @@ def test_security_warnings_and_trusted_client_certificates(tmp_path: Path) -> No
 
     open_ = parse_opcua(
         load_cell(_cell(tmp_path, {"host": "0.0.0.0", "allow_anonymous_write": True,
-                                   "users": {"a": "abcd"}, "security_policies": ["None"]}))
+                                   "users": {"a": "env:PACKML_TEST_PW"},
+                                   "security_policies": ["None"]}))
     )  # fmt: skip
     assert len(warnings(open_)) == 3
     assert warnings(parse_opcua(load_cell(_cell(tmp_path, None)))) == []

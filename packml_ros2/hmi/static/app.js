@@ -99,6 +99,8 @@
     return m ? m.name : `MODE ${number}`;
   };
   const pct = (x) => (Number.isFinite(x) ? `${(x * 100).toFixed(1)} %` : "–");
+  // a number the server could not write (NaN, Infinity: JSON null) shows as a dash
+  const fixed = (x, digits) => (Number.isFinite(x) ? x.toFixed(digits) : "–");
 
   function fmtDur(s) {
     s = Math.max(0, Math.floor(s || 0));
@@ -391,7 +393,7 @@
         <div class="fact"><div class="k">Mode</div><div class="v">${esc(s?.mode_name || "–")}</div></div>
         <div class="fact"><div class="k">Health</div><div class="v"><span class="tag ${healthCls}">${esc(health)}</span></div></div>
         <div class="fact"><div class="k">EMs online</div><div class="v">${ems.filter((e) => e.online).length}/${ems.length}</div></div>
-        <div class="fact"><div class="k">Speed</div><div class="v">${s ? `${s.cur_mach_speed.toFixed(0)}/${s.mach_speed.toFixed(0)}` : "–"}</div></div>
+        <div class="fact"><div class="k">Speed</div><div class="v">${s ? `${fixed(s.cur_mach_speed, 0)}/${fixed(s.mach_speed, 0)}` : "–"}</div></div>
         <div class="fact"><div class="k">Processed</div><div class="v">${processed}</div></div>
         <div class="fact"><div class="k">Defective</div><div class="v">${defective}</div></div>
         <div class="fact"><div class="k">Alarms</div><div class="v">${s?.active_alarms ?? 0}</div></div>
@@ -578,10 +580,10 @@
         lamp(s.blocked || s.starved, "on-warn", s.blocked ? "Blocked (downstream)" : s.starved ? "Starved (upstream)" : "Blocked / starved", "lamp-interlock")
       : "";
     const speedInput = $("#speed-input");
-    if (document.activeElement !== speedInput && s) speedInput.value = s.mach_speed;
+    if (document.activeElement !== speedInput && s) speedInput.value = s.mach_speed ?? "";
     speedInput.disabled = !operate;
     $("#speed-btn").disabled = !operate;
-    $("#u-speed").textContent = s ? `actual ${s.cur_mach_speed.toFixed(1)}${unitCfg(name).mach_design_speed ? ` · design ${unitCfg(name).mach_design_speed}` : ""}` : "";
+    $("#u-speed").textContent = s ? `actual ${fixed(s.cur_mach_speed, 1)}${unitCfg(name).mach_design_speed ? ` · design ${unitCfg(name).mach_design_speed}` : ""}` : "";
 
     // EMs
     const inProduction = s?.mode === 1;

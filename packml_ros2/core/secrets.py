@@ -1,0 +1,144 @@
+"""Secrets of a cell file: never written in it, only pointed to.
+
+Every secret key (:data:`SECRET_KEYS`: the HMI access token, the OPC UA users' passwords) takes
+one of:
+
+- ``env:VARIABLE``: the value of an environment variable of the process that needs it;
+- ``file:PATH``: the contents of a file (relative to the cell file, ``~`` expanded; one trailing
+  newline dropped); keep it readable by the service's user only;
+- where the key says so, a one-way hash (``pbkdf2_sha256$...`` for OPC UA passwords).
+
+A secret written in plain text is refused when the cell file is loaded (by every loader: units,
+coordinator, launcher, HMI, OPC UA), naming the key and never the value: the cell file is
+published on each unit's latched ``~/config`` topic and recorded in bags. What is published or
+recorded is :func:`redacted_yaml` anyway: every secret key, and every key whose name says it holds
+one (token, password, secret, private key), reads :data:`REDACTED`.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import re
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .schema import Node, invalid
+
+#: Key paths of secrets (``*``: any key of that mapping).
+SECRET_KEYS: tuple[tuple[str, ...], ...] = (("hmi", "token"), ("opcua", "users", "*"))
+REDACTED = "<redacted>"
+MAX_SECRET_BYTES = 4096
+HASH_PREFIXES = ("pbkdf2_sha256$",)
+_SECRET_NAME = re.compile(r"token|passw|secret|private|credential|api_?key", re.IGNORECASE)
+_VARIABLE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+def is_reference(value: Any, hashed: bool = False) -> bool:
+    """Whether ``value`` may stand at a secret key: ``env:``/``file:`` (or a hash if allowed)."""
+    if not isinstance(value, str):
+        return False
+    if value.startswith(("env:", "file:")) or value == REDACTED:
+        return True
+    return hashed and value.startswith(HASH_PREFIXES)
+
+
+def _matches(root: Any, pattern: tuple[str, ...], path: str = "") -> list[tuple[str, Any]]:
+    """(key path, value) of every entry of ``root`` that ``pattern`` names."""
+    if not pattern:
+        return [(path, root)]
+    if not isinstance(root, Mapping):
+        return []
+    head, rest = pattern[0], pattern[1:]
+    keys = [k for k in root if isinstance(k, str)] if head == "*" else [head] * (head in root)
+    return [m for k in keys for m in _matches(root[k], rest, f"{path}.{k}" if path else k)]
+
+
+def plain_secrets(document: Any) -> list[tuple[str, str]]:
+    """Problems for every secret key of a cell document that holds a value instead of a
+    reference (the value itself is never quoted)."""
+    out = []
+    for pattern in SECRET_KEYS:
+        hashed = pattern[0] == "opcua"
+        for path, value in _matches(document, pattern):
+            if value is None or value == "" or is_reference(value, hashed):
+                continue  # (an empty value holds no secret: the key's own check refuses it)
+            ways = "env:VARIABLE, file:PATH" + (" or a hash (packml opcua --hash-password)"
+                                                if hashed else "")  # fmt: skip
+            out.append((path, f"a secret is never written in the cell file (it is published "
+                              f"on the units' ~/config topic and recorded in bags): give {ways}"))  # fmt: skip
+    return out
+
+
+def resolve(n: Node, base: Path, hashed: bool = False) -> str:
+    """The secret a reference at ``n`` points to (raises the node's ``invalid`` otherwise).
+    Messages name the variable or file, never what it holds."""
+    value = n.value
+    if isinstance(value, str) and value.startswith("env:"):
+        var = value[4:]
+        if not _VARIABLE.fullmatch(var):
+            raise invalid(f"env:{var[:60]} is not an environment variable name")
+        if var not in os.environ:
+            raise invalid(f"environment variable {var} is not set")
+        secret = os.environ[var]
+    elif isinstance(value, str) and value.startswith("file:"):
+        p = Path(value[5:]).expanduser()
+        p = p if p.is_absolute() else base / p
+        try:
+            with p.open("rb") as f:
+                data = f.read(MAX_SECRET_BYTES + 1)
+        except OSError as exc:
+            raise invalid(f"cannot read {p}: {exc.strerror or type(exc).__name__}") from None
+        if len(data) > MAX_SECRET_BYTES:
+            raise invalid(f"{p} is larger than {MAX_SECRET_BYTES} bytes: not a secret file")
+        try:
+            secret = data.decode("utf-8")
+        except UnicodeDecodeError:
+            raise invalid(f"{p} is not UTF-8 text") from None
+        secret = secret[:-1] if secret.endswith("\n") else secret
+        secret = secret[:-1] if secret.endswith("\r") else secret
+    elif value == REDACTED:
+        raise invalid("this configuration was recorded without its secrets: give the original")
+    elif hashed and isinstance(value, str) and value.startswith(HASH_PREFIXES):
+        return value
+    else:
+        raise invalid("give env:VARIABLE or file:PATH")
+    if not secret.strip():
+        raise invalid(f"{value[:80]} is empty")
+    return secret
+
+
+def redact(document: Any) -> Any:
+    """A copy of a cell document with every secret value replaced by :data:`REDACTED`."""
+    secret_paths = {path for pattern in SECRET_KEYS for path, _ in _matches(document, pattern)}
+
+    def copy(value: Any, path: str) -> Any:
+        if isinstance(value, Mapping):
+            out = {}
+            for k, v in value.items():
+                where = f"{path}.{k}" if path else str(k)
+                hidden = where in secret_paths or (
+                    isinstance(k, str)
+                    and _SECRET_NAME.search(k)
+                    and not isinstance(v, Mapping | list)
+                )
+                out[k] = REDACTED if hidden and v is not None else copy(v, where)
+            return out
+        if isinstance(value, list):
+            return [copy(v, f"{path}[{i}]") for i, v in enumerate(value)]
+        return value
+
+    return copy(document, "")
+
+
+@functools.lru_cache(maxsize=4)  # the launcher gives every unit of a cell the same text
+def redacted_yaml(text: str, file: str = "<memory>") -> str:
+    """The cell file ``text`` as YAML with its secrets redacted (what units publish on ``~/config``
+    and bags record); raises :class:`~.schema.ConfigError` when ``text`` is not a document."""
+    from .safe_yaml import parse_document
+
+    document = redact(parse_document(text, file))
+    return str(yaml.safe_dump(document, sort_keys=False, allow_unicode=True))
