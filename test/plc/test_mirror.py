@@ -233,3 +233,19 @@ def test_the_plc_block_refuses_what_cannot_work(tmp_path: Path) -> None:
             tmp_path, {"endpoint": "opc.tcp://h:1", "user": "u", "password": "env:NOT_SET_ANYWHERE"}
         )
     )
+
+
+def test_packml_launch_starts_a_bridge_for_each_plc_unit(tmp_path: Path) -> None:
+    from packml_ros2.launcher import node_specs, plan
+
+    path = cell_file(tmp_path, {"endpoint": "opc.tcp://127.0.0.1:4840"})
+    doc = yaml.safe_load(path.read_text())
+    doc["units"]["robot"] = {"equipment_modules": {"gripper": {}}}
+    path.write_text(yaml.safe_dump(doc))
+    specs = {s.name: (s.executable, s.module, s.arguments) for s in node_specs(plan(path))}
+    assert specs["plc wrapper"] == ("plc_bridge", "packml_ros2.plc.node", (str(path), "wrapper"))
+    assert specs["unit robot"][0] == "unit_node" and "unit wrapper" not in specs
+    # the launcher validates the plc: block before anything starts
+    bad = cell_file(tmp_path, {"endpoint": "opc.tcp://h:1", "lease": 9})
+    with pytest.raises(ConfigError, match=r"units\.wrapper\.plc\.lease"):
+        plan(bad)

@@ -22,6 +22,7 @@ import signal
 import subprocess
 import threading
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -30,14 +31,17 @@ import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from packml_interfaces.msg import CellStatus, Result, TransitionEvent
 from packml_interfaces.srv import Command, SetAlarm
+from rclpy.serialization import deserialize_message
 from std_srvs.srv import SetBool
 
 from packml_ros2 import qos
+from packml_ros2.bag.recording import load
 from packml_ros2.core import Cmd
 from packml_ros2.opcua.config import hash_password
 from packml_ros2.testing.processes import Processes, wait_until
 from test.opcua.test_opcua import CLIENT_DIR, free_port
 from test.ros.cells import UnitClient, start_em_process, start_unit_process, write_cell
+from test.test_replay import PACKML, ROOT, Output, packml
 
 pytestmark = pytest.mark.ros
 
@@ -181,6 +185,11 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     assert first.detail == f"connected to the PLC at {endpoint} PackMLObjects/wrapper"
     assert wrapper.status.last.equipment_modules[0].name == "plc"
     line.wait(lambda m: m.all_online and len(states(m)) == 2, "both units online")
+    bag = tmp_path / "line_bag"
+    recorder = subprocess.Popen([*PACKML, "record", cell, "-o", str(bag)], cwd=ROOT,
+                                stderr=subprocess.PIPE, text=True)  # fmt: skip
+    recording = Output(recorder)
+    recording.wait_for(f"receiving /{cell}/wrapper")
 
     # -- the coordinator sequences the PLC unit like its own --------------------------------------------
     reset = line.command(Cmd.RESET)
@@ -196,6 +205,16 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     start = line.command(Cmd.START)
     assert start.accepted, start.message
     line.wait(lambda m: states(m) == {"robot": "EXECUTE", "wrapper": "EXECUTE"}, "the line running")
+    # record (the ROS side) takes the PLC unit like any other; replay replays the ROS units
+    recorder.send_signal(signal.SIGINT)
+    assert "wrote" in recording.rest() and recorder.returncode == 0
+    recorded = load(bag).units[f"/{cell}/wrapper"]
+    assert [
+        t.trigger for t in map(partial(deserialize_message, message_type=TransitionEvent),
+                               recorded.outputs["transitions"])] >= [TransitionEvent.TRIGGER_COMMAND, TransitionEvent.TRIGGER_STATE_COMPLETE]  # fmt: skip
+    replayed = packml("replay", str(bag))
+    assert replayed.returncode == 0, replayed.stdout + replayed.stderr
+    assert "match (robot:" in replayed.stdout and "wrapper" not in replayed.stdout
 
     # -- interlocks both ways ------------------------------------------------------------------------------
     from_now(robot, wrapper)
