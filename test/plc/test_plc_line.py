@@ -31,6 +31,7 @@ import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from packml_interfaces.msg import CellStatus, Result, TransitionEvent
 from packml_interfaces.srv import Command, SetAlarm
+from rclpy.node import Node
 from rclpy.serialization import deserialize_message
 from std_srvs.srv import SetBool
 
@@ -38,6 +39,7 @@ from packml_ros2 import qos
 from packml_ros2.bag.recording import load
 from packml_ros2.core import Cmd
 from packml_ros2.opcua.config import hash_password
+from packml_ros2.presence import Presence
 from packml_ros2.testing.processes import Processes, wait_until
 from test.opcua.test_opcua import CLIENT_DIR, free_port
 from test.ros.cells import UnitClient, start_em_process, start_unit_process, write_cell
@@ -177,6 +179,8 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     bridge = processes.module("plc_wrapper", PLC_MODULE, str(path), "wrapper")
     processes.module("coordinator", "packml_ros2.coordinator_node", str(path))
     robot, wrapper = UnitClient(ros, cell, "robot"), UnitClient(ros, cell, "wrapper")
+    presence = Presence(ros.add(Node("presence_probe", namespace=f"/{cell}", context=ros.context)),
+                        [f"/{cell}/wrapper"], LEASE)  # what the OPC UA server follows  # fmt: skip
     line = Line(ros, cell)
     robot.ready(30)
     wrapper.ready(30)
@@ -186,10 +190,11 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     assert wrapper.status.last.equipment_modules[0].name == "plc"
     line.wait(lambda m: m.all_online and len(states(m)) == 2, "both units online")
     bag = tmp_path / "line_bag"
-    recorder = subprocess.Popen([*PACKML, "record", cell, "-o", str(bag)], cwd=ROOT,
+    recorder = subprocess.Popen([*PACKML, "record", cell, "--config", str(path), "-o", str(bag)], cwd=ROOT,
                                 stderr=subprocess.PIPE, text=True)  # fmt: skip
     recording = Output(recorder)
-    recording.wait_for(f"receiving /{cell}/wrapper")
+    for unit in ("robot", "wrapper"):
+        recording.wait_for(f"receiving /{cell}/{unit}")
 
     # -- the coordinator sequences the PLC unit like its own --------------------------------------------
     reset = line.command(Cmd.RESET)
@@ -281,6 +286,8 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     detected = time.monotonic() - killed
     assert detected <= LEASE, f"loss seen by the coordinator after {detected:.2f} s"
     assert "wrapper (the PLC of wrapper (opc.tcp://" in lost.detail
+    wait_until(lambda: presence.seen(f"/{cell}/wrapper").present is False, LEASE, 0.05,
+               "the wrapper's presence lost")  # fmt: skip
     wait_until(lambda: ros.node.count_publishers(f"/{cell}/wrapper/status") == 0, LEASE, 0.05,
                "the wrapper's status withdrawn")  # fmt: skip
     answer = wrapper.command(Cmd.STOP)
@@ -297,6 +304,7 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     )  # fmt: skip
     assert "lost: the connection to the PLC closed" in back.detail
     line.wait(lambda m: m.all_online and not m.lost_units, "the PLC unit online again")
+    assert presence.seen(f"/{cell}/wrapper").present
     robot.wait_state("STOPPED")
     assert line.command(Cmd.RESET).accepted
     assert line.command(Cmd.START).accepted
