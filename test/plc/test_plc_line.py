@@ -284,6 +284,7 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     plc.kill()
     lost = line.wait(lambda m: m.lost_units == ["wrapper"], "the PLC unit lost", 2 * LEASE)
     detected = time.monotonic() - killed
+    print(f"killed PLC: lost at the coordinator after {detected:.2f} s")
     assert detected <= LEASE, f"loss seen by the coordinator after {detected:.2f} s"
     assert "wrapper (the PLC of wrapper (opc.tcp://" in lost.detail
     wait_until(lambda: presence.seen(f"/{cell}/wrapper").present is False, LEASE, 0.05,
@@ -317,6 +318,7 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     plc.signal(signal.SIGSTOP)
     line.wait(lambda m: m.lost_units == ["wrapper"], "the frozen PLC lost", 3 * LEASE)
     detected = time.monotonic() - frozen
+    print(f"frozen PLC: lost at the coordinator after {detected:.2f} s")
     assert detected <= LEASE + 0.5, f"silence seen after {detected:.2f} s"
     stale = diagnostics.wait_for(
         lambda d: any(s.name == "packml: wrapper" and s.level == DiagnosticStatus.STALE for s in d.status),
@@ -370,6 +372,11 @@ def test_the_bridge_drives_this_projects_own_opcua_face_with_a_secured_user_sess
     bridged.wait_state("IDLE")
     t = bridged.transitions.wait_for(lambda t: t.command == Cmd.RESET, 5, "the bridged RESET")
     assert t.source == "operator"
+    # packml status shows it like any unit (its one EM is the PLC link)
+    shown = packml("status", f"{line}/filler")
+    assert shown.returncode == 0, shown.stdout + shown.stderr
+    assert f"/{line}/filler: IDLE (4) in PRODUCTION (1)" in shown.stdout
+    assert "plc          online, active" in shown.stdout
 
     # an alarm of the remote unit stops it; the bridge names it as the cause
     from_now(bridged)
