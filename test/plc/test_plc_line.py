@@ -231,29 +231,35 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     robot.wait_state("EXECUTE")
     from_now(robot, wrapper)
     ros.call(SetBool, f"/{cell}/robot/gripper/fault/empty", SetBool.Request(data=True))
+    # (an acting state of the PLC may pass between two publishes: then it is a skipped state)
     suspended = wrapper.transitions.wait_for(
-        lambda t: t.to_state_name == "SUSPENDING", 10, "the PLC suspended by the interlock"
+        lambda t: t.to_state_name in ("SUSPENDING", "SUSPENDED"),
+        10,
+        "the PLC suspended by the interlock",
+        wrapper._transitions_since,
     )
     assert (suspended.trigger, suspended.source) == (TransitionEvent.TRIGGER_INTERLOCK, "coordinator")  # fmt: skip
     assert suspended.detail == "robot starved"
     wrapper.wait_status(lambda m: m.state_current_name == "SUSPENDED", 5, "wrapper suspended")
     from_now(wrapper)
     ros.call(SetBool, f"/{cell}/robot/gripper/fault/empty", SetBool.Request(data=False))
-    unsuspended = wrapper.wait_entered("UNSUSPENDING")
+    unsuspended = wrapper.transitions.wait_for(
+        lambda t: t.to_state_name in ("UNSUSPENDING", "EXECUTE"),
+        10,
+        "unsuspended",
+        wrapper._transitions_since,
+    )
     assert (unsuspended.trigger, unsuspended.detail) == (TransitionEvent.TRIGGER_INTERLOCK, "interlock cleared")  # fmt: skip
     wrapper.wait_entered("EXECUTE")
-    assert [t.to_state_name for t in wrapper.transitions.messages[-4:]] == [
-        "SUSPENDING",
-        "SUSPENDED",
-        "UNSUSPENDING",
-        "EXECUTE",
-    ]  # no command sent twice
+    sent = [t.command for t in wrapper.transitions.messages if t.trigger == TransitionEvent.TRIGGER_INTERLOCK]  # fmt: skip
+    assert sent == [Cmd.SUSPEND, Cmd.UNSUSPEND]  # each sent once
     from_now(wrapper)
     line.mark()
 
     # -- a fault in the PLC: the line stops, the PLC unit's stop reason is visible --------------------
     plc.send(fault={"id": 3001, "message": "Film break", "category": 2})
-    stop = wrapper.transitions.wait_for(lambda t: t.to_state_name == "STOPPING", 5, "the PLC stopping")  # fmt: skip
+    stop = wrapper.transitions.wait_for(lambda t: t.to_state_name in ("STOPPING", "STOPPED"), 5,
+                                        "the PLC stopping", wrapper._transitions_since)  # fmt: skip
     assert (stop.trigger, stop.command, stop.source) == (TransitionEvent.TRIGGER_ALARM, Cmd.STOP, "alarm:3001")  # fmt: skip
     assert stop.detail == '3001/0 "Film break" (category 2)'
     status = wrapper.wait_status(lambda m: m.state_current_name == "STOPPED", 5, "wrapper stopped")
