@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
 
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from packml_interfaces.msg import CellStatus, Result, Status, TransitionEvent, UnitSummary
 from packml_interfaces.srv import Command, SetMode
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -134,6 +134,7 @@ class _Unit:
     interlock_pending: bool = False
     interlock_retry_at: float = 0.0
     interlock_error: str = ""
+    lost_reason: str = ""
     resubscribed: bool = False  # since it was lost
     resubscribe_due: bool = False
 
@@ -245,6 +246,11 @@ class CoordinatorNode(Node):
                 if name is not None and entry.name == f"packml: {name}":
                     unit = self._units[name]
                     was_online = unit.online
+                    if entry.level == DiagnosticStatus.STALE:  # a PLC bridge whose PLC is gone
+                        if unit.online or not unit.lost:
+                            self._lose(unit, entry.message)
+                            changed = True
+                        continue
                     self._seen(unit, fresh=False)
                     changed |= unit.online != was_online
             if changed:
@@ -269,7 +275,34 @@ class CoordinatorNode(Node):
             self.get_logger().info(f"unit {unit.name} online again")
         else:
             self.get_logger().info(f"unit {unit.name} online")
-        unit.lost = False
+        unit.lost, unit.lost_reason = False, ""
+
+    def _lose(self, unit: _Unit, why: str) -> None:
+        """``unit`` is gone (lock held): no sign of life within the lease, or its bridge says its
+        PLC is not reachable; the other units get ``lost_unit_reaction``."""
+        was_online = unit.online
+        unit.online, unit.lost, unit.lost_reason = False, True, why
+        unit.interlock_sent = None  # unknown until it is back: send again
+        last = unit.status.state_current_name if unit.status else "no status"
+        self.get_logger().warning(f"unit {unit.name} lost: {why} (last seen in {last})")
+        self._cond.notify_all()
+        reaction = self.config.lost_unit_reaction
+        if was_online and reaction:
+            for other in self._units.values():
+                if (
+                    other is not unit
+                    and other.online
+                    and other.proxy.client("command").service_is_ready()
+                ):
+                    future = other.proxy.call("command", command=reaction, source=SOURCE)
+                    future.add_done_callback(
+                        partial(self._reacted, other.name, unit.name, reaction)
+                    )
+
+    def _reacted(self, name: str, lost: str, reaction: int, future: Future[Any]) -> None:
+        exc = future.exception()
+        answer = exc if exc is not None else future.result().message
+        self.get_logger().info(f"{Cmd(reaction).name} to {name} because {lost} was lost: {answer}")
 
     def _on_tick(self) -> None:
         now = time.monotonic()
@@ -285,14 +318,7 @@ class CoordinatorNode(Node):
         with self._cond:
             for unit in self._units.values():
                 if unit.online and now - unit.last_seen > lease:
-                    unit.online, unit.lost = False, True
-                    unit.interlock_sent = None  # unknown until it is back: send again
-                    last = unit.status.state_current_name if unit.status else "no status"
-                    self.get_logger().warning(
-                        f"unit {unit.name} lost: no status or diagnostics for {lease:g} s "
-                        f"(last seen in {last})"
-                    )
-                    self._cond.notify_all()
+                    self._lose(unit, f"no status or diagnostics for {lease:g} s")
                 elif not unit.online and not unit.lost and now - self._started > lease:
                     unit.lost = True
                     self.get_logger().warning(
@@ -415,6 +441,7 @@ class CoordinatorNode(Node):
         state = aggregate_state([u.status.state_current for u in present if u.status])
         modes = {u.status.unit_mode_current for u in present if u.status}
         lost = [u.name for u in units if u.lost]
+        why = [f"{u.name} ({u.lost_reason})" if u.lost_reason else u.name for u in units if u.lost]
         detail = []
         if not present:
             detail.append("no unit online")
@@ -423,7 +450,7 @@ class CoordinatorNode(Node):
                 "mixed: " + ", ".join(f"{u.name} {u.status.state_current_name}" for u in present if u.status)
             )  # fmt: skip
         if lost:
-            detail.append(f"lost: {', '.join(lost)}")
+            detail.append(f"lost: {', '.join(why)}")
         held = [f"{u.name} ({u.interlock_reason})" for u in units if u.interlock_sent]
         if held:
             detail.append(f"interlock on {', '.join(held)}")

@@ -51,6 +51,8 @@ def plan(file: str | os.PathLike[str]) -> Plan:
     p = Plan(path, cell, path.read_text(encoding="utf-8"))
     problems: list[tuple[str, str]] = []
     for uname, unit in cell.units.items():
+        if unit.plc is not None:
+            problems += _plc_problems(cell, uname)
         for em in unit.equipment_modules:
             key = f"units.{uname}.equipment_modules.{em.name}.sim"
             try:
@@ -60,6 +62,17 @@ def plan(file: str | os.PathLike[str]) -> Plan:
     if problems:
         raise ConfigError(str(path), problems)
     return p
+
+
+def _plc_problems(cell: CellConfig, unit: str) -> list[tuple[str, str]]:
+    """What is wrong with the ``plc:`` block of ``unit`` (a PLC unit: :mod:`packml_ros2.plc`)."""
+    from .plc.config import parse_plc
+
+    try:
+        parse_plc(cell, unit)
+    except ConfigError as exc:
+        return exc.problems
+    return []
 
 
 # -- readiness and the summary ----------------------------------------------------------------------------
@@ -153,9 +166,14 @@ def build_nodes(p: Plan, **node_kwargs: Any) -> list[Node]:
     from .unit_node import UnitNode
 
     lease = p.cell.coordinator.unit_lease
-    nodes: list[Node] = [
-        UnitNode(u, source=p.source, unit_lease=lease, **node_kwargs) for u in p.cell.units.values()
-    ]
+    nodes: list[Node] = []
+    for u in p.cell.units.values():
+        if u.plc is not None:  # a PLC unit: its bridge (packml_ros2.plc)
+            from .plc.node import make_node
+
+            nodes.append(make_node(p.cell, u.name, p.source, **node_kwargs))
+        else:
+            nodes.append(UnitNode(u, source=p.source, unit_lease=lease, **node_kwargs))
     for (uname, em), sim in p.sims.items():
         nodes.append(SimulatedEm(em, uname, p.cell.cell, sim, **node_kwargs))
     if p.cell.coordinator.enabled:
@@ -203,7 +221,7 @@ class NodeSpec:
     """One node of a cell as an executable of this package (setup.py entry points)."""
 
     name: str
-    executable: str  # unit_node | em_node | coordinator
+    executable: str  # unit_node | plc_bridge | em_node | coordinator
     module: str
     arguments: tuple[str, ...]
 
@@ -213,7 +231,10 @@ def node_specs(p: Plan) -> list[NodeSpec]:
     cell.launch.py) and ``--processes`` both start exactly these."""
     f = str(p.file)
     out = [
-        NodeSpec(f"unit {u}", "unit_node", "packml_ros2.unit_node", (f, u)) for u in p.cell.units
+        NodeSpec(f"plc {u}", "plc_bridge", "packml_ros2.plc.node", (f, u))
+        if unit.plc is not None
+        else NodeSpec(f"unit {u}", "unit_node", "packml_ros2.unit_node", (f, u))
+        for u, unit in p.cell.units.items()
     ]
     out += [
         NodeSpec(f"em {u}/{em}", "em_node", "packml_ros2.sim_em", (f, u, em)) for (u, em) in p.sims

@@ -429,6 +429,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         cell = load_cell(args[0])
         config = pick_unit(cell, args[0], args[1] if len(args) > 1 else None)
+        if config.plc is not None:
+            raise ValueError(f"{config.name} is a PLC unit (plc:): run plc_bridge {args[0]} {config.name}")  # fmt: skip
         source = Path(args[0]).read_text(encoding="utf-8")
     except ConfigError as exc:
         print(exc.prefixed("unit_node"), file=sys.stderr)

@@ -336,6 +336,15 @@ def _recorded_cell(text: str, source: str) -> CellConfig:
     return parse_cell(redact(parse_document(text, source)), source)
 
 
+def plc_unit(rec: UnitRecording) -> bool:
+    """Whether ``rec`` was recorded from a PLC unit's bridge (packml_ros2.plc: its ``config``
+    says so)."""
+    try:
+        return "plc" in json.loads(rec.config_json or "{}")
+    except ValueError:
+        return False
+
+
 def unit_config(rec: UnitRecording, config_file: str | Path | None, bag: Path) -> UnitConfig:
     """The unit's configuration: ``config_file`` if given, else the recorded cell file."""
     try:
@@ -362,6 +371,11 @@ def unit_config(rec: UnitRecording, config_file: str | Path | None, bag: Path) -
 
 def checked_inputs(rec: UnitRecording, bag: Path) -> list[Input]:
     """The input log in index order; refused unless complete from the unit's start."""
+    if plc_unit(rec):
+        raise RecordingError(
+            f"{bag}: {rec.prefix} is a PLC unit: its state machine ran in the PLC, the bag holds "
+            "its outputs only; there is nothing to replay"
+        )
     if not rec.inputs:
         raise RecordingError(
             f"{bag}: no input log for {rec.prefix} ({rec.prefix}/input_log is empty or missing; "
@@ -547,10 +561,12 @@ def _replay(path: str | Path, config: str | Path | None, units: Sequence[str],
     rec = recording if recording is not None else load(path, em_reports=False)
     if units:
         chosen = [rec.unit(u) for u in units]
-    else:  # units whose topics hold nothing were not running while recording (a cell's)
+    else:  # units whose topics hold nothing were not running while recording (a cell's); a PLC
+        # unit's state machine ran in its PLC: the bag has its outputs, nothing to replay
         chosen = [
-            u for u in rec.units.values() if u.inputs or u.config_json or any(u.outputs.values())
-        ]
+            u for u in rec.units.values()
+            if (u.inputs or u.config_json or any(u.outputs.values())) and not plc_unit(u)
+        ]  # fmt: skip
     if not chosen:
         raise RecordingError(
             f"{path}: no PackML unit topics in the bag (/<cell>/<unit>/input_log ...)"

@@ -138,6 +138,9 @@ class UnitConfig:
     admin_period: float = 1.0
     system_alarms: SystemAlarms = SystemAlarms()
     planned_stop_ids: tuple[int, int] = (4000, 4999)
+    #: ``plc:`` block (a unit whose state machine runs in a PLC, reached over OPC UA): validated
+    #: by packml_ros2.plc.config; None for a unit of this package's own engine
+    plc: Mapping[str, Any] | None = None
 
     def mode_by_name(self, text: str) -> ModeDef | None:
         key = text.strip().upper()
@@ -162,6 +165,8 @@ class CoordinatorConfig:
     unit_lease: float = 3.0
     interlocks: tuple[InterlockRule, ...] = ()
     propagate_interlocks: bool = True
+    #: Command sent to the other online units when a unit is lost (0 = none)
+    lost_unit_reaction: int = 0
 
 
 @dataclass(frozen=True)
@@ -370,7 +375,7 @@ _UNIT_KEYS = {
     "modes", "equipment_modules", "allow_registration", "em_lease", "em_lost_reaction", "timeouts",
     "min_dwell", "mode_change_timeout", "alarms", "reactions", "interlock_reaction", "sizes",
     "counters", "mach_speed", "mach_design_speed", "parameters", "admin_parameters", "products",
-    "remote_interfaces", "persistence", "admin_period", "system_alarms", "planned_stop_ids",
+    "remote_interfaces", "persistence", "admin_period", "system_alarms", "planned_stop_ids", "plc",
 }  # fmt: skip
 
 
@@ -543,6 +548,7 @@ def _unit(name: str, n: Node, cell: str, base_dir: Path) -> UnitConfig:
         admin_period=n.get("admin_period", sc.number(positive=True), d.admin_period),
         system_alarms=system_alarms,
         planned_stop_ids=n.get("planned_stop_ids", id_range, d.planned_stop_ids),
+        plc=n.get("plc", lambda x: dict(x.mapping()), None),
     )
 
 
@@ -556,6 +562,7 @@ def _coordinator(n: Node, units: Mapping[str, UnitConfig]) -> CoordinatorConfig:
             "unit_lease",
             "interlocks",
             "propagate_interlocks",
+            "lost_unit_reaction",
         }
     )
     unit_names = {k: k for k in units}
@@ -587,6 +594,7 @@ def _coordinator(n: Node, units: Mapping[str, UnitConfig]) -> CoordinatorConfig:
             if (r := e.parse(rule, InterlockRule("", "", ()))).unit
         ),
         propagate_interlocks=n.get("propagate_interlocks", sc.boolean, True),
+        lost_unit_reaction=n.get("lost_unit_reaction", _REACTION, 0),
     )
 
 

@@ -26,6 +26,7 @@ class Reason(IntEnum):
     UNAUTHORIZED = 16
     NOTHING_TO_DO = 17
     INTERLOCK_ACTIVE = 18
+    NOT_SUPPORTED = 19
 
 
 class Answer(NamedTuple):

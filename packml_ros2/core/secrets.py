@@ -1,6 +1,7 @@
 """Secrets of a cell file: never written in it, only pointed to.
 
-Every secret key (:data:`SECRET_KEYS`: the HMI access token, the OPC UA users' passwords) takes
+Every secret key (:data:`SECRET_KEYS`: the HMI access token, the OPC UA users' passwords, the
+PLC units' passwords) takes
 one of:
 
 - ``env:VARIABLE``: the value of an environment variable of the process that needs it;
@@ -29,7 +30,11 @@ import yaml
 from .schema import Node, invalid
 
 #: Key paths of secrets (``*``: any key of that mapping).
-SECRET_KEYS: tuple[tuple[str, ...], ...] = (("hmi", "token"), ("opcua", "users", "*"))
+SECRET_KEYS: tuple[tuple[str, ...], ...] = (
+    ("hmi", "token"),
+    ("opcua", "users", "*"),
+    ("units", "*", "plc", "password"),
+)
 REDACTED = "<redacted>"
 MAX_SECRET_BYTES = 4096
 HASH_PREFIXES = ("pbkdf2_sha256$",)

@@ -350,6 +350,7 @@ RESULTS = {
     16: ("UNAUTHORIZED", _S.BadUserAccessDenied),
     17: ("NOTHING_TO_DO", _S.BadNothingToDo),
     18: ("INTERLOCK_ACTIVE", _S.BadInvalidState),
+    19: ("NOT_SUPPORTED", _S.BadNotSupported),
 }
 RESULT_NAMES = {code: name for code, (name, _) in RESULTS.items()}
 

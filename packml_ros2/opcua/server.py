@@ -76,34 +76,42 @@ async def ensure_certificate(config: OpcUaConfig) -> tuple[Path, Path]:
     renewed when it no longer matches the application URI or expires within a week)."""
     if config.certificate and config.private_key:
         return config.certificate, config.private_key
+    return await own_certificate(
+        config.state_dir / config.cell, config.app_uri(), f"packml_ros2 {config.cell}", config.host
+    )
+
+
+async def own_certificate(folder: Path, app_uri: str, name: str, host: str) -> tuple[Path, Path]:
+    """A self-signed application instance certificate and its key in ``folder`` (made once,
+    renewed when it no longer names ``app_uri`` or expires within a week): for this package's
+    OPC UA server and for its clients of PLCs (:mod:`packml_ros2.plc`)."""
     from asyncua.crypto import cert_gen, uacrypto
     from cryptography import x509
     from cryptography.hazmat.primitives.serialization import Encoding
     from cryptography.x509.oid import ExtendedKeyUsageOID
 
-    folder = config.state_dir / config.cell
     cert_file, key_file = folder / "server_cert.der", folder / "server_key.pem"
     if cert_file.is_file() and key_file.is_file():
         cert = await uacrypto.load_certificate(cert_file)
         uris = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
-        if config.app_uri() in uris.get_values_for_type(
+        if app_uri in uris.get_values_for_type(
             x509.UniformResourceIdentifier
         ) and cert.not_valid_after_utc > dt.datetime.now(dt.UTC) + dt.timedelta(days=7):
             return cert_file, key_file
     folder.mkdir(parents=True, exist_ok=True)
     key = cert_gen.generate_private_key()
     names: list[x509.GeneralName] = [
-        x509.UniformResourceIdentifier(config.app_uri()),
+        x509.UniformResourceIdentifier(app_uri),
         x509.DNSName(socket.gethostname()),
         x509.DNSName("localhost"),
         x509.IPAddress(ipaddress.ip_address("127.0.0.1")),
     ]
     try:
-        names.append(x509.IPAddress(ipaddress.ip_address(config.host)))
+        names.append(x509.IPAddress(ipaddress.ip_address(host)))
     except ValueError:
-        names.append(x509.DNSName(config.host))
+        names.append(x509.DNSName(host))
     cert = cert_gen.generate_self_signed_app_certificate(
-        key, f"packml_ros2 {config.cell}", {"organizationName": "packml_ros2"}, list(dict.fromkeys(names)),
+        key, name, {"organizationName": "packml_ros2"}, list(dict.fromkeys(names)),
         [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH], days=3650,
     )  # fmt: skip
     key_file.write_bytes(cert_gen.dump_private_key_as_pem(key))

@@ -256,7 +256,8 @@ def test_all_errors_of_a_file_are_reported_together(tmp_path: Path) -> None:
 # -- the reference cell ---------------------------------------------------------------------------------------
 def test_reference_cell_loads() -> None:
     c = load_cell(REFERENCE)
-    assert c.cell == "reference_cell" and list(c.units) == ["filler", "capper"]
+    assert c.cell == "reference_cell" and list(c.units) == ["filler", "capper", "wrapper"]
+    assert c.units["wrapper"].plc is not None and c.coordinator.lost_unit_reaction == 0
     filler = c.units["filler"]
     assert filler.persistence_path == "/tmp/packml_ros2/reference/filler.sqlite3"
     assert c.units["capper"].persistence_path == "/tmp/packml_ros2/reference/capper.sqlite3"
@@ -285,7 +286,7 @@ def test_reference_cell_shows_every_option() -> None:
     text = REFERENCE.read_text()
     doc = yaml.safe_load(text)
     keys = _keys(doc)
-    unit_keys = {k.split(".", 2)[2] for k in keys if k.startswith("units.filler.")}
+    unit_keys = {k.split(".", 2)[2] for k in keys if k.startswith("units.") and k.count(".") > 1}
     unit_keys |= {k.split(".", 1)[1] for k in keys if k.startswith("defaults.")}
     expected = set(UNIT_KEYS)
     expected |= {f"sizes.{k}" for k in ArraySizes.__dataclass_fields__}
@@ -305,7 +306,7 @@ def test_reference_cell_shows_every_option() -> None:
                  "remote_interfaces[].number", "remote_interfaces[].name"}  # fmt: skip
     assert expected <= unit_keys, sorted(expected - unit_keys)
     coordinator = {"enabled", "start_order", "stop_order", "step_timeout", "unit_lease",
-                   "interlocks", "propagate_interlocks"}  # fmt: skip
+                   "interlocks", "propagate_interlocks", "lost_unit_reaction"}  # fmt: skip
     assert {f"coordinator.{k}" for k in coordinator} <= keys
     assert {"coordinator.interlocks[].unit", "coordinator.interlocks[].when",
             "coordinator.interlocks[].suspend"} <= keys  # fmt: skip
