@@ -17,6 +17,7 @@ from enum import IntEnum
 from typing import Any
 
 from .numbers import Cmd
+from .rules import Alert, Watch
 
 NUM_CATEGORIES = 10
 
@@ -52,14 +53,6 @@ DEFAULT_REACTIONS: Mapping[int, int] = {
     3: Cmd.STOP,
     4: Cmd.STOP,
     **dict.fromkeys(range(5, NUM_CATEGORIES), 0),
-}
-#: While an alarm with this reaction is active, these commands are refused: a fault reaction never
-#: lets new motion start before its cause is gone.
-BLOCKED_BY_REACTION: Mapping[int, frozenset[Cmd]] = {
-    Cmd.ABORT: frozenset({Cmd.CLEAR, Cmd.RESET, Cmd.START, Cmd.UNHOLD, Cmd.UNSUSPEND}),
-    Cmd.STOP: frozenset({Cmd.RESET, Cmd.START, Cmd.UNHOLD, Cmd.UNSUSPEND}),
-    Cmd.HOLD: frozenset({Cmd.RESET, Cmd.START, Cmd.UNHOLD, Cmd.UNSUSPEND}),
-    Cmd.SUSPEND: frozenset({Cmd.RESET, Cmd.START, Cmd.UNHOLD, Cmd.UNSUSPEND}),
 }
 
 
@@ -159,6 +152,8 @@ class AlarmManager:
     alarm_capacity: int = 64
     warning_capacity: int = 64
     history_capacity: int = 256
+    #: The unit's alert: its ``ALARM`` bit is set while an active alarm has a reaction.
+    alert: Alert = field(default_factory=Alert)
 
     def __post_init__(self) -> None:
         self.current: dict[tuple[int, int], AlarmEvent] = {}  # alarms and warnings, oldest first
@@ -242,6 +237,9 @@ class AlarmManager:
         self.version += 1
         if reaction:
             self.blocking_version += 1
+            self.alert.set(
+                Watch.ALARM, any(ev.trigger and ev.reaction for ev in self.current.values())
+            )
 
     # -- operator actions ----------------------------------------------------------------------------
     def acknowledge(self, key: tuple[int, int] | None, now: float) -> int:
@@ -297,10 +295,11 @@ class AlarmManager:
             1 for ev in self.current.values() if ev.ack_time is None and ev.kind is Kind.ALARM
         )
 
-    def blocking(self, cmd: int) -> AlarmEvent | None:
-        """The first active alarm whose reaction refuses ``cmd``."""
+    def blocking(self, blocked_by: Mapping[int, frozenset[Cmd]], cmd: int) -> AlarmEvent | None:
+        """The first active alarm whose reaction refuses ``cmd`` (``blocked_by``: reaction ->
+        the commands it refuses, :data:`.rules.BLOCKED_BY_REACTION`)."""
         for ev in self.current.values():
-            if ev.trigger and ev.reaction and cmd in BLOCKED_BY_REACTION.get(ev.reaction, ()):
+            if ev.trigger and ev.reaction and cmd in blocked_by.get(ev.reaction, ()):
                 return ev
         return None
 

@@ -18,10 +18,10 @@ import yaml
 from . import schema as sc
 from .alarms import DEFAULT_REACTIONS, NUM_CATEGORIES, REACTIONS, AlarmDef
 from .counters import KINDS, CounterDef
-from .modes import GROUPS, ModeDef, corrected_disabled, default_modes, make_mode
+from .modes import GROUPS, ModeDef, default_modes, make_mode
 from .numbers import ACTING, MANDATORY, MAX_MODE, WAIT, Cmd, Mode, State, parse_state
+from .rules import MODELS, TransitionTable, build_table, corrected_disabled
 from .schema import ConfigError, Node, invalid
-from .transitions import MODELS, TransitionTable, build_table
 
 __all__ = [
     "ArraySizes",
