@@ -43,7 +43,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from . import convert, qos, responses, run
-from .core import CellConfig, Cmd, Store, Unit, UnitConfig, load_cell, state_name
+from .core import CellConfig, Cmd, Store, Unit, UnitConfig, inputlog, load_cell, state_name
 from .core.liveliness import Liveliness
 from .driver import FrozenClock, UnitDriver
 
@@ -338,8 +338,8 @@ class UnitNode(Node):
             # "persistence": whether the unit has a store (its periodic saves are deadlines too,
             # so replay needs one exactly when the node had one)
             start = {"document": self.unit.restored, "time": self.unit.now,
-                     "persistence": self.store is not None}  # fmt: skip
-            self._on_input(self.unit.now, "start", start)
+                     "persistence": self.store is not None, "schema": inputlog.SCHEMA}  # fmt: skip
+            self._on_input(self.unit.now, inputlog.START, start)
         self.driver.flush()
         self.pub_admin.publish(convert.admin(self.unit.admin()))
 

@@ -61,7 +61,7 @@ from typing import Any
 from rclpy.serialization import deserialize_message, serialize_message
 
 from .. import convert
-from ..core import CellConfig, Unit, UnitConfig, load_cell, parse_cell, state_name
+from ..core import CellConfig, Unit, UnitConfig, inputlog, load_cell, parse_cell, state_name
 from ..core.config import ConfigError
 from ..driver import FrozenClock, UnitDriver
 from . import cdr
@@ -385,7 +385,25 @@ def checked_inputs(rec: UnitRecording, bag: Path) -> list[Input]:
                 f"{bag}: the input log of {rec.prefix} has a gap: inputs #{a.index + 1}..#{b.index - 1} "
                 "are missing (the recorder lost them); record again"
             )
-    return inputs
+    return upgraded(inputs, rec, bag)
+
+
+def upgraded(inputs: list[Input], rec: UnitRecording, bag: Path) -> list[Input]:
+    """The inputs in the input log's current schema (core.inputlog): bags recorded with an older
+    one replay too."""
+    schema = inputlog.schema_of(inputs[0].args)
+    if schema == inputlog.SCHEMA:
+        return inputs
+    out = [inputs[0]]
+    for i in inputs[1:]:
+        try:
+            name, fields = inputlog.upgrade(i.name, i.args, schema)
+        except (ValueError, KeyError) as exc:
+            raise RecordingError(
+                f"{bag}: input #{i.index} of {rec.prefix} ({i.name}) cannot be read: {exc}"
+            ) from None
+        out.append(Input(i.index, i.time, name, json.dumps(fields, separators=(",", ":"))))
+    return out
 
 
 class UnitReplay:

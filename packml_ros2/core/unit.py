@@ -27,8 +27,9 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
+from . import inputlog
 from .alarms import AlarmDef, AlarmEvent, AlarmManager
-from .config import Descriptor, Ingredient, Product, UnitConfig
+from .config import Descriptor, Product, UnitConfig
 from .counters import Counters
 from .deadlines import Deadlines
 from .equipment import AT_ONCE_WITHOUT_EMS, Equipment, EquipmentModule
@@ -264,9 +265,10 @@ class Unit:
         elif now > self._t:
             self._t = now
 
-    def _record(self, name: str, args: dict[str, Any]) -> None:
+    def _record(self, d: inputlog.InputDef, *values: Any) -> None:
+        """Log an input (its values in the order of the schema's fields): the replay log."""
         if self.on_input is not None:
-            self.on_input(self._t, name, args)
+            self.on_input(self._t, d.name, inputlog.fields_of(d, values))
 
     def _leave(self) -> None:
         self._settle()
@@ -283,7 +285,7 @@ class Unit:
             self._t = now
         source = source or OPERATOR
         if self.on_input is not None:
-            self.on_input(self._t, "command", {"cmd": cmd, "source": source})
+            self._record(inputlog.COMMAND, cmd, source)
         bits = self.alert.bits
         if source is not OPERATOR and not self.remote_enabled and is_remote(source):
             bits |= _REMOTE
@@ -324,7 +326,7 @@ class Unit:
         """A mode change (``Command.UnitMode`` + ``UnitModeChangeRequest``), by number or name."""
         self._enter()
         source = source or OPERATOR
-        self._record("set_mode", {"mode": mode, "source": source})
+        self._record(inputlog.MODE, mode, source)
         answer = self._apply_mode(ModeRequest(mode, source))
         self._leave()
         return answer
@@ -334,7 +336,7 @@ class Unit:
         Suspend > other commands > mode changes > State Complete (PACKML.md section 2)."""
         self._enter()
         if self.on_input is not None:
-            self.on_input(self._t, "step", {"requests": [request_to_dict(r) for r in requests]})
+            self._record(inputlog.STEP, [inputlog.request_to_dict(r) for r in requests])
         start_state = self.state
         self._step_winner = None
         answers: list[Answer] = [Answer.ok("")] * len(requests)
@@ -362,9 +364,7 @@ class Unit:
         elif now > self._t:
             self._t = now
         if self.on_input is not None:
-            self.on_input(
-                self._t, "em_complete", {"name": name, "state": state, "sequence": sequence}
-            )
+            self._record(inputlog.EM_STATE_COMPLETE, name, state, sequence)
         eq = self.equipment
         if eq.report(name, state, sequence):
             if eq.pending:
@@ -383,7 +383,7 @@ class Unit:
     def em_seen(self, name: str) -> Answer:
         """The EM ``name`` is alive (first heartbeat, or back after being lost)."""
         self._enter()
-        self._record("em_seen", {"name": name})
+        self._record(inputlog.EM_SEEN, name)
         em = self.equipment.get(name)
         if em is None:
             if not self.config.allow_registration:
@@ -411,7 +411,7 @@ class Unit:
     def em_lost(self, name: str, detail: str = "") -> Answer:
         """The EM ``name`` missed its lease (or left); the configured reaction applies."""
         self._enter()
-        self._record("em_lost", {"name": name, "detail": detail})
+        self._record(inputlog.EM_LOST, name, detail)
         em = self.equipment.get(name)
         if em is None or not em.online:
             self._leave()
@@ -451,10 +451,7 @@ class Unit:
     def em_interlock(self, name: str, blocked: bool, starved: bool, material: int = 0) -> Answer:
         """EM ``name`` reports Blocked/Starved (``Status.EquipmentInterlock``) and material bits."""
         self._enter()
-        self._record(
-            "em_interlock",
-            {"name": name, "blocked": blocked, "starved": starved, "material": material},
-        )
+        self._record(inputlog.EM_INTERLOCK, name, blocked, starved, material)
         em = self.equipment.get(name)
         if em is None:
             self._leave()
@@ -477,9 +474,7 @@ class Unit:
         """EM ``name`` adds ``increment`` to counter ``index`` of ``kind``
         (``consumed`` / ``processed`` / ``defective``)."""
         self._enter()
-        self._record(
-            "em_count", {"name": name, "kind": kind, "index": index, "increment": increment}
-        )
+        self._record(inputlog.EM_COUNT, name, kind, index, increment)
         problem = self.counters.add(kind, int(index), int(increment))
         if problem:
             self.stats.bad_reports += 1
@@ -491,7 +486,7 @@ class Unit:
     def set_em_active(self, name: str, active: bool, source: str = OPERATOR) -> Answer:
         """Switch ModuleActive; only outside Production, and always logged."""
         self._enter()
-        self._record("set_em_active", {"name": name, "active": active, "source": source})
+        self._record(inputlog.EM_ACTIVE, name, active, source)
         answer = self._set_em_active(name, bool(active), source)
         self._leave()
         return answer
@@ -541,11 +536,8 @@ class Unit:
         """Raise or clear alarm (``alarm_id``, ``value``). Unconfigured alarms need a category and
         a message; ``warning``/``category``/``message`` override the configuration when given."""
         self._enter()
-        self._record(
-            "set_alarm",
-            {"alarm_id": alarm_id, "value": value, "active": active, "source": source, "em": em,
-             "warning": warning, "category": category, "message": message},
-        )  # fmt: skip
+        self._record(inputlog.ALARM, alarm_id, value, active, source, em, warning, category,
+                     message)  # fmt: skip
         answer = self._set_alarm(
             int(alarm_id), int(value), bool(active), source, em, warning, int(category), message
         )
@@ -607,7 +599,7 @@ class Unit:
     ) -> Answer:
         """Acknowledge one alarm, or all with ``alarm_id=None``; AckDateTime is stamped once."""
         self._enter()
-        self._record("ack_alarms", {"alarm_id": alarm_id, "value": value, "source": source})
+        self._record(inputlog.ALARM_ACK, alarm_id, value, source)
         key = None if alarm_id is None else (int(alarm_id), int(value))
         if key is not None and key not in self.alarms.current:
             self._leave()
@@ -624,7 +616,7 @@ class Unit:
     def reset_alarms(self, clear_first_out: bool = False, source: str = OPERATOR) -> Answer:
         """Clear latched alarms that are no longer active (and optionally the first-outs)."""
         self._enter()
-        self._record("reset_alarms", {"clear_first_out": clear_first_out, "source": source})
+        self._record(inputlog.ALARM_RESET, clear_first_out, source)
         n = self.alarms.reset()
         if clear_first_out:
             self.alarms.clear_first_out()
@@ -637,7 +629,7 @@ class Unit:
     def reset_times(self, all_times: bool = False, source: str = OPERATOR) -> Answer:
         """Reset the current mode's times (and its states'), or every time with ``all_times``."""
         self._enter()
-        self._record("reset_times", {"all_times": all_times, "source": source})
+        self._record(inputlog.TIMES_RESET, all_times, source)
         if all_times:
             self.times.reset_all(self._t)
             msg = "all times reset"
@@ -652,7 +644,7 @@ class Unit:
     def reset_counters(self, source: str = OPERATOR) -> Answer:
         """``Count`` of every counter to 0; ``AccCount`` is never reset."""
         self._enter()
-        self._record("reset_counters", {"source": source})
+        self._record(inputlog.COUNTERS_RESET, source)
         self.counters.reset()
         self.alarms.log_event(f"counters reset by {source}", self._t, source=source)
         self._save()
@@ -661,7 +653,7 @@ class Unit:
 
     def set_mach_speed(self, speed: float, source: str = OPERATOR) -> Answer:
         self._enter()
-        self._record("set_mach_speed", {"speed": speed, "source": source})
+        self._record(inputlog.SPEED, speed, source)
         if not math.isfinite(speed) or speed < 0:
             self._leave()
             return Answer.no(
@@ -676,9 +668,9 @@ class Unit:
         """Set ``Command.Parameter[#]`` entries, matched by ID (a new ID takes a free slot)."""
         params = list(parameters)
         self._enter()
-        self._record(
-            "set_parameters", {"parameters": [p.__dict__ for p in params], "source": source}
-        )
+        if self.on_input is not None:
+            self._record(inputlog.PARAMETERS, [inputlog.descriptor_to_dict(p) for p in params],
+                         source)  # fmt: skip
         answer = self._merge(
             self.parameters, params, lambda p: p.id, self.config.sizes.parameters, "parameter"
         )
@@ -689,9 +681,8 @@ class Unit:
         """Set ``Command.Product[#]`` entries, matched by ProductID."""
         items = list(products)
         self._enter()
-        self._record(
-            "set_product", {"products": [product_to_dict(p) for p in items], "source": source}
-        )
+        if self.on_input is not None:
+            self._record(inputlog.PRODUCTS, [inputlog.product_to_dict(p) for p in items], source)
         sizes = self.config.sizes
         for p in items:
             too_many = (
@@ -732,7 +723,7 @@ class Unit:
     def set_remote_enabled(self, enabled: bool) -> None:
         """Whether commands with a remote source are accepted (the remote lock, rules section 4)."""
         self._enter()
-        self._record("set_remote_enabled", {"enabled": enabled})
+        self._record(inputlog.REMOTE, enabled)
         self.remote_enabled = bool(enabled)
         self._rev += 1
         self._leave()
@@ -741,7 +732,7 @@ class Unit:
         """A line interlock from outside (the coordinator): suspend while set, unsuspend when
         cleared (``interlock_reaction: suspend``)."""
         self._enter()
-        self._record("set_interlock", {"active": active, "reason": reason, "source": source})
+        self._record(inputlog.INTERLOCK, active, reason, source)
         key = f"ext:{source}"
         if active:
             stop_id = STOP_ID_STARVED if "starv" in reason.lower() else STOP_ID_BLOCKED
@@ -775,21 +766,9 @@ class Unit:
         self._fire()
         return True
 
-    def apply_input(self, name: str, args: dict[str, Any]) -> Answer | None:
-        """Apply a logged input (``on_input``'s name and arguments) again: the replay entry."""
-        if name not in INPUTS:
-            raise ValueError(
-                f"{name!r} is not an engine input (inputs: {', '.join(sorted(INPUTS))})"
-            )
-        args = dict(args)
-        if name == "step":
-            return self.step([request_from_dict(r) for r in args["requests"]])  # type: ignore[return-value]
-        if name == "set_parameters":
-            args["parameters"] = [Descriptor(**d) for d in args["parameters"]]
-        elif name == "set_product":
-            args["products"] = [product_from_dict(p) for p in args["products"]]
-        result: Answer | None = getattr(self, name)(**args)
-        return result
+    def apply_input(self, name: str, fields: Mapping[str, Any]) -> Answer | list[Answer] | None:
+        """Apply a logged input (:mod:`.inputlog`, schema 1) again: the replay entry."""
+        return inputlog.apply(self, name, fields)
 
     # ================================================================================================
     # Outputs and views
@@ -1394,53 +1373,6 @@ class Unit:
             self.store.close()
 
 
-def request_to_dict(r: Request) -> dict[str, Any]:
-    if isinstance(r, CommandRequest):
-        return {"kind": "command", "cmd": r.cmd, "source": r.source}
-    if isinstance(r, ModeRequest):
-        return {"kind": "mode", "mode": r.mode, "source": r.source}
-    return {"kind": "complete", "em": r.em, "state": r.state, "sequence": r.sequence}
-
-
-def request_from_dict(d: dict[str, Any]) -> Request:
-    kind = d["kind"]
-    if kind == "command":
-        return CommandRequest(int(d["cmd"]), d["source"])
-    if kind == "mode":
-        return ModeRequest(d["mode"], d["source"])
-    return CompleteReport(d["em"], int(d["state"]), int(d["sequence"]))
-
-
-#: Every input method of Unit (what ``on_input`` reports and ``apply_input`` accepts).
-INPUTS = frozenset({
-    "command", "set_mode", "step", "em_complete", "em_seen", "em_lost", "em_interlock", "em_count",
-    "set_em_active", "set_alarm", "ack_alarms", "reset_alarms", "reset_times", "reset_counters",
-    "set_mach_speed", "set_parameters", "set_product", "set_remote_enabled", "set_interlock", "advance",
-})  # fmt: skip
-
-
-def product_from_dict(d: dict[str, Any]) -> Product:
-    return Product(
-        d["product_id"],
-        tuple(Descriptor(**v) for v in d.get("process_variables", [])),
-        tuple(
-            Ingredient(i["ingredient_id"], tuple(Descriptor(**v) for v in i.get("parameter", [])))
-            for i in d.get("ingredients", [])
-        ),
-    )
-
-
-def product_to_dict(p: Product) -> dict[str, Any]:
-    return {
-        "product_id": p.product_id,
-        "process_variables": [d.__dict__ for d in p.process_variables],
-        "ingredients": [
-            {"ingredient_id": i.ingredient_id, "parameter": [d.__dict__ for d in i.parameter]}
-            for i in p.ingredients
-        ],
-    }
-
-
 __all__ = [
     "CommandRequest",
     "CompleteReport",
@@ -1450,6 +1382,4 @@ __all__ = [
     "Transition",
     "Trigger",
     "Unit",
-    "request_from_dict",
-    "request_to_dict",
 ]
