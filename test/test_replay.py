@@ -229,6 +229,9 @@ def test_update_rewrites_the_expected_outputs(tmp_path: Path) -> None:
     assert again.returncode == 0, again.stdout + again.stderr
     assert "match" in again.stdout
     assert replay(bad).digest() == replay(BAGS / "normal_production").digest()
+    # in place, the storage file keeps the bag's name (it was named after a temporary directory)
+    assert sorted(p.stem for p in bad.iterdir()) == ["metadata", bad.name]
+    assert not any(p.name.endswith(".update-tmp") for p in bad.parent.iterdir())
     # into another bag, as sqlite3 from an mcap file
     result, dst = update(BAGS / "independent_writer.mcap", tmp_path / "copy", storage="sqlite3")
     assert result.ok and "sqlite3" in (dst / "metadata.yaml").read_text()

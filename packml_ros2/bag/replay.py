@@ -590,24 +590,30 @@ def update(path: str | Path, out: str | Path | None = None, config: str | Path |
     in_place = out is None
     if in_place and not (src.is_dir() and (src / "metadata.yaml").exists()):
         raise RecordingError(f"{src} is not a bag directory: give the output with -o")
-    dst = src.with_name(src.name + ".update-tmp") if in_place else Path(out)  # type: ignore[arg-type]
-    if dst.exists():
-        raise RecordingError(f"{dst} exists already")
+    # in place: written under a temporary directory with the bag's own name, so the storage file
+    # inside is named after the bag, as a recorder names it
+    staging = src.with_name(src.name + ".update-tmp")
+    dst = staging / src.name if in_place else Path(out)  # type: ignore[arg-type]
+    if dst.exists() or (in_place and staging.exists()):
+        raise RecordingError(f"{staging if in_place else dst} exists already")
     kind = storage or rec.storage
     plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
+    if in_place:
+        staging.mkdir()
     writer = Writer(dst, version=9, storage_plugin=plugin)
     writer.open()
     try:
         _write_update(writer, rec, result)
     except BaseException:
         writer.abort()
-        shutil.rmtree(dst, ignore_errors=True)
+        shutil.rmtree(staging if in_place else dst, ignore_errors=True)
         raise
     if in_place:
         old = src.with_name(src.name + ".update-old")
         src.rename(old)
         dst.rename(src)
         shutil.rmtree(old)
+        staging.rmdir()
         dst = src
     return result, dst
 
