@@ -80,6 +80,9 @@ class ModeStateTimes:
         """The unit entered ``state`` and/or ``mode`` at ``now``: restart their current times."""
         self._close(now)
         if mode != self._mode:
+            # ModeCurrentTime is "since the unit last entered mode m": 0 for the modes it is not
+            # in (PACKML.md 6)
+            self.mode_current[self._mode] = 0.0
             self.mode_current[mode] = 0.0
             self.modes_used.add(mode)
         self.state_current[mode * NUM_STATES + state] = 0.0
@@ -202,5 +205,5 @@ class ModeStateTimes:
         self.acc_time_since_reset = float(data.get("acc_time_since_reset", 0.0))
         self.planned_stop = float(data.get("planned_stop", 0.0))
         self._since = now
-        self.mode_current[self._mode] = 0.0
+        self.mode_current[:] = [0.0] * NUM_MODES  # a restarted unit entered its mode just now
         self.state_current[self._mode * NUM_STATES + self._state] = 0.0
