@@ -5,7 +5,7 @@ units on one store, the coordinator) are in test/ros."""
 
 from __future__ import annotations
 
-from packml_ros2.core import Mode, Unit
+from packml_ros2.core import Mode, Reason, Unit
 
 from .helpers import FakeClock, cell_unit
 
@@ -29,3 +29,15 @@ def test_mode_current_time_is_zero_after_leaving_the_mode() -> None:
     assert times.mode_current[Mode.MAINTENANCE] == 0
     assert times.mode_cumulative[Mode.MAINTENANCE] == 3
     assert times.mode_current[Mode.PRODUCTION] == 2  # since it was entered again
+
+
+# -- 5: counters only go up ------------------------------------------------------------------------------------
+def test_negative_count_increment_is_refused() -> None:
+    clock = FakeClock()
+    unit = Unit(cell_unit({"counters": {"processed": [{"id": 1}]}}), clock)
+    assert unit.em_count("em", "processed", 0, 5).accepted
+    refused = unit.em_count("em", "processed", 0, -3)
+    assert not refused.accepted and refused.reason is Reason.INVALID_ARGUMENT
+    assert "-3" in refused.message
+    counter = unit.admin().prod_processed_count[0]
+    assert (counter.count, counter.acc_count) == (5, 5)
