@@ -67,7 +67,10 @@ class UnitDriver:
             if liveliness.left(name):
                 run(now, unit.em_lost, name, "left")
             return
-        if liveliness.seen(name, now, msg.lease):
+        warning = liveliness.announce(name, msg.lease)
+        if warning is not None:
+            self.emit("log", ("warn", warning))
+        if liveliness.seen(name, now):
             run(now, unit.em_seen, name)
         if kind == cls.KIND_STATE_COMPLETE:
             run(now, unit.em_complete, name, msg.state, msg.sequence)
