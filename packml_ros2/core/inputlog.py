@@ -105,7 +105,7 @@ COMMAND = _def("command", "command", "command", "source")
 MODE = _def("mode", "set_mode", "mode", "source")
 STEP = _def("step", "step", "requests", requests=_list_of(request_from_dict))
 EM_STATE_COMPLETE = _def("em.state_complete", "em_complete", "em", "state", "sequence")
-EM_SEEN = _def("em.seen", "em_seen", "em")
+EM_SEEN = _def("em.seen", "em_seen", "em", "report")
 EM_LOST = _def("em.lost", "em_lost", "em", "detail")
 EM_INTERLOCK = _def("em.interlock", "em_interlock", "em", "blocked", "starved", "material")
 EM_COUNT = _def("em.count", "em_count", "em", "counter", "index", "increment")
@@ -195,7 +195,9 @@ def upgrade(name: str, fields: Mapping[str, Any], schema: int) -> tuple[str, dic
     if known is None:
         raise ValueError(f"{name!r} is not an input of schema 0")
     d, old = known
-    out = {new: fields[o] for new, o in zip(d.fields, old, strict=True)}
+    out = {new: fields[o] for new, o in zip(d.fields, old, strict=False)}
+    if d is EM_SEEN:
+        out["report"] = False  # schema 0 registered an EM by any report, anywhere
     if d is STEP:
         requests = []
         for r in fields["requests"]:

@@ -412,19 +412,22 @@ EXCUSE_OFFLINE: frozenset[State] = frozenset({S.STOPPING, S.ABORTING, S.CLEARING
 #: state (it *joins* it): the EM base class runs the state's hook when it sees itself switched
 #: active, so the unit never waits for an EM that does not know it is expected.
 ACTIVATED_EM_JOINS_CURRENT_STATE = True
-#: An unknown EM's heartbeat registers it (``allow_registration: true``) only while the unit is at
-#: rest: outside Production, or in one of these states. Mid-production a stray heartbeat (a typo,
-#: another cell's EM) would make the unit wait for it and abort when it goes silent.
+#: An EM not in the configuration registers at run time only where the configuration allows it
+#: (``allow_registration``), and, when its own report asks (a heartbeat: the EM is alive), only
+#: while the unit is at rest: outside Production, or in one of these states. Mid-production a
+#: stray report (a typo, another cell's EM) would make the unit wait for it, and abort when it goes
+#: silent; the EM registers with its next report once the unit rests.
 REGISTRATION_AT_REST: frozenset[State] = frozenset({S.STOPPED, S.IDLE, S.ABORTED, S.COMPLETE})
 
 
-def registration_refusal(mode: int, state: State, allow_registration: bool) -> str | None:
-    """Why an unknown EM's heartbeat cannot register it now, or None."""
+def registration_refusal(mode: int, state: State, allow_registration: bool,
+                         by_report: bool) -> str | None:  # fmt: skip
+    """Why an unknown EM cannot register now (``by_report``: its own report asks), or None."""
     if not allow_registration:
         return "does not accept registrations (allow_registration: false)"
-    if mode == Mode.PRODUCTION and state not in REGISTRATION_AT_REST:
+    if by_report and mode == Mode.PRODUCTION and state not in REGISTRATION_AT_REST:
         rest = ", ".join(s.name for s in sorted(REGISTRATION_AT_REST))
-        return f"accepts registrations in PRODUCTION only at rest ({rest}), not in {state.name}"
+        return f"registers EMs by their reports in PRODUCTION only at rest ({rest}), not in {state.name}"
     return None
 
 

@@ -57,6 +57,7 @@ from .rules import (
     command_priority,
     is_remote,
     mode_change_refusal,
+    registration_refusal,
     rules_of,
 )
 from .stopreason import StopReasons
@@ -147,6 +148,8 @@ _NOT_QUIET = ~(_REARM | _RESET_ALARMS | _CLEAR_FIRST_OUT)
 
 _REPORT_OK = Answer(True, Reason.ACCEPTED, "State Complete accepted")
 _new_tuple = tuple.__new__
+#: Unknown EMs refused registration are named in the log once each, up to this many.
+MAX_STRAYS_LOGGED = 64
 #: Handlers of deadlines, by kind (methods of Unit).
 _HANDLERS = ("timeout", "dwell", "mode_timeout", "status", "lamp_off", "admin_change", "save",
              "admin")  # fmt: skip
@@ -177,7 +180,7 @@ class Unit:
         # evaluation
         "_t", "_advance_to", "_internal", "_step_winner", "_restart_detail", "_handlers", "_out",
         # caches
-        "_valid_cache", "_rev",
+        "_valid_cache", "_rev", "_strays",
     )  # fmt: skip
 
     def __init__(self, config: UnitConfig, clock: Clock, store: Store | None = None) -> None:
@@ -234,6 +237,7 @@ class Unit:
         self._timed = frozenset(config.timeouts) | frozenset(config.min_dwell)
         self._internal: list[_Cmd] = []
         self._valid_cache: dict[tuple[Any, ...], tuple[Cmd, ...]] = {}
+        self._strays: set[str] = set()  # unknown EMs refused registration (logged once)
         self._rev = 0  # +1 on status-relevant changes not covered by other version counters
         self._step_winner: tuple[int, str] | None = None
         self._restart_detail = "unit started"
@@ -380,19 +384,26 @@ class Unit:
         pub.flush(self._t, self.sequence)
         return answer
 
-    def em_seen(self, name: str) -> Answer:
-        """The EM ``name`` is alive (first heartbeat, or back after being lost)."""
+    def em_seen(self, name: str, report: bool = False) -> Answer:
+        """The EM ``name`` is alive (first heartbeat, or back after being lost). An unknown EM
+        registers, where the configuration allows it; ``report``: the EM's own report is what
+        says so, which registers it in Production only at rest (rules, section 7)."""
         self._enter()
-        self._record(inputlog.EM_SEEN, name)
+        self._record(inputlog.EM_SEEN, name, report)
         em = self.equipment.get(name)
         if em is None:
-            if not self.config.allow_registration:
+            why = registration_refusal(
+                self.mode, self.state, self.config.allow_registration, report
+            )
+            if why is not None:
+                if name not in self._strays and len(self._strays) < MAX_STRAYS_LOGGED:
+                    self._strays.add(name)  # said once per name (its reports keep coming)
+                    self._log("warn", f"EM {name!r} not registered: {self.config.name} {why}")
                 self._leave()
                 return Answer.no(
-                    Reason.EM_UNKNOWN,
-                    f"EM {name!r} is not configured and {self.config.name} does not accept "
-                    "registrations (allow_registration: false)",
+                    Reason.EM_UNKNOWN, f"EM {name!r} is not configured and {self.config.name} {why}"
                 )
+            self._strays.discard(name)
             ignore = not self._lost_reaction(None)
             if not self.equipment.modules:  # the first EM: the equipment follows the unit now
                 self.equipment.begin(self.state, self.sequence)

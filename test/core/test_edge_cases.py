@@ -5,9 +5,12 @@ units on one store, the coordinator) are in test/ros."""
 
 from __future__ import annotations
 
-from packml_ros2.core import Mode, Reason, Unit
+from packml_ros2.core import Cmd as C
+from packml_ros2.core import Mode, Reason, State, Unit
 
 from .helpers import FakeClock, cell_unit
+
+S = State
 
 
 # -- 4: ModeCurrentTime of a mode left is 0 (PACKML.md 6) -----------------------------------------------
@@ -41,3 +44,24 @@ def test_negative_count_increment_is_refused() -> None:
     assert "-3" in refused.message
     counter = unit.admin().prod_processed_count[0]
     assert (counter.count, counter.acc_count) == (5, 5)
+
+
+# -- 3: a stray report never registers an EM mid-production --------------------------------------------
+def test_an_unknown_ems_report_registers_it_only_at_rest() -> None:
+    unit = Unit(cell_unit({}), FakeClock())  # allow_registration: true (the default)
+    assert unit.command(C.RESET).accepted and unit.command(C.START).accepted
+    assert unit.state is S.EXECUTE and unit.mode == Mode.PRODUCTION
+    for _ in range(3):  # its heartbeats keep coming: refused each time, said once in the log
+        refused = unit.em_seen("stray", report=True)
+        assert not refused.accepted and refused.reason is Reason.EM_UNKNOWN, refused
+    assert "only at rest" in refused.message and "EXECUTE" in refused.message
+    logs = [text for kind, (level, text) in _logs(unit)]
+    assert sum("stray" in text for text in logs) == 1, logs
+    assert unit.equipment.get("stray") is None and unit.state is S.EXECUTE
+    assert unit.command(C.STOP).accepted and unit.state is S.STOPPED  # at rest: it registers
+    assert unit.em_seen("stray", report=True).accepted
+    assert unit.equipment.get("stray") is not None
+
+
+def _logs(unit: Unit) -> list[tuple[str, tuple[str, str]]]:
+    return [(kind, item) for kind, item in unit.drain() if kind == "log"]

@@ -645,6 +645,25 @@ def test_the_configured_lease_decides_not_the_ems_promise(ros, make_unit) -> Non
     robot.stop_heartbeats()
 
 
+def test_a_stray_heartbeat_never_registers_an_em_mid_production(ros, make_unit) -> None:
+    """Issue 14: one heartbeat of an unknown EM while the unit produces must not register it
+    (its loss would abort the unit, and Clear would stay refused in Production); at rest it
+    registers (allow_registration: true, the default)."""
+    unit = make_unit({"em_lease": 0.5})
+    unit.drive("reset", "start")
+    stray = FakeEm(ros, unit, "stray")
+    stray.send(EmReport.KIND_HEARTBEAT)
+    with pytest.raises(TimeoutError):
+        unit.wait_status(lambda m: any(e.name == "stray" for e in m.equipment_modules), 1.5)
+    assert unit.status.last.state_current_name == "EXECUTE"
+    assert not any(t.trigger == TransitionEvent.TRIGGER_EM_LOST for t in unit.transitions.messages)
+    unit.drive("stop")
+    stray.start_heartbeats()
+    unit.wait_status(lambda m: any(e.name == "stray" and e.online for e in m.equipment_modules),
+                     5.0, "stray registered at rest")  # fmt: skip
+    stray.stop_heartbeats()
+
+
 # -- 5. Alarm services -----------------------------------------------------------------------------------
 def raise_alarm(unit: Unit, alarm_id: int, category: int, message: str) -> None:
     resp = unit.call(SetAlarm, "set_alarm", id=alarm_id, category=category, message=message,
