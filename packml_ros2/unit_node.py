@@ -45,6 +45,7 @@ from std_srvs.srv import Trigger
 from . import convert, qos, responses, run
 from .core import CellConfig, Cmd, Store, Unit, UnitConfig, inputlog, load_cell, state_name
 from .core.liveliness import Liveliness
+from .core.persistence import StoreLocked
 from .driver import FrozenClock, UnitDriver
 
 T = TypeVar("T")
@@ -64,7 +65,11 @@ class UnitNode(Node):
         self.config = config
         self._declare_parameters(config, store_path)
         path = self.get_parameter("persistence_path").value
-        self.store = Store(path, config.name) if path else None
+        try:
+            self.store = Store(path, config.name) if path else None
+        except StoreLocked:  # another unit of this name holds it: no half-made node stays behind
+            Node.destroy_node(self)
+            raise
         self.clock = FrozenClock(self._now)
         self.unit = Unit(config, clock=self.clock, store=self.store)
         self.driver = UnitDriver(self.unit, self.clock, self._emit)
@@ -418,7 +423,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as exc:  # ConfigError and friends: one readable message, exit 2
         print(f"unit_node: {exc}", file=sys.stderr)
         return 2
-    node = UnitNode(config, source=source)
+    try:
+        node = UnitNode(config, source=source)
+    except StoreLocked as exc:  # a unit of the same cell and name runs already
+        print(f"unit_node: {exc}", file=sys.stderr)
+        return 2
     return run.spin([node], on_shutdown=node.close)
 
 

@@ -87,6 +87,7 @@ class AlarmEvent:
     ack_time: float | None = None
     cleared_time: float | None = None
     activations: int = 1
+    serial: int = 0  #: the unit's number of the occurrence (persistence journals changes by it)
 
     @property
     def key(self) -> tuple[int, int]:
@@ -124,13 +125,18 @@ class AlarmEvent:
             "ack_time": self.ack_time,
             "cleared_time": self.cleared_time,
             "activations": self.activations,
+            "serial": self.serial,
         }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> AlarmEvent:
-        d = dict(d)
-        d["kind"] = Kind(d["kind"])
-        return cls(**d)
+        """From :meth:`to_dict` (fields it does not know are left out: older or newer stores)."""
+        known = {k: v for k, v in d.items() if k in _EVENT_FIELDS}
+        known["kind"] = Kind(known["kind"])
+        return cls(**known)
+
+
+_EVENT_FIELDS = frozenset(AlarmEvent.__dataclass_fields__)
 
 
 @dataclass(frozen=True, slots=True)
@@ -164,6 +170,10 @@ class AlarmManager:
         self.first_out_by_em: dict[str, AlarmEvent] = {}
         self.version = 0  # +1 on every change (publishers compare)
         self.blocking_version = 0  # +1 when the set of active reacting alarms changes
+        self.serial = 0  # the last occurrence's number
+        #: Occurrences changed since taken (take_changed), by serial; None: not tracked (a unit
+        #: without persistence).
+        self.changed: dict[int, AlarmEvent] | None = None
 
     # -- raising and clearing ------------------------------------------------------------------------
     def definition(self, alarm_id: int, value: int) -> AlarmDef | None:
@@ -186,6 +196,7 @@ class AlarmManager:
             ev.trigger = True
             ev.cleared_time = None
             ev.activations += 1
+            self._touch(ev)
             self._changed(reaction)
             return Raised(ev, new=False, rising=True, reaction=reaction)
         ev = AlarmEvent(
@@ -217,6 +228,7 @@ class AlarmManager:
             return None
         ev.trigger = False
         ev.cleared_time = now
+        self._touch(ev)
         self._changed(ev.reaction)
         return ev
 
@@ -229,9 +241,25 @@ class AlarmManager:
         self.version += 1
 
     def _push_history(self, ev: AlarmEvent) -> None:
+        self.serial += 1
+        ev.serial = self.serial
         if len(self.history) == self.history.maxlen:
             self.history_dropped += 1
         self.history.appendleft(ev)
+        self._touch(ev)
+
+    def _touch(self, ev: AlarmEvent) -> None:
+        if self.changed is not None:
+            self.changed[ev.serial] = ev
+
+    def take_changed(self) -> list[AlarmEvent]:
+        """The occurrences changed since the last call, oldest first (starts the tracking)."""
+        if self.changed is None:
+            self.changed = {}
+            return []
+        out = sorted(self.changed.values(), key=lambda ev: ev.serial)
+        self.changed.clear()
+        return out
 
     def _changed(self, reaction: int) -> None:
         self.version += 1
@@ -249,6 +277,7 @@ class AlarmManager:
         for ev in targets:
             if ev.ack_time is None:
                 ev.ack_time = now
+                self._touch(ev)
                 n += 1
         if n:
             self.version += 1
@@ -259,6 +288,7 @@ class AlarmManager:
         gone = [k for k, ev in self.current.items() if not ev.trigger]
         for k in gone:
             self.current[k].latched = False
+            self._touch(self.current[k])
             del self.current[k]
         if gone:
             self.version += 1
@@ -359,4 +389,9 @@ class AlarmManager:
         self.history.clear()
         self.history.extend(AlarmEvent.from_dict(d) for d in data.get("history", []))
         self.history_dropped = int(data.get("history_dropped", 0))
+        # occurrences saved before they had numbers are numbered after the others, oldest first
+        self.serial = max((ev.serial for ev in self.history), default=0)
+        for n, ev in enumerate(reversed([ev for ev in self.history if not ev.serial]), 1):
+            ev.serial = self.serial + n
+        self.serial = max((ev.serial for ev in self.history), default=0)
         self.version += 1

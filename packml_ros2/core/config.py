@@ -102,8 +102,10 @@ class SystemAlarms:
     em_lost: int = 9001
     state_timeout: int = 9002
     mode_change_timeout: int = 9003
+    store_unreadable: int = 9004  #: the persistence store could not be read (moved aside)
     state_timeout_category: int = 2
     mode_change_timeout_category: int = 5
+    store_unreadable_category: int = 5
 
 
 @dataclass(frozen=True)

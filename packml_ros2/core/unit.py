@@ -32,6 +32,7 @@ from .alarms import AlarmDef, AlarmEvent, AlarmManager
 from .config import Descriptor, Product, UnitConfig
 from .counters import Counters
 from .deadlines import Deadlines
+from .durable import Durable
 from .equipment import AT_ONCE_WITHOUT_EMS, Equipment, EquipmentModule
 from .interlocks import STOP_ID_BLOCKED, STOP_ID_STARVED, Interlocks
 from .modes import ModeDef
@@ -173,7 +174,7 @@ class Unit:
         "remote_enabled", "cntrl_cmd", "command_unit_mode", "mach_speed", "parameters", "products",
         "remote_commands",
         # parts
-        "config", "rules", "_clock", "store", "on_input", "restored", "alert", "stats", "times",
+        "config", "rules", "_clock", "store", "_durable", "on_input", "restored", "alert", "stats", "times",
         "counters", "alarms", "equipment", "interlocks", "stops", "deadlines", "publication",
         # the compiled rules the hot paths index, and configuration they test
         "_accepted", "_sc", "_timed",
@@ -244,8 +245,14 @@ class Unit:
         self._handlers: Mapping[str, Callable[[Any], None]] = {
             kind: getattr(self, f"_on_{kind}") for kind in _HANDLERS
         }
+        self._durable = (
+            None
+            if store is None
+            else Durable(store, self.times, self.counters, self.alarms, self.stops)
+        )
         self._restore(now)
         self._transition(S.STOPPED, Trigger.RESTART, source="unit", detail=self._restart_detail)
+        self._journal()
         self.publication.baseline()  # the start-up status is the baseline for later changes
         if store is not None:
             self._every("save", config.persistence_period)
@@ -277,6 +284,7 @@ class Unit:
     def _leave(self) -> None:
         self._settle()
         self.publication.flush(self._t, self.sequence)
+        self._journal()
 
     def command(self, cmd: int, source: str = OPERATOR) -> Answer:
         """A state command (``Command.CntrlCmd`` + ``CmdChangeRequest``)."""
@@ -307,6 +315,8 @@ class Unit:
                 # Nothing for _settle and nothing changed after the last transition, whose
                 # status is published with it: that is the baseline, and stays so until the
                 # next input begins (which takes the key then, see Publication.status_key).
+                if self._durable is not None:
+                    self._journal()
                 return answer
         else:
             if self.publication.status_key[0] != self.sequence:
@@ -324,6 +334,8 @@ class Unit:
             self._settle()
         if pub.status_key[0] == self.sequence or self.alarms.version != pub.alarms_seen:
             pub.flush(self._t, self.sequence)
+        if self._durable is not None:
+            self._journal()
         return answer
 
     def set_mode(self, mode: int | str, source: str = OPERATOR) -> Answer:
@@ -379,6 +391,8 @@ class Unit:
                 return _REPORT_OK
             self._settle()  # the last report: State Complete (or the mode change) follows
             pub.flush(self._t, self.sequence)
+            if self._durable is not None:
+                self._journal()
             return _REPORT_OK
         answer = self._refused_report(name, state, sequence)
         pub.flush(self._t, self.sequence)
@@ -648,7 +662,6 @@ class Unit:
             self.times.reset_current_mode(self._t)
             msg = f"times of {self.mode_def.name} reset"
         self.alarms.log_event(f"{msg} by {source}", self._t, source=source)
-        self._save()
         self._leave()
         return Answer.ok(msg)
 
@@ -658,7 +671,6 @@ class Unit:
         self._record(inputlog.COUNTERS_RESET, source)
         self.counters.reset()
         self.alarms.log_event(f"counters reset by {source}", self._t, source=source)
-        self._save()
         self._leave()
         return Answer.ok("counters reset (AccCount kept)")
 
@@ -1046,8 +1058,6 @@ class Unit:
         self.times.enter_states(t, entered, stops.planned_reason and stops.planned(mode, to))
         if not with_ems and eq.aggregating is not (to in AT_ONCE_WITHOUT_EMS):
             eq.begin(to, seq)  # (without EMs only whether the state aggregates matters)
-        if self.store is not None:
-            self._save()
         return True if more or interlocks.active or interlocks.suspended else False  # noqa: SIM210
 
     def _entry_actions(self, to: State, skipped: tuple[State, ...], trigger: Trigger, cmd: int,
@@ -1228,7 +1238,6 @@ class Unit:
         self._log(
             "info", f"mode {self._mode_name(frm)} -> {self.mode_def.name} ({self._mode_source})"
         )
-        self._save()
 
     # -- alarms inside -------------------------------------------------------------------------------------
     def _raise(
@@ -1262,6 +1271,7 @@ class Unit:
         self._handlers[kind](data)
         self._settle()
         self.publication.flush(self._t, self.sequence)
+        self._journal()
 
     def _advance(self, now: float) -> None:
         self._advance_to = now
@@ -1321,7 +1331,7 @@ class Unit:
         self.publication.admin(build_admin(self, self._t), coalesced=True)
 
     def _on_save(self, period: float) -> None:
-        self._save()
+        self._snapshot()
         self._every("save", period)
 
     def _on_admin(self, period: float) -> None:
@@ -1343,45 +1353,62 @@ class Unit:
     def _log(self, level: str, text: str) -> None:
         self.publication.log(level, text)
 
-    # -- persistence -----------------------------------------------------------------------------------
+    # -- persistence (core/durable.py) ------------------------------------------------------------
     def document(self) -> dict[str, Any]:
         """What persistence stores: everything of the admin data, never the state."""
-        stop_reason = self.stops.reason
-        return {
-            "sequence": self.sequence,
-            "times": self.times.to_dict(self._t),
-            "counters": self.counters.to_dict(),
-            "alarms": self.alarms.to_dict(),
-            "stop_reason": stop_reason.to_dict() if stop_reason else None,
-            "mach_speed": self.mach_speed,
-            "saved_at": self._t,
-        }
+        durable = self._durable or Durable(
+            _NoStore(), self.times, self.counters, self.alarms, self.stops
+        )
+        return durable.document(self.sequence, self.mach_speed, self._t)
 
-    def _save(self) -> None:
-        if self.store is not None:
-            self.store.save(self.document(), self._t)
+    def _journal(self) -> None:
+        """Write-ahead: the input's durable changes reach the store before it is answered."""
+        if self._durable is not None:
+            self._durable.journal(self.sequence, self.mach_speed, self._t)
+
+    def _snapshot(self) -> None:
+        if self._durable is not None:
+            self._durable.snapshot(self.sequence, self.mach_speed, self._t)
 
     def _restore(self, now: float) -> None:
-        data = self.store.load() if self.store is not None else None
-        self.restored: dict[str, Any] | None = data
-        if data is None:
+        self.restored: dict[str, Any] | None = None
+        if self._durable is None:
             return
-        self.sequence = int(data.get("sequence", 0))
-        self.times.restore(data.get("times", {}), now)
-        self.counters.restore(data.get("counters", {}))
-        self.alarms.restore(data.get("alarms", {}))
-        if data.get("stop_reason"):
-            self.stops.set(AlarmEvent.from_dict(data["stop_reason"]))
-        self.mach_speed = float(data.get("mach_speed", self.mach_speed))
-        self._restart_detail = "unit restarted"
-        gap = now - float(data.get("saved_at", now))
-        self.alarms.log_event(f"unit restarted (last saved {gap:.1f} s before)", now, source="unit")
+        restored = self._durable.restore(now)
+        data = self.restored = restored.document
+        if data is not None:
+            self.sequence = restored.sequence
+            if restored.mach_speed is not None:
+                self.mach_speed = restored.mach_speed
+            self._restart_detail = "unit restarted"
+            gap = now - float(data.get("saved_at", now))
+            self.alarms.log_event(f"unit restarted (last saved {gap:.1f} s before)", now, source="unit")  # fmt: skip
+        sa = self.config.system_alarms
+        for n, problem in enumerate(restored.problems, 1):
+            self._log("warn", f"persistence: {problem}")
+            d = AlarmDef(sa.store_unreadable, n, f"persistence: {problem}"[:240],
+                         sa.store_unreadable_category)  # fmt: skip
+            self._raise(d, source="unit")
+            self.alarms.clear(d.id, d.value, now)
 
     def close(self) -> None:
-        """Save a last time and close the store."""
-        self._save()
+        """Save a last snapshot and close the store."""
+        self._snapshot()
         if self.store is not None:
             self.store.close()
+
+
+class _NoStore:
+    """The store of a unit without persistence, for :meth:`Unit.document`."""
+
+    def load(self) -> dict[str, Any] | None:
+        return None
+
+    def save(self, document: dict[str, Any], now: float) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
 
 
 __all__ = [

@@ -232,3 +232,17 @@ def test_stale_state_complete_from_an_earlier_transition_is_ignored(
         )
     )
     client.wait_state("IDLE")
+
+
+def test_a_second_unit_of_the_same_name_does_not_share_its_store(
+    ros, processes, tmp_path: Path
+) -> None:
+    """Issue 14: the store is locked; the second unit says which process holds it and exits."""
+    cell_file, cell = write_cell(tmp_path, {"u": {}})
+    first = start_unit_process(processes, cell_file, "u")
+    UnitClient(ros, cell, "u").ready()
+    second = start_unit_process(processes, cell_file, "u")
+    assert second.popen.wait(30) == 2, second.output()
+    assert f"is in use by process {first.pid}" in second.output(), second.output()
+    assert "Traceback" not in second.output()
+    assert first.running()
