@@ -616,7 +616,10 @@ class Rules:
 
     def valid_commands(self, state: State, mode: int) -> tuple[Cmd, ...]:
         """Commands the table accepts in ``state`` and ``mode`` (no guard: alarms, missing EMs,
-        interlocks, remote lock and mode changes in process may still refuse them)."""
+        interlocks, remote lock and mode changes in process may still refuse them); none in a
+        state the mode disables (the unit is never there)."""
+        if state in self.modes[mode].disabled:
+            return ()
         return tuple(Cmd(c) for c in sorted(self.accepted[mode][state]))
 
     def target(self, state: State, mode: int, cmd: int) -> tuple[State, tuple[State, ...]] | None:

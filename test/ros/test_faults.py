@@ -127,6 +127,8 @@ def test_em_killed_in_an_acting_state_triggers_the_reaction(
     )
     # recovery without the gripper (PACKML.md 9): Maintenance, switch it inactive, Clear, Reset
     assert client.call(SetMode, "set_mode", mode_name="maintenance").accepted
+    # accepted, the change waits for the online EM (robot) to confirm it: switching EMs needs it done
+    client.wait_status(lambda s: s.unit_mode_current_name == "MAINTENANCE", 10, "Maintenance")
     assert client.call(SetEmActive, "set_em_active", em="gripper", active=False).accepted
     assert client.trigger("clear").success
     client.wait_state("STOPPED")

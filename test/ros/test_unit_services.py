@@ -634,7 +634,7 @@ def test_the_configured_lease_decides_not_the_ems_promise(ros, make_unit) -> Non
     detected = time.monotonic() - last
     assert detected <= 0.5 + 0.5, f"lost after {detected:.2f} s"
 
-    unit = make_unit({"equipment_modules": {"robot": {}}, "em_lease": 2.0})
+    unit = make_unit({"equipment_modules": {"robot": {}}, "em_lease": 2.0, "persistence": False})
     robot = FakeEm(ros, unit, "robot", lease=0.3, period=0.5)
     robot.start_heartbeats()
     unit.wait_status(lambda m: em_of(m, "robot").online, 5.0, "robot online")
