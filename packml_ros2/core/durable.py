@@ -46,7 +46,7 @@ class Durable:
         #: None for a store that keeps no journal (a replay's): journal() then only forgets
         self._append = getattr(store, "append", None)
         self.times, self.counters, self.alarms, self.stops = times, counters, alarms, stops
-        #: (sequence, times version, counters version, stop reason, machine speed) as last written
+        #: (sequence, mode, times resets, counters version, stop reason, speed) as last written
         self._written: tuple[Any, ...] = ()
         alarms.take_changed()  # from now on the alarms note which occurrences change
 
@@ -63,36 +63,37 @@ class Durable:
             "saved_at": now,
         }
 
-    def snapshot(self, sequence: int, mach_speed: float, now: float) -> None:
+    def snapshot(self, sequence: int, mode: int, mach_speed: float, now: float) -> None:
         self.store.save(self.document(sequence, mach_speed, now), now)
         self.alarms.take_changed()
-        self._written = self._state(sequence, mach_speed)
+        self._written = self._state(sequence, mode, mach_speed)
 
-    def _state(self, sequence: int, mach_speed: float) -> tuple[Any, ...]:
-        return (sequence, self.times.version, self.counters.version, self.stops.reason, mach_speed)
+    def _state(self, sequence: int, mode: int, mach_speed: float) -> tuple[Any, ...]:
+        times, counters, stops = self.times, self.counters, self.stops
+        return (sequence, mode, times.resets, counters.version, stops.reason, mach_speed)
 
-    def journal(self, sequence: int, mach_speed: float, now: float) -> None:
+    def journal(self, sequence: int, mode: int, mach_speed: float, now: float) -> None:
         """Write what changed since the last call (one ``write()``): before the unit answers."""
         changed = self.alarms.changed
         if self._append is None:
             if changed:
                 changed.clear()
             return
-        state = self._state(sequence, mach_speed)
+        state = self._state(sequence, mode, mach_speed)
         if state == self._written and not changed:
             return
         records: list[dict[str, Any]] = []
         written = self._written or (None,) * len(state)
         changes: dict[str, Any] = {}
-        if state[0] != written[0] or state[1] != written[1]:
+        if state[:3] != written[:3]:  # a state or mode change, a reset: times and sequence
             changes["sequence"] = sequence
             changes["times"] = self.times.to_dict(now)
             changes["saved_at"] = now
-        if state[2] != written[2]:
+        if state[3] != written[3]:
             changes["counters"] = self.counters.to_dict()
-        if state[3] is not written[3]:
-            changes["stop_reason"] = state[3].to_dict() if state[3] is not None else None
-        if state[4] != written[4]:
+        if state[4] is not written[4]:
+            changes["stop_reason"] = state[4].to_dict() if state[4] is not None else None
+        if state[5] != written[5]:
             changes["mach_speed"] = mach_speed
         if changes:
             records.append({"set": changes})

@@ -18,13 +18,14 @@ STOP_ID_STARVED = 2499  # upstream: undefined upstream reason
 
 
 class Interlocks:
-    __slots__ = ("active", "alert", "attempt", "suspended")
+    __slots__ = ("active", "alert", "attempt", "busy", "suspended")
 
     def __init__(self, alert: Alert) -> None:
         self.alert = alert
         self.active: dict[str, tuple[str, int]] = {}  #: key -> (reason, stop-reason ID)
         self.suspended = False  #: the unit is in Suspending/Suspended because of an interlock
         self.attempt: tuple[int, int] = (-1, -1)  #: (state, sequence) of the last action
+        self.busy = False  #: an interlock is active or holds the suspension: the unit must look
 
     def __bool__(self) -> bool:
         return bool(self.active)
@@ -32,10 +33,12 @@ class Interlocks:
     def set(self, key: str, reason: str, stop_id: int) -> None:
         self.active[key] = (reason, stop_id)
         self.alert.set(Watch.INTERLOCK, True)
+        self.busy = True
 
     def clear(self, key: str) -> None:
         self.active.pop(key, None)
         self.alert.set(Watch.INTERLOCK, bool(self.active))
+        self.busy = bool(self.active) or self.suspended
 
     def reasons(self) -> list[str]:
         return [reason for reason, _ in self.active.values()]
@@ -67,3 +70,4 @@ class Interlocks:
             self.suspended = True
         elif state is not State.SUSPENDING and state is not State.SUSPENDED:
             self.suspended = False
+        self.busy = bool(self.active) or self.suspended

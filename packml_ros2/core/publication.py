@@ -41,18 +41,18 @@ class StatusMark(NamedTuple):
 
 
 class Publication:
-    __slots__ = ("_admin_key_of", "_alarms", "_deadlines", "_status_key_of", "admin_due",
-                 "admin_key", "alarms_seen", "out", "status_due", "status_key")  # fmt: skip
+    __slots__ = ("_admin_key_of", "_alarms", "_deadlines", "_emit", "_status_key_of",
+                 "admin_due", "admin_key", "alarms_seen", "status_due", "status_key")  # fmt: skip
 
-    def __init__(self, out: list[tuple[str, Any]], deadlines: Deadlines, status_key: Key,
-                 admin_key: Key, alarms: Versioned) -> None:  # fmt: skip
+    def __init__(self, emit: Callable[[tuple[str, Any]], None], deadlines: Deadlines,
+                 status_key: Key, admin_key: Key, alarms: Versioned) -> None:  # fmt: skip
         self._deadlines = deadlines
         self._status_key_of = status_key
         self._admin_key_of = admin_key
         self._alarms = alarms  #: its version changes with the alarm list
-        #: The queue: ("transition", record), ("status", StatusMark), ("alarms", version),
-        #: ("admin", view), ("log", (level, text)). One list for the unit's life (see take).
-        self.out = out
+        #: Appends to the unit's queue: ("transition", record), ("status", StatusMark), ("alarms",
+        #: version), ("admin", view), ("log", (level, text)).
+        self._emit = emit
         #: What the last published status showed, starting with its sequence number. A sequence
         #: behind the unit's: a transition was published since, with its status; the key is taken
         #: again when the input ends (or, after a command's fast path, when the next begins).
@@ -63,13 +63,13 @@ class Publication:
         self.alarms_seen = -1
 
     def log(self, level: str, text: str) -> None:
-        self.out.append(("log", (level, text)))
+        self._emit(("log", (level, text)))
 
     # -- status --------------------------------------------------------------------------------------
     def status_now(self, time: float, state: int, sequence: int) -> None:
         """A status now (a mode event, the lamp): not coalesced."""
         self.status_key = self._status_key_of()
-        self.out.append(("status", StatusMark(time, state, sequence)))
+        self._emit(("status", StatusMark(time, state, sequence)))
         self.alarms_changed()
 
     def with_record(self) -> None:
@@ -108,7 +108,7 @@ class Publication:
         version = self._alarms.version
         if version != self.alarms_seen:
             self.alarms_seen = version
-            self.out.append(("alarms", version))
+            self._emit(("alarms", version))
 
     # -- admin ---------------------------------------------------------------------------------------
     def admin(self, view: Any, coalesced: bool) -> None:
@@ -116,4 +116,4 @@ class Publication:
         if coalesced:
             self.admin_due = False
         self.admin_key = self._admin_key_of()
-        self.out.append(("admin", view))
+        self._emit(("admin", view))

@@ -46,7 +46,7 @@ class ModeStateTimes:
         self._planned = False
         self.modes_used: set[int] = {mode}  # only these modes can hold non-zero times
         self._since = now
-        self.version = 0  # +1 at every state or mode change and reset (persistence compares)
+        self.resets = 0  # +1 at every reset (persistence compares; state and mode changes it sees)
 
     # -- accumulation ------------------------------------------------------------------------------
     def _close(self, now: float) -> None:
@@ -68,7 +68,6 @@ class ModeStateTimes:
         """The unit entered ``states`` in the current mode at ``now``, in order (a command and
         the State Completes that followed at once: one call for them all); ``planned``: the last
         is a planned stop (OEE)."""
-        self.version += 1
         if now > self._since:
             self._close(now)
         current = self.state_current
@@ -80,7 +79,6 @@ class ModeStateTimes:
 
     def enter(self, now: float, mode: int, state: int, planned: bool = False) -> None:
         """The unit entered ``state`` and/or ``mode`` at ``now``: restart their current times."""
-        self.version += 1
         self._close(now)
         if mode != self._mode:
             # ModeCurrentTime is "since the unit last entered mode m": 0 for the modes it is not
@@ -97,7 +95,7 @@ class ModeStateTimes:
     # -- resets --------------------------------------------------------------------------------------
     def reset_current_mode(self, now: float) -> None:
         """The current mode's times and the times of all its states."""
-        self.version += 1
+        self.resets += 1
         self._close(now)
         self._since = max(self._since, now)
         m = self._mode
@@ -107,7 +105,7 @@ class ModeStateTimes:
 
     def reset_all(self, now: float) -> None:
         """Every time, including AccTimeSinceReset."""
-        self.version += 1
+        self.resets += 1
         self._close(now)
         self._since = max(self._since, now)
         for values in (

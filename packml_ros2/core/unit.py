@@ -174,10 +174,11 @@ class Unit:
         "remote_enabled", "cntrl_cmd", "command_unit_mode", "mach_speed", "parameters", "products",
         "remote_commands",
         # parts
-        "config", "rules", "_clock", "store", "_durable", "on_input", "restored", "alert", "stats", "times",
+        "config", "rules", "_clock", "store", "_durable", "on_input", "restored", "alert", "_stats",
+        "_accepted_count", "times",
         "counters", "alarms", "equipment", "interlocks", "stops", "deadlines", "publication",
         # the compiled rules the hot paths index, and configuration they test
-        "_accepted", "_sc", "_timed",
+        "_accepted", "_accepted_mode", "_sc", "_timed",
         # evaluation
         "_t", "_advance_to", "_internal", "_step_winner", "_restart_detail", "_handlers", "_out",
         # caches
@@ -211,7 +212,8 @@ class Unit:
         self.products: list[Product] = list(config.products)
         self.remote_commands: dict[int, tuple[int, int]] = {}  # interface number -> (cmd, value)
         self.alert = Alert()
-        self.stats = Stats()
+        self._stats = Stats()
+        self._accepted_count = 0  # Stats.commands_accepted (counted apart: the fast path does)
         self.times = ModeStateTimes(now, self.mode, self.state)
         self.counters = Counters(config.sizes.counters, dict(config.counters))
         self.alarms = AlarmManager(
@@ -231,9 +233,10 @@ class Unit:
         self.deadlines = Deadlines()
         self._out: list[tuple[str, Any]] = []  # the output queue (drain)
         self.publication = _Publication(
-            self._out, self.deadlines, self._status_key, self._admin_key, self.alarms
+            self._queue, self.deadlines, self._status_key, self._admin_key, self.alarms
         )
         self._accepted = rules.accepted
+        self._accepted_mode = rules.accepted[self.mode]  # the current mode's
         self._sc = rules.sc
         self._timed = frozenset(config.timeouts) | frozenset(config.min_dwell)
         self._internal: list[_Cmd] = []
@@ -257,6 +260,12 @@ class Unit:
         if store is not None:
             self._every("save", config.persistence_period)
         self._every("admin", config.admin_period)
+
+    @property
+    def stats(self) -> Stats:
+        """Counts for diagnostics."""
+        self._stats.commands_accepted = self._accepted_count
+        return self._stats
 
     @property
     def stop_reason(self) -> AlarmEvent | None:
@@ -295,21 +304,26 @@ class Unit:
             self._advance(now)
         elif now > self._t:
             self._t = now
-        source = source or OPERATOR
+        bits = self.alert.bits
+        remote = False
+        if source is not OPERATOR:  # (the default: nothing to look at)
+            if not source:
+                source = OPERATOR
+            elif is_remote(source):
+                remote = True
+                if not self.remote_enabled:
+                    bits |= _REMOTE
         if self.on_input is not None:
             self._record(inputlog.COMMAND, cmd, source)
-        bits = self.alert.bits
-        if source is not OPERATOR and not self.remote_enabled and is_remote(source):
-            bits |= _REMOTE
-        entry = self._accepted[self.mode][self.state].get(cmd)
+        entry = self._accepted_mode[self.state].get(cmd)
         if entry is not None and not entry[5] & bits:  # (Accepted.watch)
             # The fast path: the table accepts and no guard of this command watches anything set.
             final, skipped, answer, number, trigger, _, flags = entry
             if self.mode_change_in_process:  # (only Stop and Abort watch no mode change)
                 self._abandon_mode_change(f"{command_name(cmd)} from {source}")
-            if source is not OPERATOR and is_remote(source):
+            if remote:
                 self._note_remote(number, source)
-            self.stats.commands_accepted += 1
+            self._accepted_count += 1
             self.cntrl_cmd = number
             if not self._transition(final, trigger, number, source, skipped, "", None, True, flags):
                 # Nothing for _settle and nothing changed after the last transition, whose
@@ -328,8 +342,7 @@ class Unit:
             self._internal
             or self.mode_change_in_process
             or (eq.aggregating and not eq.pending)
-            or interlocks.active
-            or interlocks.suspended
+            or interlocks.busy
         ):
             self._settle()
         if pub.status_key[0] == self.sequence or self.alarms.version != pub.alarms_seen:
@@ -803,8 +816,7 @@ class Unit:
         A status is due after every transition (publish :meth:`status_at` of the transition
         record) and at every ("status", mark) — changes that were not transitions. Marks and
         records are cheap; building the StatusView is left to the publisher."""
-        out = self._out[:]
-        self._out.clear()
+        out, self._out = self._out, []
         return out
 
     def status_at(self, mark: StatusMark | Transition) -> StatusView:
@@ -905,7 +917,7 @@ class Unit:
         entry = self._accepted[self.mode][self.state][cmd]
         if self.mode_change_in_process:  # only Abort and Stop pass the guards then
             self._abandon_mode_change(f"{command_name(cmd)} from {source}")
-        self.stats.commands_accepted += 1
+        self._accepted_count += 1
         self.cntrl_cmd = entry.cmd
         if is_remote(source):
             self._note_remote(entry.cmd, source)
@@ -1009,11 +1021,14 @@ class Unit:
                 entry |= int(ENTRY.get(s, 0))
         # The interlock's claim on the suspension is judged at every entry while it holds one.
         special = trigger is _T_INTERLOCK or interlocks.suspended
+        # Nothing in this loop queues a command or starts a mode change, and only entry actions
+        # change the alarm list: these are judged once, and after entry actions.
+        queued = self._internal or self.mode_change_in_process
+        alarms_changed = alarms.version != pub.alarms_seen
+        # The machine's fields are written when the loop is done (nothing in it reads them).
+        frm, seq = self.state, self.sequence
         while True:
-            frm = self.state
-            self.sequence = seq = self.sequence + 1
-            self.state = to
-            self.entered_at = t
+            seq += 1
             if special or entry:
                 if (
                     not special
@@ -1026,10 +1041,12 @@ class Unit:
                 else:
                     self._entry_actions(to, skipped, trigger, cmd, source, cause)
                     special = interlocks.suspended
+                    alarms_changed = alarms.version != pub.alarms_seen
             out(("transition", _new_tuple(Transition, (t, seq, frm, to, mode, mode, trigger, cmd,
                                                        source, skipped, detail))))  # fmt: skip
-            if alarms.version != pub.alarms_seen:  # the alarm list goes with the transition
+            if alarms_changed:  # the alarm list goes with the transition
                 pub.alarms_changed()
+                alarms_changed = False
             due = eq.begin(to, seq) if with_ems else to in AT_ONCE_WITHOUT_EMS
             if timed and to in timed:  # (an empty set is cheaper to test than to search)
                 config = self.config
@@ -1042,23 +1059,27 @@ class Unit:
             if not (follow and due):
                 more = False
                 break
-            if self._internal or self.mode_change_in_process:
+            if queued:
                 more = True
                 break
             final, skipped, trigger, enabled, entry = sc_steps[to]  # type: ignore[misc]
             if not enabled:
                 more = True  # _settle refuses it (and says so)
                 break
+            frm = to
             to = final
             cmd = 0
             source = "unit"
             detail = ""
             cause = None
             entered.append(to)
+        self.sequence = seq
+        self.state = to
+        self.entered_at = t
         self.times.enter_states(t, entered, stops.planned_reason and stops.planned(mode, to))
         if not with_ems and eq.aggregating is not (to in AT_ONCE_WITHOUT_EMS):
             eq.begin(to, seq)  # (without EMs only whether the state aggregates matters)
-        return True if more or interlocks.active or interlocks.suspended else False  # noqa: SIM210
+        return more or interlocks.busy
 
     def _entry_actions(self, to: State, skipped: tuple[State, ...], trigger: Trigger, cmd: int,
                        source: str, cause: _Cmd | None) -> None:  # fmt: skip
@@ -1131,7 +1152,14 @@ class Unit:
                     self._finish_mode_change()
                     continue
                 return
-            if eq.aggregating and not eq.pending and self._sc_ready():
+            if (
+                eq.aggregating
+                and not eq.pending
+                and (  # (_sc_ready without the call in the common case: no dwell configured)
+                    (not self.config.min_dwell and self._sc_refused != self.sequence)
+                    or self._sc_ready()
+                )
+            ):
                 step = self._sc[self.mode][self.state]
                 assert step is not None  # aggregating: an acting state
                 if step.enabled:
@@ -1139,7 +1167,7 @@ class Unit:
                                      "", None, True, step.entry)  # fmt: skip
                     continue
                 self._refuse_state_complete(step.final)
-            if (interlocks.active or interlocks.suspended) and self._interlock_action():
+            if interlocks.busy and self._interlock_action():
                 continue
             return
 
@@ -1226,6 +1254,7 @@ class Unit:
         frm = self.mode
         self.mode = self.mode_requested
         self.mode_def = self.config.modes[self.mode]
+        self._accepted_mode = self._accepted[self.mode]
         self._mode_changing(False)
         self.times.enter(self._t, self.mode, self.state, self._planned())
         self.equipment.end_aggregation()
@@ -1347,6 +1376,10 @@ class Unit:
         """What an admin shows changed (discretely: times change all the time) when this did."""
         return (self.sequence, self.counters.version, self.alarms.version, self._rev)
 
+    def _queue(self, item: tuple[str, Any]) -> None:
+        """An output of the publication (the unit's queue is swapped at every drain)."""
+        self._out.append(item)
+
     def _status_now(self) -> None:
         self.publication.status_now(self._t, self.state, self.sequence)
 
@@ -1364,11 +1397,11 @@ class Unit:
     def _journal(self) -> None:
         """Write-ahead: the input's durable changes reach the store before it is answered."""
         if self._durable is not None:
-            self._durable.journal(self.sequence, self.mach_speed, self._t)
+            self._durable.journal(self.sequence, self.mode, self.mach_speed, self._t)
 
     def _snapshot(self) -> None:
         if self._durable is not None:
-            self._durable.snapshot(self.sequence, self.mach_speed, self._t)
+            self._durable.snapshot(self.sequence, self.mode, self.mach_speed, self._t)
 
     def _restore(self, now: float) -> None:
         self.restored: dict[str, Any] | None = None
