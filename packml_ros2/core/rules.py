@@ -234,6 +234,12 @@ def is_remote(source: str) -> bool:
     return source.startswith(REMOTE_PREFIX)
 
 
+def remote_locked(source: str, remote_enabled: bool) -> bool:
+    """The remote lock: an input from a remote source while remote commands are disabled (judged
+    for commands by the ``remote`` guard, for mode changes by the unit's mode check)."""
+    return not remote_enabled and is_remote(source)
+
+
 # ==================================================================================================
 # 5. Guards: situations that refuse what the table allows
 # ==================================================================================================
@@ -309,7 +315,7 @@ class Guard:
 
 
 def _remote(s: Situation, cmd: int, source: str) -> str | None:
-    return "" if not s.remote_enabled and is_remote(source) else None
+    return "" if remote_locked(source, s.remote_enabled) else None
 
 
 def _mode_change(s: Situation, cmd: int, source: str) -> str | None:
@@ -736,6 +742,7 @@ __all__ = [
     "is_remote",
     "mode_change_refusal",
     "registration_refusal",
+    "remote_locked",
     "resolve",
     "rules_of",
 ]

@@ -59,6 +59,7 @@ from .rules import (
     is_remote,
     mode_change_refusal,
     registration_refusal,
+    remote_locked,
     rules_of,
 )
 from .stopreason import StopReasons
@@ -1195,7 +1196,7 @@ class Unit:
                 f"mode {r.mode!r} is not configured on {self.config.name} (now {state_name(self.state)} "
                 f"in {self.mode_def.name} mode; configured: {configured})",
             )
-        if is_remote(r.source) and not self.remote_enabled:
+        if remote_locked(r.source, self.remote_enabled):
             return Answer.no(
                 Reason.REMOTE_DISABLED,
                 f"mode change to {target.name} from {r.source} refused: remote commands are "

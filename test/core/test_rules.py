@@ -4,6 +4,8 @@ against the spec's table as test/core/helpers.py encodes it independently."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from packml_ros2.core import Cmd as C
@@ -113,3 +115,14 @@ def test_a_unit_without_interlock_reaction_compiles_no_interlock_guard() -> None
     assert "interlock" not in {
         g.name for g in rules_of(cell_unit({"interlock_reaction": "none"})).guards
     }
+
+
+def test_the_readmes_rule_book_example_runs_verbatim(monkeypatch: pytest.MonkeyPatch) -> None:
+    root = Path(__file__).resolve().parents[2]
+    text = (root / "README.md").read_text(encoding="utf-8")
+    block = text.split("### The rule book", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    monkeypatch.chdir(root)
+    names: dict[str, object] = {}
+    exec(compile(block, "README.md", "exec"), names)
+    r = names["r"]
+    assert r.command_target(C.RESET) is S.IDLE  # type: ignore[attr-defined]
