@@ -37,6 +37,21 @@ class Restored:
     problems: list[str] = field(default_factory=list)
 
 
+def document(times: ModeStateTimes, counters: Counters, alarms: AlarmManager, stops: StopReasons,
+             sequence: int, mach_speed: float, now: float) -> dict[str, Any]:  # fmt: skip
+    """What persistence stores of a unit: everything of the admin data, never the state."""
+    stop_reason = stops.reason
+    return {
+        "sequence": sequence,
+        "times": times.to_dict(now),
+        "counters": counters.to_dict(),
+        "alarms": alarms.to_dict(),
+        "stop_reason": stop_reason.to_dict() if stop_reason else None,
+        "mach_speed": mach_speed,
+        "saved_at": now,
+    }
+
+
 class Durable:
     __slots__ = ("_append", "_written", "alarms", "counters", "stops", "store", "times")
 
@@ -52,16 +67,9 @@ class Durable:
 
     def document(self, sequence: int, mach_speed: float, now: float) -> dict[str, Any]:
         """The snapshot: everything of the admin data, never the state."""
-        stop_reason = self.stops.reason
-        return {
-            "sequence": sequence,
-            "times": self.times.to_dict(now),
-            "counters": self.counters.to_dict(),
-            "alarms": self.alarms.to_dict(),
-            "stop_reason": stop_reason.to_dict() if stop_reason else None,
-            "mach_speed": mach_speed,
-            "saved_at": now,
-        }
+        return document(
+            self.times, self.counters, self.alarms, self.stops, sequence, mach_speed, now
+        )
 
     def snapshot(self, sequence: int, mode: int, mach_speed: float, now: float) -> None:
         self.store.save(self.document(sequence, mach_speed, now), now)

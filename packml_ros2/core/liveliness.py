@@ -51,6 +51,13 @@ class Liveliness:
             self.alive.discard(name)
         return gone
 
+    def forget(self, name: str) -> None:
+        """``name`` is not an EM of the unit (its registration was refused): keep nothing of it
+        (a flood of made-up names must not grow memory)."""
+        self.last_seen.pop(name, None)
+        self.alive.discard(name)
+        self.announced.pop(name, None)
+
     def left(self, name: str) -> bool:
         """``name`` said goodbye; True if it was alive."""
         if name in self.alive:

@@ -32,7 +32,7 @@ from .alarms import AlarmDef, AlarmEvent, AlarmManager
 from .config import Descriptor, Product, UnitConfig
 from .counters import Counters
 from .deadlines import Deadlines
-from .durable import Durable
+from .durable import Durable, document
 from .equipment import AT_ONCE_WITHOUT_EMS, Equipment, EquipmentModule
 from .interlocks import STOP_ID_BLOCKED, STOP_ID_STARVED, Interlocks
 from .modes import ModeDef
@@ -1390,10 +1390,8 @@ class Unit:
     # -- persistence (core/durable.py) ------------------------------------------------------------
     def document(self) -> dict[str, Any]:
         """What persistence stores: everything of the admin data, never the state."""
-        durable = self._durable or Durable(
-            _NoStore(), self.times, self.counters, self.alarms, self.stops
-        )
-        return durable.document(self.sequence, self.mach_speed, self._t)
+        return document(self.times, self.counters, self.alarms, self.stops, self.sequence,
+                        self.mach_speed, self._t)  # fmt: skip
 
     def _journal(self) -> None:
         """Write-ahead: the input's durable changes reach the store before it is answered."""
@@ -1430,19 +1428,6 @@ class Unit:
         self._snapshot()
         if self.store is not None:
             self.store.close()
-
-
-class _NoStore:
-    """The store of a unit without persistence, for :meth:`Unit.document`."""
-
-    def load(self) -> dict[str, Any] | None:
-        return None
-
-    def save(self, document: dict[str, Any], now: float) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
 
 
 __all__ = [
