@@ -17,9 +17,7 @@ from enum import IntEnum
 from typing import Any
 
 from .numbers import Cmd
-from .rules import Alert, Watch
-
-NUM_CATEGORIES = 10
+from .rules import DEFAULT_REACTIONS, NUM_CATEGORIES, REACTIONS, Alert, Watch
 
 
 class Kind(IntEnum):
@@ -35,25 +33,6 @@ class OperatorState(IntEnum):
     ACTIVE_UNACKNOWLEDGED = 0
     INACTIVE_UNACKNOWLEDGED = 1
     ACKNOWLEDGED = 2
-
-
-#: Configuration names of reactions -> the command the unit applies (0 = none).
-REACTIONS: Mapping[str, int] = {
-    "none": 0,
-    "abort": Cmd.ABORT,
-    "stop": Cmd.STOP,
-    "hold": Cmd.HOLD,
-    "suspend": Cmd.SUSPEND,
-}
-#: Category -> reaction by default: 0-1 Abort, 2-4 Stop, 5-9 none (Mitsubishi).
-DEFAULT_REACTIONS: Mapping[int, int] = {
-    0: Cmd.ABORT,
-    1: Cmd.ABORT,
-    2: Cmd.STOP,
-    3: Cmd.STOP,
-    4: Cmd.STOP,
-    **dict.fromkeys(range(5, NUM_CATEGORIES), 0),
-}
 
 
 @dataclass(frozen=True, slots=True)
@@ -137,6 +116,18 @@ class AlarmEvent:
 
 
 _EVENT_FIELDS = frozenset(AlarmEvent.__dataclass_fields__)
+#: (The reactions are the rule book's, core/rules.py section 5b; named here for config.py.)
+__all__ = [
+    "DEFAULT_REACTIONS",
+    "NUM_CATEGORIES",
+    "REACTIONS",
+    "AlarmDef",
+    "AlarmEvent",
+    "AlarmManager",
+    "Kind",
+    "OperatorState",
+    "Raised",
+]
 
 
 @dataclass(frozen=True, slots=True)

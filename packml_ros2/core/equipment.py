@@ -15,12 +15,14 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 from .numbers import State
-from .rules import AGGREGATING, EXCUSE_OFFLINE, Alert, Watch
-
-_EXECUTE = State.EXECUTE
-#: Without an EM, every state that aggregates completes at once but Execute: nobody owes it SC,
-#: and the production run ends by command.
-AT_ONCE_WITHOUT_EMS = AGGREGATING - {State.EXECUTE}
+from .rules import (
+    AGGREGATING,
+    AT_ONCE_WITHOUT_EMS,
+    EXCUSE_OFFLINE,
+    ONLY_WITH_ACTIVE_EMS,
+    Alert,
+    Watch,
+)
 
 
 @dataclass(slots=True)
@@ -102,7 +104,7 @@ class Equipment:
         if not self.modules:  # (pending stays empty)
             self.aggregating = aggregating = state in AT_ONCE_WITHOUT_EMS
             return aggregating
-        if state in AGGREGATING and (state is not _EXECUTE or self.active):
+        if state in AGGREGATING and (self.active or state not in ONLY_WITH_ACTIVE_EMS):
             self.aggregating = True
             self.pending = pending = set(self._owing[state in EXCUSE_OFFLINE])
             return not pending

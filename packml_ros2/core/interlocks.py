@@ -1,6 +1,7 @@
 """Line interlocks (PACKML.md 4): Blocked/Starved reported by the unit's EMs and interlocks set from
 outside (the coordinator) suspend the unit while it is in Execute and unsuspend it when all are
-cleared, if the unit was suspended by one (``interlock_reaction: suspend``).
+cleared, if the unit was suspended by one (``interlock_reaction: suspend``; the rule:
+:data:`.rules.INTERLOCK_SUSPEND`, :data:`.rules.INTERLOCK_RESUME`).
 
 :class:`Interlocks` owns the active interlocks, whether the unit's suspension is theirs, and which
 (state, sequence) it last acted in (one attempt per state entry). It keeps the ``INTERLOCK`` bit of
@@ -10,7 +11,7 @@ the unit's :class:`~.rules.Alert`.
 from __future__ import annotations
 
 from .numbers import Cmd, State
-from .rules import Alert, Watch
+from .rules import INTERLOCK_RESUME, INTERLOCK_SUSPEND, Alert, Watch
 
 #: OMAC stop-reason IDs (Beckhoff E_AlarmID ranges) of interlock stops.
 STOP_ID_BLOCKED = 3002  # downstream: discharge blocked
@@ -54,13 +55,13 @@ class Interlocks:
         key = (int(state), sequence)
         if self.attempt == key:
             return None
-        if self.active and state is State.EXECUTE:
+        if self.active and state is INTERLOCK_SUSPEND[0]:
             self.attempt = key
             reason, stop_id = next(iter(self.active.values()))
-            return Cmd.SUSPEND, reason, stop_id
-        if not self.active and self.suspended and state is State.SUSPENDED:
+            return INTERLOCK_SUSPEND[1], reason, stop_id
+        if not self.active and self.suspended and state is INTERLOCK_RESUME[0]:
             self.attempt = key
-            return Cmd.UNSUSPEND, "interlock cleared", 0
+            return INTERLOCK_RESUME[1], "interlock cleared", 0
         return None
 
     def entered(self, state: State, skipped: tuple[State, ...], by_interlock: bool) -> None:

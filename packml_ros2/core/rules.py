@@ -379,6 +379,34 @@ SUPERSEDED_SENTENCE = (
 )
 
 # ==================================================================================================
+# 5b. Reactions: what raises a command inside the unit
+# ==================================================================================================
+NUM_CATEGORIES = 10
+#: Configuration names of reactions -> the command the unit applies (0 = none).
+REACTIONS: Mapping[str, int] = {
+    "none": 0,
+    "abort": C.ABORT,
+    "stop": C.STOP,
+    "hold": C.HOLD,
+    "suspend": C.SUSPEND,
+}
+#: Alarm category -> reaction by default: 0-1 Abort, 2-4 Stop, 5-9 none (Mitsubishi); a
+#: configuration may change any category and any alarm (PACKML.md 7). Warnings never react.
+DEFAULT_REACTIONS: Mapping[int, int] = {
+    0: C.ABORT,
+    1: C.ABORT,
+    2: C.STOP,
+    3: C.STOP,
+    4: C.STOP,
+    **dict.fromkeys(range(5, NUM_CATEGORIES), 0),
+}
+#: A line interlock (an EM's Blocked/Starved, or one set from outside) asks for SUSPEND while the
+#: unit is in EXECUTE, and, once every interlock is cleared, for UNSUSPEND while the unit is in
+#: SUSPENDED because of one (``interlock_reaction: suspend``; ``none`` switches it off).
+INTERLOCK_SUSPEND: tuple[State, Cmd] = (S.EXECUTE, C.SUSPEND)
+INTERLOCK_RESUME: tuple[State, Cmd] = (S.SUSPENDED, C.UNSUSPEND)
+
+# ==================================================================================================
 # 6. Entry actions: what entering a state does besides the transition
 # ==================================================================================================
 
@@ -408,10 +436,13 @@ PLANNED_STOP_STATES: frozenset[State] = frozenset({S.STOPPED, S.IDLE, S.STOPPING
 # ==================================================================================================
 # 7. Equipment modules (PACKML.md section 4)
 # ==================================================================================================
-#: States in which every active EM owes State Complete for (state, sequence). Execute only while
-#: at least one EM is active: without one, the run ends by command. A unit without an EM that owes
-#: it completes the others at once.
+#: States in which every active EM owes State Complete for (state, sequence); those of
+#: ONLY_WITH_ACTIVE_EMS only while at least one EM is active (without one, the production run ends
+#: by command). A state nobody owes State Complete for completes at once.
 AGGREGATING: frozenset[State] = ACTING
+ONLY_WITH_ACTIVE_EMS: frozenset[State] = frozenset({S.EXECUTE})
+#: Without an EM, these complete at once.
+AT_ONCE_WITHOUT_EMS: frozenset[State] = AGGREGATING - ONLY_WITH_ACTIVE_EMS
 #: Fault-recovery states: EMs that went offline are excused from State Complete here.
 EXCUSE_OFFLINE: frozenset[State] = frozenset({S.STOPPING, S.ABORTING, S.CLEARING})
 #: An EM switched active while the unit waits in an acting state owes State Complete for that
@@ -715,15 +746,19 @@ def rules_of(config: ConfigLike) -> Rules:
 __all__ = [
     "ABORT_EXCEPT",
     "AGGREGATING",
+    "AT_ONCE_WITHOUT_EMS",
     "BLOCKED_BY_REACTION",
     "COMMANDS_2022",
+    "DEFAULT_REACTIONS",
     "ENTRY",
     "EXCUSE_OFFLINE",
     "FAULT_COMMANDS",
     "GUARDS",
     "IMPLIED_DISABLED",
     "MOTION",
+    "ONLY_WITH_ACTIVE_EMS",
     "PRIORITY",
+    "REACTIONS",
     "SETTLE",
     "STATE_COMPLETE",
     "STOP_EXCEPT",

@@ -33,7 +33,7 @@ from .config import Descriptor, Product, UnitConfig
 from .counters import Counters
 from .deadlines import Deadlines
 from .durable import Durable, document
-from .equipment import AT_ONCE_WITHOUT_EMS, Equipment, EquipmentModule
+from .equipment import Equipment, EquipmentModule
 from .interlocks import STOP_ID_BLOCKED, STOP_ID_STARVED, Interlocks
 from .modes import ModeDef
 from .numbers import Cmd, Mode, State, command_name, state_name
@@ -43,6 +43,7 @@ from .publication import Publication as _Publication
 from .publication import StatusMark
 from .reasons import Answer, Reason
 from .rules import (
+    AT_ONCE_WITHOUT_EMS,
     ENTRY,
     EXCUSE_OFFLINE,
     MODE_CHANGE_NOT_ALLOWED_SECONDS,

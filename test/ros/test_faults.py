@@ -52,8 +52,9 @@ def test_full_production_cycles_with_three_em_processes(ros, processes, tmp_path
         client.wait_state("IDLE")
         assert client.trigger("start").success
         client.wait_entered("EXECUTE")  # for about 0.3 s: waited for as a transition
-        # Execute completes when every EM finished its run; then Completing -> Complete
-        client.wait_state("COMPLETE", timeout=10)
+        # Execute completes when every EM finished its run; then Completing -> Complete (waited
+        # for as a transition: the status of it can arrive before the transitions before it)
+        client.wait_entered("COMPLETE", timeout=10)
         runs = cycle + 1
         admin = client.admin.wait_for(
             lambda a, runs=runs: a.prod_processed_count[0].count >= 4 * runs, 5, "processed count"
