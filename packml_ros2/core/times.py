@@ -64,17 +64,20 @@ class ModeStateTimes:
             self.planned_stop += dt
         self._since = now
 
-    def enter_states(self, now: float, states: Sequence[int], planned: bool) -> None:
-        """The unit entered ``states`` in the current mode at ``now``, in order (a command and
-        the State Completes that followed at once: one call for them all); ``planned``: the last
-        is a planned stop (OEE)."""
+    def enter_states(self, now: float, first: int, last: int, between: Sequence[int],
+                     planned: bool) -> None:  # fmt: skip
+        """The unit entered ``first``, the states ``between``, then ``last`` (maybe ``first``)
+        in the current mode at ``now``: a command and the State Completes that followed at once,
+        one call for them all. ``planned``: ``last`` is a planned stop (OEE)."""
         if now > self._since:
             self._close(now)
         current = self.state_current
         base = self._base
-        for state in states:
+        current[base + first] = 0.0
+        for state in between:
             current[base + state] = 0.0
-        self._state = states[-1]
+        current[base + last] = 0.0
+        self._state = last
         self._planned = planned
 
     def enter(self, now: float, mode: int, state: int, planned: bool = False) -> None:

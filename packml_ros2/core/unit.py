@@ -1016,7 +1016,8 @@ class Unit:
         # (AT_ONCE_WITHOUT_EMS); it only needs to know whether the state the unit stops in
         # aggregates (the first EM to register brings it up to date: see em_seen).
         with_ems = eq.modules
-        entered = [to]  # the states entered, for the times
+        first = to  # the states entered (first, between, to), for the times
+        between: tuple[State, ...] = ()
         if entry < 0:
             entry = 0
             for s in (*skipped, to):
@@ -1068,17 +1069,20 @@ class Unit:
             if not enabled:
                 more = True  # _settle refuses it (and says so)
                 break
+            if to is not first:
+                between += (to,)  # (a third state in one step: rare)
             frm = to
             to = final
             cmd = 0
             source = "unit"
             detail = ""
             cause = None
-            entered.append(to)
         self.sequence = seq
         self.state = to
         self.entered_at = t
-        self.times.enter_states(t, entered, stops.planned_reason and stops.planned(mode, to))
+        self.times.enter_states(
+            t, first, to, between, stops.planned_reason and stops.planned(mode, to)
+        )
         if not with_ems and eq.aggregating is not (to in AT_ONCE_WITHOUT_EMS):
             eq.begin(to, seq)  # (without EMs only whether the state aggregates matters)
         return more or interlocks.busy
