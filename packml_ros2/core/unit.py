@@ -132,7 +132,6 @@ class _Cmd(NamedTuple):
 class Stats:
     """Counts for diagnostics."""
 
-    commands_accepted: int = 0
     commands_rejected: int = 0
     stale_reports: int = 0
     sc_ignored: int = 0
@@ -176,8 +175,8 @@ class Unit:
         "remote_enabled", "cntrl_cmd", "command_unit_mode", "mach_speed", "parameters", "products",
         "remote_commands",
         # parts
-        "config", "rules", "_clock", "store", "_durable", "on_input", "restored", "alert", "_stats",
-        "_accepted_count", "times",
+        "config", "rules", "_clock", "store", "_durable", "on_input", "restored", "alert", "stats",
+        "times",
         "counters", "alarms", "equipment", "interlocks", "stops", "deadlines", "publication",
         # the compiled rules the hot paths index, and configuration they test
         "_accepted", "_accepted_mode", "_sc", "_timed",
@@ -214,8 +213,7 @@ class Unit:
         self.products: list[Product] = list(config.products)
         self.remote_commands: dict[int, tuple[int, int]] = {}  # interface number -> (cmd, value)
         self.alert = Alert()
-        self._stats = Stats()
-        self._accepted_count = 0  # Stats.commands_accepted (counted apart: the fast path does)
+        self.stats = Stats()
         self.times = ModeStateTimes(now, self.mode, self.state)
         self.counters = Counters(config.sizes.counters, dict(config.counters))
         self.alarms = AlarmManager(
@@ -262,12 +260,6 @@ class Unit:
         if store is not None:
             self._every("save", config.persistence_period)
         self._every("admin", config.admin_period)
-
-    @property
-    def stats(self) -> Stats:
-        """Counts for diagnostics."""
-        self._stats.commands_accepted = self._accepted_count
-        return self._stats
 
     @property
     def stop_reason(self) -> AlarmEvent | None:
@@ -325,7 +317,6 @@ class Unit:
                 self._abandon_mode_change(f"{command_name(cmd)} from {source}")
             if remote:
                 self._note_remote(number, source)
-            self._accepted_count += 1
             self.cntrl_cmd = number
             if not self._transition(final, trigger, number, source, skipped, "", None, True, flags):
                 # Nothing for _settle and nothing changed after the last transition, whose
@@ -919,7 +910,6 @@ class Unit:
         entry = self._accepted[self.mode][self.state][cmd]
         if self.mode_change_in_process:  # only Abort and Stop pass the guards then
             self._abandon_mode_change(f"{command_name(cmd)} from {source}")
-        self._accepted_count += 1
         self.cntrl_cmd = entry.cmd
         if is_remote(source):
             self._note_remote(entry.cmd, source)
@@ -1009,7 +999,6 @@ class Unit:
         stops = self.stops
         interlocks = self.interlocks
         alarms = self.alarms
-        pub = self.publication
         timed = self._timed
         sc_steps = self._sc[mode]
         # Equipment.begin decides who owes State Complete. Without an EM nobody does
@@ -1027,7 +1016,7 @@ class Unit:
         # Nothing in this loop queues a command or starts a mode change, and only entry actions
         # change the alarm list: these are judged once, and after entry actions.
         queued = self._internal or self.mode_change_in_process
-        alarms_changed = alarms.version != pub.alarms_seen
+        alarms_changed = alarms.version != self.publication.alarms_seen
         # The machine's fields are written when the loop is done (nothing in it reads them).
         frm, seq = self.state, self.sequence
         while True:
@@ -1044,11 +1033,11 @@ class Unit:
                 else:
                     self._entry_actions(to, skipped, trigger, cmd, source, cause)
                     special = interlocks.suspended
-                    alarms_changed = alarms.version != pub.alarms_seen
+                    alarms_changed = alarms.version != self.publication.alarms_seen
             out(("transition", _new_tuple(Transition, (t, seq, frm, to, mode, mode, trigger, cmd,
                                                        source, skipped, detail))))  # fmt: skip
             if alarms_changed:  # the alarm list goes with the transition
-                pub.alarms_changed()
+                self.publication.alarms_changed()
                 alarms_changed = False
             due = eq.begin(to, seq) if with_ems else to in AT_ONCE_WITHOUT_EMS
             if timed and to in timed:  # (an empty set is cheaper to test than to search)
