@@ -45,7 +45,7 @@ class EquipmentModule:
 class Equipment:
     """The unit's EMs and the set of EMs still owing State Complete for (state, sequence)."""
 
-    __slots__ = ("_owing", "active", "aggregating", "alert", "modules", "pending",
+    __slots__ = ("_owing", "active", "aggregating", "alert", "current", "modules", "pending",
                  "roster_version", "sequence", "state", "version")  # fmt: skip
 
     def __init__(self, alert: Alert | None = None) -> None:
@@ -53,6 +53,7 @@ class Equipment:
         self.modules: dict[str, EquipmentModule] = {}
         self.state = 0
         self.sequence = 0
+        self.current: tuple[int, int] = (0, 0)  # (state, sequence), shared by the reports of it
         self.pending: set[str] = set()
         self.aggregating = False
         self.active = 0  # how many EMs are active
@@ -100,6 +101,7 @@ class Equipment:
         Complete is due at once (the state aggregates and nobody owes it)."""
         self.state = state
         self.sequence = sequence
+        self.current = (state, sequence)
         self.version += 1
         if not self.modules:  # (pending stays empty)
             self.aggregating = aggregating = state in AT_ONCE_WITHOUT_EMS
@@ -115,6 +117,7 @@ class Equipment:
     def begin_mode_change(self, sequence: int) -> None:
         """A mode change was accepted (new ``sequence``): every active online EM confirms it."""
         self.sequence = sequence
+        self.current = (self.state, sequence)
         self.aggregating = self.active > 0
         self.pending = {em.name for em in self.modules.values() if em.active and em.online}
         self.version += 1
@@ -134,7 +137,7 @@ class Equipment:
         if sequence != self.sequence or state != self.state or not self.aggregating:
             em.stale_reports += 1
             return False
-        em.last_report = (state, sequence)
+        em.last_report = self.current
         self.pending.discard(name)
         return True
 

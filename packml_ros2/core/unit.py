@@ -1155,13 +1155,11 @@ class Unit:
                     or self._sc_ready()
                 )
             ):
-                step = self._sc[self.mode][self.state]
-                assert step is not None  # aggregating: an acting state
-                if step.enabled:
-                    self._transition(step.final, step.trigger, 0, "unit", step.skipped,
-                                     "", None, True, step.entry)  # fmt: skip
+                final, skipped, trigger, enabled, entry = self._sc[self.mode][self.state]  # type: ignore[misc]  # aggregating: an acting state
+                if enabled:
+                    self._transition(final, trigger, 0, "unit", skipped, "", None, True, entry)
                     continue
-                self._refuse_state_complete(step.final)
+                self._refuse_state_complete(final)
             if interlocks.busy and self._interlock_action():
                 continue
             return
