@@ -10,8 +10,15 @@ Sequencing: start-like commands (RESET, START, UNHOLD, UNSUSPEND, CLEAR) go to t
 ``start_order``, stop-like ones (STOP, HOLD, SUSPEND, COMPLETE) in ``stop_order``; units that are
 not listed follow in configuration order. Each step waits until the unit reached the state its
 answer names as ``state_requested`` before the next unit is commanded. A unit already in (or on
-its way to) the command's target state is skipped. A refusal, a step that takes longer than
-``step_timeout`` or a lost unit ends the sequence; the answer names the unit and quotes its reason.
+its way to) the command's target state is skipped. All or nothing: before any unit is commanded,
+every unit is checked (online, remote commands enabled, the command valid in its state by its own
+``Status.commands_valid``); one that cannot take it refuses the command for the cell, and the answer
+names it and why. STOP is the exception the standard makes: it goes to every unit that can stop
+(one that cannot is skipped, one that refuses is reported, the others stop all the same). A unit
+that refuses anyway, a step longer than ``step_timeout`` or a lost unit ends the sequence; the
+answer names the unit and quotes its reason. ``set_mode`` is all or nothing too: every unit is
+checked by its mode rules (core.rules) first; a unit that refuses anyway has the units changed
+before it changed back; a refused change answers with the mode the cell still has.
 ABORT goes to every unit at once (safety) and, like STOP, cancels a running sequence; any other
 command is refused while a sequence runs. The service handlers block while a sequence runs: spin
 the node with a MultiThreadedExecutor (``main`` does).
@@ -68,7 +75,9 @@ from std_srvs.srv import Trigger
 
 from . import qos, responses, run
 from .client import Unavailable, UnitProxy
-from .core import WAIT, CellConfig, Cmd, ConfigError, State, load_cell, state_name
+from .core import WAIT, CellConfig, Cmd, ConfigError, State, load_cell, state_name, unit_config
+from .core.numbers import names_of
+from .core.rules import rules_of
 
 #: Source of the unit commands the coordinator sends (the units' remote path).
 SOURCE = "remote:coordinator"
@@ -76,18 +85,10 @@ SOURCE = "remote:coordinator"
 INTERLOCK_SOURCE = "coordinator"
 START_LIKE = frozenset({Cmd.RESET, Cmd.START, Cmd.UNHOLD, Cmd.UNSUSPEND, Cmd.CLEAR})
 STOP_LIKE = frozenset({Cmd.STOP, Cmd.HOLD, Cmd.SUSPEND, Cmd.COMPLETE})
-#: The wait state each command leads to; a unit whose StateRequested is already this is skipped.
+#: The wait state each command leads to (the rule book's, core.rules.Rules.command_target); a
+#: unit whose StateRequested is already this is skipped.
 TARGET: dict[Cmd, State] = {
-    Cmd.RESET: State.IDLE,
-    Cmd.START: State.EXECUTE,
-    Cmd.UNHOLD: State.EXECUTE,
-    Cmd.UNSUSPEND: State.EXECUTE,
-    Cmd.CLEAR: State.STOPPED,
-    Cmd.STOP: State.STOPPED,
-    Cmd.HOLD: State.HELD,
-    Cmd.SUSPEND: State.SUSPENDED,
-    Cmd.COMPLETE: State.COMPLETE,
-    Cmd.ABORT: State.ABORTED,
+    c: t for c in Cmd if c and (t := rules_of(unit_config()).command_target(c)) is not None
 }
 #: Aggregate cell state when the units disagree: the first of these that any online unit is in.
 SEVERITY: tuple[State, ...] = (
@@ -588,9 +589,17 @@ class CoordinatorNode(Node):
                 running = next(reversed(self._runs.values()), "a sequence")
             return False, Result.COMMAND_NOT_ALLOWED, f"{name} refused: busy ({running})"
         order = self.start_order if cmd in START_LIKE else self.stop_order
+        if cmd is not Cmd.STOP:  # all or nothing (STOP goes to every unit that can stop)
+            with self._cond:
+                refusals = self._refusals(cmd, order)
+            if refusals:
+                self._seq_lock.release()
+                listed = "; ".join(text for _, text in refusals)
+                return False, refusals[0][0], f"{name} refused, no unit commanded: {listed}"
         run_id = self._register(f"{name}: starting")
         done: list[str] = []
         skipped: list[str] = []
+        failed: list[tuple[int, str]] = []
         try:
             for index, unit_name in enumerate(order, 1):
                 where = f"{unit_name} (step {index}/{len(order)})"
@@ -599,6 +608,9 @@ class CoordinatorNode(Node):
                         run_id, cmd, self._units[unit_name], index, len(order)
                     )
                 except _Failed as failure:
+                    if cmd is Cmd.STOP and failure.result != Result.SUPERSEDED:
+                        failed.append((failure.result, f"{where}: {failure.message}"))
+                        continue  # the others stop all the same
                     parts = [f"{name} stopped at {where}: {failure.message}"]
                     if done:
                         parts.append(f"done before: {', '.join(done)}")
@@ -614,10 +626,35 @@ class CoordinatorNode(Node):
                 parts.append(", ".join(done))
             if skipped:
                 parts.append(f"skipped: {', '.join(skipped)}")
+            if failed:
+                parts[0] = f"{name} not done on every unit (order {' > '.join(order)})"
+                parts.append(f"failed: {'; '.join(text for _, text in failed)}")
+                return False, failed[0][0], "; ".join(parts)
             return True, Result.ACCEPTED, "; ".join(parts)
         finally:
             self._unregister(run_id)
             self._seq_lock.release()
+
+    def _refusals(self, cmd: Cmd, order: list[str]) -> list[tuple[int, str]]:
+        """(Lock held.) Why units cannot take ``cmd`` now, from their last status: offline, remote
+        commands disabled, the command not valid in their state (the unit's own judgement,
+        ``Status.commands_valid``). Units already at or on their way to the target are fine."""
+        out: list[tuple[int, str]] = []
+        target = TARGET[cmd]
+        for name in order:
+            unit = self._units[name]
+            status = unit.status
+            if not unit.online or status is None:
+                since = time.monotonic() - unit.last_seen
+                out.append((Result.UNIT_UNAVAILABLE, f"{name} is offline (nothing from it for {since:.1f} s)"))  # fmt: skip
+            elif status.state_requested == target:
+                continue
+            elif not status.remote_commands_enabled:
+                out.append((Result.REMOTE_DISABLED, f"{name} does not take remote commands (remote_commands_enabled is false)"))  # fmt: skip
+            elif int(cmd) not in status.commands_valid:
+                valid = names_of(status.commands_valid) or "none"
+                out.append((Result.COMMAND_NOT_ALLOWED, f"{name} cannot take {cmd.name} in {status.state_current_name} (valid now: {valid})"))  # fmt: skip
+        return out
 
     def _step(self, run_id: int, cmd: Cmd, unit: _Unit, index: int, total: int) -> tuple[str, str]:
         """Command one unit and wait for it: ('done' | 'skipped', text), or raise _Failed."""
@@ -638,6 +675,8 @@ class CoordinatorNode(Node):
                 self._publish()
                 self._wait_reached(run_id, unit, None, seq0, target, deadline)
                 return "done", f"{unit.name} -> {state_name(target)} (was on its way)"
+            if cmd is Cmd.STOP and int(cmd) not in status.commands_valid:
+                return "skipped", f"{unit.name} (cannot stop in {status.state_current_name})"
         self._step_text(run_id, f"{step}: sending {cmd.name}")
         resp = self._call(run_id, unit, "command", deadline, command=int(cmd), source=SOURCE)
         if not resp.accepted:
@@ -796,20 +835,32 @@ class CoordinatorNode(Node):
 
     # -- modes --------------------------------------------------------------------------------------------------
     def cell_set_mode(self, mode: int, mode_name: str = "", caller: str = "operator") -> tuple[bool, int, str, int]:  # fmt: skip
-        """Fan a mode change out to every unit (start order): (accepted, result, message, mode)."""
+        """A mode change of every unit, all or nothing: every unit is checked first (online, remote
+        commands enabled, no change in process, the mode configured, the change allowed in its
+        state by its mode rules); then it goes to every unit (start order); a unit that refuses
+        anyway has the others changed back. (accepted, result, message, mode): the new mode, or
+        the mode the cell had (0: mixed) when refused."""
         wanted = mode_name or str(mode)
         problem = self._not_blocking_executor()
         if problem:
             return False, Result.UNIT_UNAVAILABLE, problem, 0
+        with self._cond:
+            before = {n: u.status.unit_mode_current for n, u in self._units.items() if u.status}
+        old = next(iter(set(before.values()))) if len(set(before.values())) == 1 else 0
         if not self._seq_lock.acquire(blocking=False):
             with self._cond:
                 running = next(reversed(self._runs.values()), "a sequence")
-            return False, Result.COMMAND_NOT_ALLOWED, f"mode {wanted} refused: busy ({running})", 0
+            return False, Result.COMMAND_NOT_ALLOWED, f"mode {wanted} refused: busy ({running})", old  # fmt: skip
         run_id = self._register(f"SET_MODE {wanted}")
         lines: list[str] = []
-        modes: set[int] = set()
-        result = Result.ACCEPTED
         try:
+            with self._cond:
+                refusals, number = self._mode_refusals(mode, mode_name)
+            if refusals:
+                message = f"mode {wanted} refused, no unit changed: " + "; ".join(t for _, t in refusals)  # fmt: skip
+                self.get_logger().warning(f"from {caller}: {message}")
+                return False, refusals[0][0], message, old
+            changed: list[str] = []
             for unit_name in self.start_order:
                 unit = self._units[unit_name]
                 self._step_text(run_id, f"SET_MODE {wanted}: {unit_name}")
@@ -817,28 +868,74 @@ class CoordinatorNode(Node):
                 try:
                     resp = self._call(run_id, unit, "set_mode", deadline, mode=int(mode),
                                       mode_name=mode_name, source=SOURCE)  # fmt: skip
+                    result, text = resp.result, resp.message
                 except _Failed as failure:
-                    lines.append(f"{unit_name}: {failure.message}")
-                    result = result or failure.result
-                    modes.add(-1)
+                    resp, result, text = None, failure.result, failure.message
+                if resp is not None and resp.accepted:
+                    lines.append(f"{unit_name}: accepted ({text})")
+                    if before.get(unit_name) != number:
+                        changed.append(unit_name)
                     continue
-                modes.add(resp.mode_current)
-                if resp.accepted:
-                    lines.append(f"{unit_name}: accepted ({resp.message})")
-                else:
-                    lines.append(f"{unit_name}: refused: {resp.message}")
-                    result = result or resp.result
+                undone = self._change_back(run_id, changed, number, before)
+                message = (f"mode {wanted} not set: {unit_name} refused: {text}; "
+                           f"{'changed back: ' + undone if changed else 'no unit changed'}")  # fmt: skip
+                self.get_logger().warning(f"from {caller}: {message}")
+                return False, result, message, old
         finally:
             self._unregister(run_id)
             self._seq_lock.release()
-        ok = result == Result.ACCEPTED
-        message = f"mode {wanted} {'set on every unit' if ok else 'not set on every unit'}: " + "; ".join(lines)  # fmt: skip
-        if ok:
-            self.get_logger().info(f"from {caller}: {message}")
-        else:
-            self.get_logger().warning(f"from {caller}: {message}")
-        common = next(iter(modes)) if len(modes) == 1 else 0
-        return ok, result, message, max(common, 0)
+        message = f"mode {wanted} set on every unit: " + "; ".join(lines)
+        self.get_logger().info(f"from {caller}: {message}")
+        return True, Result.ACCEPTED, message, number
+
+    def _mode_refusals(self, mode: int, mode_name: str) -> tuple[list[tuple[int, str]], int]:
+        """(Lock held.) Why units cannot change to the mode now, from their last status and their
+        configuration's mode rules (core.rules); and the mode's number."""
+        out: list[tuple[int, str]] = []
+        number = mode
+        for name, unit in self._units.items():
+            config = self.cell.units[name]
+            target = config.mode_by_name(mode_name) if mode_name else config.modes.get(mode)
+            status = unit.status
+            if target is None:
+                out.append((Result.MODE_UNKNOWN, f"{name} has no mode {mode_name or mode}"))
+                continue
+            number = target.number
+            if not unit.online or status is None:
+                out.append((Result.UNIT_UNAVAILABLE, f"{name} is offline"))
+            elif not status.remote_commands_enabled:
+                out.append((Result.REMOTE_DISABLED, f"{name} does not take remote commands (remote_commands_enabled is false)"))  # fmt: skip
+            elif status.unit_mode_change_in_process:
+                out.append((Result.MODE_CHANGE_IN_PROCESS, f"{name} is changing its mode already"))
+            elif status.unit_mode_current != target.number:
+                why = rules_of(config).mode_change_refusal(
+                    status.unit_mode_current, target.number, State(status.state_current)
+                )
+                if why is not None:
+                    out.append((Result.MODE_CHANGE_NOT_ALLOWED,
+                                f"{name} in {status.state_current_name}: {why}"))  # fmt: skip
+        return out, number
+
+    def _change_back(self, run_id: int, changed: list[str], number: int,
+                     before: dict[str, int]) -> str:  # fmt: skip
+        """Put the units ``changed`` to ``number`` back to their mode of ``before``, once their
+        change is done (its EMs confirm it): what happened, per unit."""
+        notes = []
+        for name in changed:
+            unit = self._units[name]
+            deadline = time.monotonic() + self.config.step_timeout
+            with self._cond:
+                while unit.status is not None and (
+                    unit.status.unit_mode_change_in_process or unit.status.unit_mode_current != number
+                ) and time.monotonic() < deadline:  # fmt: skip
+                    self._cond.wait(min(0.5, max(0.0, deadline - time.monotonic())))
+            try:
+                resp = self._call(run_id, unit, "set_mode", deadline, mode=before[name],
+                                  mode_name="", source=SOURCE)  # fmt: skip
+                notes.append(f"{name} ({'back' if resp.accepted else 'refused: ' + resp.message})")
+            except _Failed as failure:
+                notes.append(f"{name} (not back: {failure.message})")
+        return ", ".join(notes)
 
     # ================================================================================================
     def close(self) -> None:

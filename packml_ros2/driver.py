@@ -67,8 +67,12 @@ class UnitDriver:
             if liveliness.left(name):
                 run(now, unit.em_lost, name, "left")
             return
-        if liveliness.seen(name, now, msg.lease):
-            run(now, unit.em_seen, name)
+        if liveliness.seen(name, now) and not run(now, unit.em_seen, name, True).accepted:
+            liveliness.forget(name)  # not registered: its next report asks again
+            return  # the rest of a report of an EM the unit does not know changes nothing
+        warning = liveliness.announce(name, msg.lease)
+        if warning is not None:
+            self.emit("log", ("warn", warning))
         if kind == cls.KIND_STATE_COMPLETE:
             run(now, unit.em_complete, name, msg.state, msg.sequence)
         elif kind == cls.KIND_COMMAND_REQUEST:

@@ -26,7 +26,9 @@ False; ``ctx.next_state`` tells where the unit went). The next state's hook star
 only after the previous one has ended. An exception in a hook raises the EM's fault alarm.
 
 Heartbeats keep the EM's lease alive at the unit; an EM that restarts re-joins at the unit's current
-state and sequence (the status topic is latched).
+state and sequence (the status topic is latched). An EM switched inactive sits states out; switched
+active while the unit waits in an acting state, it joins that state: it runs its hook and reports
+(the unit waits for it, packml_ros2.core.rules section 7).
 """
 
 from __future__ import annotations
@@ -217,10 +219,13 @@ class EquipmentModule(Node):
 
     def _dispatch(self, msg: Status) -> None:
         """Under the lock: start the hook for ``msg``'s (state, sequence), or report at once."""
-        self._key = (msg.state_current, msg.sequence)
         mine = next((e for e in msg.equipment_modules if e.name == self.em_name), None)
         if (mine is not None and mine.state_complete) or not self.active:
-            return  # already reported (an EM that restarted) or switched inactive
+            # Already reported (an EM that restarted), or switched inactive: the (state,
+            # sequence) is not taken, so an EM switched active while the unit waits in this state
+            # joins it with its next status (PACKML rules: it owes State Complete for it).
+            return
+        self._key = (msg.state_current, msg.sequence)
         state = (
             State(msg.state_current)
             if msg.state_current in State._value2member_map_

@@ -56,7 +56,7 @@ def plan(file: str | os.PathLike[str]) -> Plan:
         for em in unit.equipment_modules:
             key = f"units.{uname}.equipment_modules.{em.name}.sim"
             try:
-                p.sims[(uname, em.name)] = parse_sim(em.sim, key, str(path))
+                p.sims[(uname, em.name)] = parse_sim(em.sim, key, str(path), unit.em_lease)
             except ConfigError as exc:
                 problems += exc.problems
     if problems:

@@ -53,13 +53,15 @@ class SimConfig:
     defect_counter_index: int = 0
     consumed_per_cycle: int = 0
     cycles_per_run: int = 0  # Execute completes after this many cycles (0: runs until commanded)
-    lease: float = 2.0  # heartbeats every lease/4; 2 s rides out a busy machine
+    lease: float = 2.0  # heartbeats every lease/4; default: the unit's em_lease
     faults: Mapping[str, Fault] = field(default_factory=dict)
     seed: int | None = None
 
 
-def parse_sim(data: Mapping[str, Any], path: str = "sim", file: str = "<memory>") -> SimConfig:
-    """Validate a ``sim:`` block; ConfigError names the key path."""
+def parse_sim(data: Mapping[str, Any], path: str = "sim", file: str = "<memory>",
+              lease: float = 2.0) -> SimConfig:  # fmt: skip
+    """Validate a ``sim:`` block; ConfigError names the key path. ``lease``: the default of
+    ``lease`` (give the unit's em_lease: the unit's lease decides, the EM beats a quarter of it)."""
     n = Node(dict(data), path)
     n.check_keys(SIM_KEYS)
     durations: dict[State, float] = {}
@@ -98,7 +100,7 @@ def parse_sim(data: Mapping[str, Any], path: str = "sim", file: str = "<memory>"
         defect_counter_index=n.get("defect_counter_index", sc.integer(0), 0),
         consumed_per_cycle=n.get("consumed_per_cycle", sc.integer(0), 0),
         cycles_per_run=n.get("cycles_per_run", sc.integer(0), 0),
-        lease=n.get("lease", sc.number(positive=True), 2.0),
+        lease=n.get("lease", sc.number(positive=True), lease),
         faults=faults,
         seed=n.get("seed", sc.integer(), None),  # type: ignore[arg-type]
     )
@@ -180,12 +182,10 @@ def create(cell_file: str, unit: str, em: str, **node_kwargs: Any) -> SimulatedE
     cell = load_cell(cell_file)
     if unit not in cell.units:
         raise SystemExit(f"{cell_file} has no unit {unit!r} (units: {', '.join(cell.units)})")
-    ems = {e.name: e for e in cell.units[unit].equipment_modules}
-    sim = (
-        parse_sim(ems[em].sim, f"units.{unit}.equipment_modules.{em}.sim", cell_file)
-        if em in ems
-        else SimConfig()
-    )
+    config = cell.units[unit]
+    ems = {e.name: e for e in config.equipment_modules}
+    sim = parse_sim(ems[em].sim if em in ems else {},
+                    f"units.{unit}.equipment_modules.{em}.sim", cell_file, config.em_lease)  # fmt: skip
     return SimulatedEm(em, unit, cell.cell, sim, **node_kwargs)
 
 

@@ -51,6 +51,7 @@ from .core import (
     StoreError,
     Unit,
     UnitConfig,
+    inputlog,
     load_cell,
     state_name,
 )
@@ -79,8 +80,8 @@ class UnitNode(Node):
         path = self.get_parameter("persistence_path").value
         try:
             self.store = Store(path, config.name) if path else None
-        except StoreError:
-            Node.destroy_node(self)  # half-built: nothing of ours to close
+        except StoreError:  # (StoreLocked too): no half-made node stays behind
+            Node.destroy_node(self)
             raise
         self.clock = FrozenClock(self._now)
         self.unit = Unit(config, clock=self.clock, store=self.store)
@@ -358,8 +359,8 @@ class UnitNode(Node):
             # "persistence": whether the unit has a store (its periodic saves are deadlines too,
             # so replay needs one exactly when the node had one)
             start = {"document": self.unit.restored, "time": self.unit.now,
-                     "persistence": self.store is not None}  # fmt: skip
-            self._on_input(self.unit.now, "start", start)
+                     "persistence": self.store is not None, "schema": inputlog.SCHEMA}  # fmt: skip
+            self._on_input(self.unit.now, inputlog.START, start)
         self.driver.flush()
         self.pub_admin.publish(convert.admin(self.unit.admin()))
 

@@ -89,6 +89,19 @@ def test_bag_replays_to_the_recorded_outputs(packml_replay: Any, bag: str) -> No
     assert all(n > 0 for n in unit.compared.values()), unit.compared
 
 
+def test_bags_recorded_before_the_input_log_schema_replay() -> None:
+    """The bags of test/bags were recorded with schema 0 (the engine's method names): they are
+    read through inputlog.upgrade, and replay (test above)."""
+    from packml_ros2.core import inputlog
+
+    for bag in RECORDED:
+        inputs = next(iter(load(BAGS / bag).units.values())).inputs
+        start = next(i for i in inputs if i.name == "start")
+        assert inputlog.schema_of(start.args) == 0, bag
+        assert any(i.name == "em_complete" for i in inputs), bag  # a schema 0 name
+        assert any(i.name == "em.state_complete" for i in replay(BAGS / bag).units[0].inputs)
+
+
 def test_a_users_regression_test_is_three_lines(packml_replay: Any) -> None:
     packml_replay("test/bags/normal_production").assert_matches()
 
@@ -201,7 +214,7 @@ def test_a_tampered_output_fails_with_the_diverging_transition_and_its_inputs(
     assert "replayed: seq 5 STARTING -> EXECUTE" in text
     assert "last common transition: seq 4 IDLE -> STARTING [COMMAND 2 from operator]" in text
     assert "inputs that led to it" in text
-    assert 'em_complete {"name":' in text  # the EMs' State Complete reports of Starting
+    assert 'em.state_complete {"em":' in text  # the EMs' State Complete reports of Starting
     with pytest.raises(AssertionError, match="diverging transition"):
         result.assert_matches()
 
@@ -216,6 +229,9 @@ def test_update_rewrites_the_expected_outputs(tmp_path: Path) -> None:
     assert again.returncode == 0, again.stdout + again.stderr
     assert "match" in again.stdout
     assert replay(bad).digest() == replay(BAGS / "normal_production").digest()
+    # in place, the storage file keeps the bag's name (it was named after a temporary directory)
+    assert sorted(p.stem for p in bad.iterdir()) == ["metadata", bad.name]
+    assert not any(p.name.endswith(".update-tmp") for p in bad.parent.iterdir())
     # into another bag, as sqlite3 from an mcap file
     result, dst = update(BAGS / "independent_writer.mcap", tmp_path / "copy", storage="sqlite3")
     assert result.ok and "sqlite3" in (dst / "metadata.yaml").read_text()

@@ -40,13 +40,14 @@ from rclpy.serialization import deserialize_message, serialize_message
 
 from .. import convert, qos
 from ..client import Unavailable, call_blocking
+from ..core import inputlog
 from ..core.numbers import state_name
 from .recording import Input, RecordingError, UnitRecording, load
 from .replay import checked_inputs, stamp_of
 from .topics import UNIT_TOPICS, msg_class
 
-EM_INPUTS = frozenset({"em_complete", "em_seen", "em_lost", "em_interlock", "em_count"})
-NOT_LIVE = frozenset({"start", "advance", "step"})
+EM_INPUTS = inputlog.EM_INPUTS
+NOT_LIVE = frozenset({inputlog.START, inputlog.ADVANCE.name, inputlog.STEP.name})
 
 
 @dataclass
@@ -145,44 +146,41 @@ def service_request(i: Input) -> tuple[str, dict[str, Any]] | None:
     source = a.get("source", "operator")
     if i.name in EM_INPUTS or i.name in NOT_LIVE or str(source).startswith("em:"):
         return None
-    if i.name == "command":
-        return "command", {"command": int(a["cmd"]), "source": source}
-    if i.name == "set_mode":
+    if i.name == inputlog.COMMAND.name:
+        return "command", {"command": int(a["command"]), "source": source}
+    if i.name == inputlog.MODE.name:
         mode = a["mode"]
         if isinstance(mode, str) and not mode.strip().isdigit():
             return "set_mode", {"mode_name": mode, "source": source}
         return "set_mode", {"mode": int(mode), "source": source}
-    if i.name == "ack_alarms":
-        every = a.get("alarm_id") is None
-        return "ack_alarms", {"all": every, "id": 0 if every else int(a["alarm_id"]),
+    if i.name == inputlog.ALARM_ACK.name:
+        every = a.get("id") is None
+        return "ack_alarms", {"all": every, "id": 0 if every else int(a["id"]),
                               "value": int(a.get("value", 0)), "source": source}  # fmt: skip
-    if i.name == "reset_alarms":
+    if i.name == inputlog.ALARM_RESET.name:
         return "reset_alarms", {"clear_first_out": bool(a.get("clear_first_out")), "source": source}
-    if i.name == "reset_times":
-        return "reset_times", {"scope": 1 if a.get("all_times") else 0, "source": source}
-    if i.name == "reset_counters":
+    if i.name == inputlog.TIMES_RESET.name:
+        return "reset_times", {"scope": 1 if a.get("all") else 0, "source": source}
+    if i.name == inputlog.COUNTERS_RESET.name:
         return "reset_counters", {"source": source}
-    if i.name == "set_alarm":
-        return "set_alarm", {"id": int(a["alarm_id"]), "value": int(a.get("value", 0)),
+    if i.name == inputlog.ALARM.name:
+        return "set_alarm", {"id": int(a["id"]), "value": int(a.get("value", 0)),
                              "active": bool(a.get("active", True)), "warning": bool(a.get("warning")),
                              "category": int(a.get("category", -1)), "message": a.get("message", ""),
                              "source": source}  # fmt: skip
-    if i.name == "set_mach_speed":
+    if i.name == inputlog.SPEED.name:
         return "set_mach_speed", {"mach_speed": float(a["speed"]), "source": source}
-    if i.name == "set_parameters":
+    if i.name == inputlog.PARAMETERS.name:
         desc = msg_class("packml_interfaces/msg/Descriptor")
         params = [desc(id=int(d["id"]), name=d["name"], unit=d["unit"], value=float(d["value"]))
                   for d in a["parameters"]]  # fmt: skip
         return "set_unit_parameters", {"parameter": params, "source": source}
-    if i.name == "set_product":
-        from .. import convert
-        from ..core.unit import product_from_dict
-
-        products = [convert.product(product_from_dict(p)) for p in a["products"]]
+    if i.name == inputlog.PRODUCTS.name:
+        products = [convert.product(inputlog.product_from_dict(p)) for p in a["products"]]
         return "set_product", {"product": products, "source": source}
-    if i.name == "set_em_active":
-        return "set_em_active", {"em": a["name"], "active": bool(a["active"]), "source": source}
-    if i.name == "set_interlock":
+    if i.name == inputlog.EM_ACTIVE.name:
+        return "set_em_active", {"em": a["em"], "active": bool(a["active"]), "source": source}
+    if i.name == inputlog.INTERLOCK.name:
         return "set_interlock", {
             "active": bool(a["active"]),
             "reason": a.get("reason", ""),
@@ -278,17 +276,17 @@ def _actions(
         m = deserialize_message(recorded, report_cls)
         leases.setdefault(m.em, m.lease)
     for i in inputs[1:]:
-        name = i.args.get("name", "")
-        if i.name == "em_seen" and first_report.get(name, math.inf) > i.time:
+        name = i.args.get("em", "")
+        if i.name == inputlog.EM_SEEN.name and first_report.get(name, math.inf) > i.time:
             beat = report_cls(stamp=convert.stamp(i.time), em=name, kind=report_cls.KIND_HEARTBEAT,
                               lease=leases.get(name, 0.0))  # fmt: skip
             actions.append(Action(i.time, order, "report", name, serialize_message(beat)))
             order += 1
             first_report[name] = i.time
     for i in inputs[1:]:
-        if i.name == "set_remote_enabled":
+        if i.name == inputlog.REMOTE.name:
             actions.append(Action(i.time, order, "parameter", i.name, bool(i.args["enabled"])))
-        elif i.name == "step":
+        elif i.name == inputlog.STEP.name:
             skipped.append(f"input #{i.index} step {i.args_json}")
             continue
         else:

@@ -61,7 +61,7 @@ from typing import Any
 from rclpy.serialization import deserialize_message, serialize_message
 
 from .. import convert
-from ..core import CellConfig, Unit, UnitConfig, load_cell, parse_cell, state_name
+from ..core import CellConfig, Unit, UnitConfig, inputlog, load_cell, parse_cell, state_name
 from ..core.config import ConfigError
 from ..driver import FrozenClock, UnitDriver
 from . import cdr
@@ -400,7 +400,25 @@ def checked_inputs(rec: UnitRecording, bag: Path) -> list[Input]:
                 f"{bag}: the input log of {rec.prefix} has a gap: inputs #{a.index + 1}..#{b.index - 1} "
                 "are missing (the recorder lost them); record again"
             )
-    return inputs
+    return upgraded(inputs, rec, bag)
+
+
+def upgraded(inputs: list[Input], rec: UnitRecording, bag: Path) -> list[Input]:
+    """The inputs in the input log's current schema (core.inputlog): bags recorded with an older
+    one replay too."""
+    schema = inputlog.schema_of(inputs[0].args)
+    if schema == inputlog.SCHEMA:
+        return inputs
+    out = [inputs[0]]
+    for i in inputs[1:]:
+        try:
+            name, fields = inputlog.upgrade(i.name, i.args, schema)
+        except (ValueError, KeyError) as exc:
+            raise RecordingError(
+                f"{bag}: input #{i.index} of {rec.prefix} ({i.name}) cannot be read: {exc}"
+            ) from None
+        out.append(Input(i.index, i.time, name, json.dumps(fields, separators=(",", ":"))))
+    return out
 
 
 class UnitReplay:
@@ -589,24 +607,30 @@ def update(path: str | Path, out: str | Path | None = None, config: str | Path |
     in_place = out is None
     if in_place and not (src.is_dir() and (src / "metadata.yaml").exists()):
         raise RecordingError(f"{src} is not a bag directory: give the output with -o")
-    dst = src.with_name(src.name + ".update-tmp") if in_place else Path(out)  # type: ignore[arg-type]
-    if dst.exists():
-        raise RecordingError(f"{dst} exists already")
+    # in place: written under a temporary directory with the bag's own name, so the storage file
+    # inside is named after the bag, as a recorder names it
+    staging = src.with_name(src.name + ".update-tmp")
+    dst = staging / src.name if in_place else Path(out)  # type: ignore[arg-type]
+    if dst.exists() or (in_place and staging.exists()):
+        raise RecordingError(f"{staging if in_place else dst} exists already")
     kind = storage or rec.storage
     plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
+    if in_place:
+        staging.mkdir()
     writer = Writer(dst, version=9, storage_plugin=plugin)
     writer.open()
     try:
         _write_update(writer, rec, result)
     except BaseException:
         writer.abort()
-        shutil.rmtree(dst, ignore_errors=True)
+        shutil.rmtree(staging if in_place else dst, ignore_errors=True)
         raise
     if in_place:
         old = src.with_name(src.name + ".update-old")
         src.rename(old)
         dst.rename(src)
         shutil.rmtree(old)
+        staging.rmdir()
         dst = src
     return result, dst
 

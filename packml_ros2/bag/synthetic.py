@@ -18,7 +18,7 @@ from typing import Any
 from rclpy.serialization import serialize_message
 
 from .. import convert
-from ..core import Unit, UnitConfig
+from ..core import Unit, UnitConfig, inputlog
 from ..core.liveliness import Liveliness
 from ..driver import FrozenClock, UnitDriver
 from .topics import (
@@ -58,8 +58,9 @@ class SyntheticUnit:
             "document": self.unit.restored,
             "time": self.unit.now,
             "persistence": persistence,
+            "schema": inputlog.SCHEMA,
         }
-        self._on_input(self.unit.now, "start", start_args)
+        self._on_input(self.unit.now, inputlog.START, start_args)
         self.driver.flush()
         self._emit("admin", convert.admin(self.unit.admin()))
 

@@ -9,6 +9,7 @@
 'IDLE'
 """
 
+from . import inputlog, rules
 from .alarms import AlarmDef, AlarmEvent, AlarmManager
 from .config import (
     CellConfig,
@@ -62,10 +63,12 @@ __all__ = [
     "UnitConfig",
     "command_name",
     "flat_tags",
+    "inputlog",
     "load_cell",
     "parse_cell",
     "parse_command",
     "parse_state",
+    "rules",
     "state_name",
     "unit_config",
 ]

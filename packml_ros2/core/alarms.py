@@ -17,8 +17,7 @@ from enum import IntEnum
 from typing import Any
 
 from .numbers import Cmd
-
-NUM_CATEGORIES = 10
+from .rules import DEFAULT_REACTIONS, NUM_CATEGORIES, REACTIONS, Alert, Watch
 
 
 class Kind(IntEnum):
@@ -34,33 +33,6 @@ class OperatorState(IntEnum):
     ACTIVE_UNACKNOWLEDGED = 0
     INACTIVE_UNACKNOWLEDGED = 1
     ACKNOWLEDGED = 2
-
-
-#: Configuration names of reactions -> the command the unit applies (0 = none).
-REACTIONS: Mapping[str, int] = {
-    "none": 0,
-    "abort": Cmd.ABORT,
-    "stop": Cmd.STOP,
-    "hold": Cmd.HOLD,
-    "suspend": Cmd.SUSPEND,
-}
-#: Category -> reaction by default: 0-1 Abort, 2-4 Stop, 5-9 none (Mitsubishi).
-DEFAULT_REACTIONS: Mapping[int, int] = {
-    0: Cmd.ABORT,
-    1: Cmd.ABORT,
-    2: Cmd.STOP,
-    3: Cmd.STOP,
-    4: Cmd.STOP,
-    **dict.fromkeys(range(5, NUM_CATEGORIES), 0),
-}
-#: While an alarm with this reaction is active, these commands are refused: a fault reaction never
-#: lets new motion start before its cause is gone.
-BLOCKED_BY_REACTION: Mapping[int, frozenset[Cmd]] = {
-    Cmd.ABORT: frozenset({Cmd.CLEAR, Cmd.RESET, Cmd.START, Cmd.UNHOLD, Cmd.UNSUSPEND}),
-    Cmd.STOP: frozenset({Cmd.RESET, Cmd.START, Cmd.UNHOLD, Cmd.UNSUSPEND}),
-    Cmd.HOLD: frozenset({Cmd.RESET, Cmd.START, Cmd.UNHOLD, Cmd.UNSUSPEND}),
-    Cmd.SUSPEND: frozenset({Cmd.RESET, Cmd.START, Cmd.UNHOLD, Cmd.UNSUSPEND}),
-}
 
 
 @dataclass(frozen=True, slots=True)
@@ -94,6 +66,7 @@ class AlarmEvent:
     ack_time: float | None = None
     cleared_time: float | None = None
     activations: int = 1
+    serial: int = 0  #: the unit's number of the occurrence (persistence journals changes by it)
 
     @property
     def key(self) -> tuple[int, int]:
@@ -131,13 +104,30 @@ class AlarmEvent:
             "ack_time": self.ack_time,
             "cleared_time": self.cleared_time,
             "activations": self.activations,
+            "serial": self.serial,
         }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> AlarmEvent:
-        d = dict(d)
-        d["kind"] = Kind(d["kind"])
-        return cls(**d)
+        """From :meth:`to_dict` (fields it does not know are left out: older or newer stores)."""
+        known = {k: v for k, v in d.items() if k in _EVENT_FIELDS}
+        known["kind"] = Kind(known["kind"])
+        return cls(**known)
+
+
+_EVENT_FIELDS = frozenset(AlarmEvent.__dataclass_fields__)
+#: (The reactions are the rule book's, core/rules.py section 5b; named here for config.py.)
+__all__ = [
+    "DEFAULT_REACTIONS",
+    "NUM_CATEGORIES",
+    "REACTIONS",
+    "AlarmDef",
+    "AlarmEvent",
+    "AlarmManager",
+    "Kind",
+    "OperatorState",
+    "Raised",
+]
 
 
 @dataclass(frozen=True, slots=True)
@@ -159,6 +149,8 @@ class AlarmManager:
     alarm_capacity: int = 64
     warning_capacity: int = 64
     history_capacity: int = 256
+    #: The unit's alert: its ``ALARM`` bit is set while an active alarm has a reaction.
+    alert: Alert = field(default_factory=Alert)
 
     def __post_init__(self) -> None:
         self.current: dict[tuple[int, int], AlarmEvent] = {}  # alarms and warnings, oldest first
@@ -169,6 +161,10 @@ class AlarmManager:
         self.first_out_by_em: dict[str, AlarmEvent] = {}
         self.version = 0  # +1 on every change (publishers compare)
         self.blocking_version = 0  # +1 when the set of active reacting alarms changes
+        self.serial = 0  # the last occurrence's number
+        #: Occurrences changed since taken (take_changed), by serial; None: not tracked (a unit
+        #: without persistence).
+        self.changed: dict[int, AlarmEvent] | None = None
 
     # -- raising and clearing ------------------------------------------------------------------------
     def definition(self, alarm_id: int, value: int) -> AlarmDef | None:
@@ -191,6 +187,7 @@ class AlarmManager:
             ev.trigger = True
             ev.cleared_time = None
             ev.activations += 1
+            self._touch(ev)
             self._changed(reaction)
             return Raised(ev, new=False, rising=True, reaction=reaction)
         ev = AlarmEvent(
@@ -222,6 +219,7 @@ class AlarmManager:
             return None
         ev.trigger = False
         ev.cleared_time = now
+        self._touch(ev)
         self._changed(ev.reaction)
         return ev
 
@@ -234,14 +232,33 @@ class AlarmManager:
         self.version += 1
 
     def _push_history(self, ev: AlarmEvent) -> None:
+        self.serial += 1
+        ev.serial = self.serial
         if len(self.history) == self.history.maxlen:
             self.history_dropped += 1
         self.history.appendleft(ev)
+        self._touch(ev)
+
+    def _touch(self, ev: AlarmEvent) -> None:
+        if self.changed is not None:
+            self.changed[ev.serial] = ev
+
+    def take_changed(self) -> list[AlarmEvent]:
+        """The occurrences changed since the last call, oldest first (starts the tracking)."""
+        if self.changed is None:
+            self.changed = {}
+            return []
+        out = sorted(self.changed.values(), key=lambda ev: ev.serial)
+        self.changed.clear()
+        return out
 
     def _changed(self, reaction: int) -> None:
         self.version += 1
         if reaction:
             self.blocking_version += 1
+            self.alert.set(
+                Watch.ALARM, any(ev.trigger and ev.reaction for ev in self.current.values())
+            )
 
     # -- operator actions ----------------------------------------------------------------------------
     def acknowledge(self, key: tuple[int, int] | None, now: float) -> int:
@@ -251,6 +268,7 @@ class AlarmManager:
         for ev in targets:
             if ev.ack_time is None:
                 ev.ack_time = now
+                self._touch(ev)
                 n += 1
         if n:
             self.version += 1
@@ -261,6 +279,7 @@ class AlarmManager:
         gone = [k for k, ev in self.current.items() if not ev.trigger]
         for k in gone:
             self.current[k].latched = False
+            self._touch(self.current[k])
             del self.current[k]
         if gone:
             self.version += 1
@@ -297,10 +316,11 @@ class AlarmManager:
             1 for ev in self.current.values() if ev.ack_time is None and ev.kind is Kind.ALARM
         )
 
-    def blocking(self, cmd: int) -> AlarmEvent | None:
-        """The first active alarm whose reaction refuses ``cmd``."""
+    def blocking(self, blocked_by: Mapping[int, frozenset[Cmd]], cmd: int) -> AlarmEvent | None:
+        """The first active alarm whose reaction refuses ``cmd`` (``blocked_by``: reaction ->
+        the commands it refuses, :data:`.rules.BLOCKED_BY_REACTION`)."""
         for ev in self.current.values():
-            if ev.trigger and ev.reaction and cmd in BLOCKED_BY_REACTION.get(ev.reaction, ()):
+            if ev.trigger and ev.reaction and cmd in blocked_by.get(ev.reaction, ()):
                 return ev
         return None
 
@@ -360,4 +380,9 @@ class AlarmManager:
         self.history.clear()
         self.history.extend(AlarmEvent.from_dict(d) for d in data.get("history", []))
         self.history_dropped = int(data.get("history_dropped", 0))
+        # occurrences saved before they had numbers are numbered after the others, oldest first
+        self.serial = max((ev.serial for ev in self.history), default=0)
+        for n, ev in enumerate(reversed([ev for ev in self.history if not ev.serial]), 1):
+            ev.serial = self.serial + n
+        self.serial = max((ev.serial for ev in self.history), default=0)
         self.version += 1

@@ -16,12 +16,12 @@ from typing import Any
 from . import schema as sc
 from .alarms import DEFAULT_REACTIONS, NUM_CATEGORIES, REACTIONS, AlarmDef
 from .counters import KINDS, CounterDef
-from .modes import GROUPS, ModeDef, corrected_disabled, default_modes, make_mode
+from .modes import GROUPS, ModeDef, default_modes, make_mode
 from .numbers import ACTING, MANDATORY, MAX_MODE, WAIT, Cmd, Mode, State, parse_state
+from .rules import MODELS, TransitionTable, build_table, corrected_disabled
 from .safe_yaml import read_document
 from .schema import ConfigError, Node, invalid
 from .secrets import plain_secrets
-from .transitions import MODELS, TransitionTable, build_table
 
 __all__ = [
     "ArraySizes",
@@ -102,8 +102,10 @@ class SystemAlarms:
     em_lost: int = 9001
     state_timeout: int = 9002
     mode_change_timeout: int = 9003
+    store_unreadable: int = 9004  #: the persistence store could not be read (moved aside)
     state_timeout_category: int = 2
     mode_change_timeout_category: int = 5
+    store_unreadable_category: int = 5
 
 
 @dataclass(frozen=True)

@@ -55,6 +55,11 @@ class Counters:
             return f"no counter kind {kind!r} (one of {', '.join(KINDS)})"
         if not 0 <= index < len(array):
             return f"{kind} counter index {index} outside 0..{len(array) - 1}"
+        if increment < 0:
+            return (
+                f"increment {increment} is negative: counters only count up (Count is reset with "
+                "reset_counters, AccCount never)"
+            )
         c = array[index]
         self.version += 1
         c.count = _wrap(c.count + increment)

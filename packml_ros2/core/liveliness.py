@@ -1,7 +1,10 @@
 """EM liveliness by heartbeat leases, on a clock passed in (the unit node's clock).
 
-Every report from an EM renews its lease; an EM whose lease ran out is lost. The unit node feeds
-the changes to the engine (``em_seen`` / ``em_lost``), so the engine only ever sees the events and
+Every report from an EM renews its lease; an EM silent for longer than the unit's configured
+``em_lease`` is lost. The configuration decides, not the EM: the lease an EM announces in its
+reports only tells how often it beats (a quarter of it), and one announcing more than the unit's
+lease is warned about once, since it will be lost between its heartbeats. The unit node feeds the
+changes to the engine (``em_seen`` / ``em_lost``), so the engine only ever sees the events and
 replays exactly.
 """
 
@@ -12,30 +15,48 @@ from dataclasses import dataclass, field
 
 @dataclass
 class Liveliness:
-    default_lease: float = 2.0
+    lease: float = 2.0  #: the unit's em_lease (seconds): authoritative
     last_seen: dict[str, float] = field(default_factory=dict)
-    leases: dict[str, float] = field(default_factory=dict)
     alive: set[str] = field(default_factory=set)
+    announced: dict[str, float] = field(default_factory=dict)  #: what each EM said it keeps
 
-    def seen(self, name: str, now: float, lease: float = 0.0) -> bool:
+    def seen(self, name: str, now: float) -> bool:
         """A report from ``name`` at ``now``; True when it was not alive before (new or back)."""
         self.last_seen[name] = now
-        self.leases[name] = lease if lease > 0 else self.default_lease
         if name in self.alive:
             return False
         self.alive.add(name)
         return True
 
+    def announce(self, name: str, lease: float) -> str | None:
+        """The lease ``name`` announces: a warning, once per announced value, when its heartbeats
+        (every quarter of it) would not keep it alive under the unit's lease."""
+        if lease <= 0 or self.announced.get(name) == lease:
+            return None
+        self.announced[name] = lease
+        if lease <= self.lease:
+            return None
+        return (
+            f"EM {name} announces a {lease:g} s lease (a heartbeat every {lease / 4:g} s), longer "
+            f"than the unit's em_lease {self.lease:g} s, which decides: it will be lost when it "
+            "is silent that long; give it the unit's lease"
+        )
+
     def expired(self, now: float) -> list[tuple[str, float]]:
-        """EMs whose lease ran out since the last call, with their lease; they are no longer alive."""
-        gone = [
-            (name, self.leases[name])
-            for name in sorted(self.alive)
-            if now - self.last_seen[name] > self.leases[name]
-        ]
+        """EMs silent for longer than the lease since the last call, with the lease; they are no
+        longer alive."""
+        lease = self.lease
+        gone = [(name, lease) for name in sorted(self.alive) if now - self.last_seen[name] > lease]
         for name, _ in gone:
             self.alive.discard(name)
         return gone
+
+    def forget(self, name: str) -> None:
+        """``name`` is not an EM of the unit (its registration was refused): keep nothing of it
+        (a flood of made-up names must not grow memory)."""
+        self.last_seen.pop(name, None)
+        self.alive.discard(name)
+        self.announced.pop(name, None)
 
     def left(self, name: str) -> bool:
         """``name`` said goodbye; True if it was alive."""

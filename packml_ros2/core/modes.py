@@ -1,7 +1,9 @@
-"""Unit modes: disabled states, skip-through of disabled acting states, the mode-change matrix.
+"""Unit modes as configured: each mode's corrected set of disabled states and the states mode
+changes are allowed in, and the three standard modes' defaults.
 
 A :class:`ModeDef` is one mode's configuration after the implication rules of PACKML.md section 3
-have been applied; :func:`resolve` walks a command or State Complete through disabled acting states.
+(:data:`.rules.IMPLIED_DISABLED`) have been applied; the rules that read it (skip-through, the
+mode-change matrix) are in :mod:`.rules`.
 """
 
 from __future__ import annotations
@@ -9,16 +11,11 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
-from .numbers import ACTING, MANDATORY, WAIT, Mode, State
+from .numbers import MANDATORY, WAIT, Mode, State
+from .rules import corrected_disabled
 
 S = State
 
-#: Disabling a wait state disables the acting states that only serve it.
-IMPLIED_DISABLED: Mapping[State, frozenset[State]] = {
-    S.HELD: frozenset({S.HOLDING, S.UNHOLDING}),
-    S.SUSPENDED: frozenset({S.SUSPENDING, S.UNSUSPENDING}),
-    S.COMPLETE: frozenset({S.COMPLETING}),
-}
 #: Groups a configuration may name instead of single states (e.g. ``disabled_states: [hold]``).
 GROUPS: Mapping[str, frozenset[State]] = {
     "HOLD": frozenset({S.HOLDING, S.HELD, S.UNHOLDING}),
@@ -43,15 +40,6 @@ class ModeDef:
         for s in self.disabled:
             mask |= 1 << int(s)
         return mask
-
-
-def corrected_disabled(states: Iterable[State]) -> frozenset[State]:
-    """Apply the implication rules. Mandatory states are the caller's to refuse (config errors)."""
-    out = set(states)
-    for wait, implied in IMPLIED_DISABLED.items():
-        if wait in out:
-            out |= implied
-    return frozenset(out)
 
 
 def make_mode(
@@ -82,30 +70,3 @@ def default_modes() -> dict[int, ModeDef]:
             change,
         ),
     }
-
-
-def resolve(
-    first: State, disabled: frozenset[State], state_complete: Mapping[State, State]
-) -> tuple[State, tuple[State, ...]]:
-    """Where the unit ends up when it is sent to ``first``: disabled acting states are passed
-    through to their State Complete successor. Returns (final state, skipped states). The final
-    state may be a disabled wait state; the caller refuses that."""
-    skipped: list[State] = []
-    state = first
-    while state in disabled and state in ACTING:
-        skipped.append(state)
-        state = state_complete[state]
-    return state, tuple(skipped)
-
-
-def mode_change_refusal(current: ModeDef, target: ModeDef, state: State) -> str | None:
-    """Why a change from ``current`` to ``target`` in ``state`` is not allowed, or None."""
-    if state not in current.change_allowed:
-        allowed = ", ".join(s.name for s in sorted(current.change_allowed)) or "no state"
-        return f"{current.name} allows mode changes only in {allowed}"
-    if state not in target.change_allowed:
-        allowed = ", ".join(s.name for s in sorted(target.change_allowed)) or "no state"
-        return f"{target.name} allows mode changes only in {allowed}"
-    if state in target.disabled:
-        return f"{state.name} is disabled in {target.name}"
-    return None

@@ -9,19 +9,53 @@ OEE (section 6) is computed here from the times and counters.
 from __future__ import annotations
 
 import datetime as _dt
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
-from .alarms import AlarmEvent
-from .config import Descriptor, Product
-from .counters import Counter
-from .numbers import NUM_STATES, Mode, State, command_name, state_name
-from .times import ROLLOVER, TimesSnapshot
-
-if TYPE_CHECKING:
-    from .unit import StatusMark, Unit
+from .alarms import AlarmEvent, AlarmManager
+from .config import Descriptor, Product, UnitConfig
+from .counters import Counter, Counters
+from .equipment import Equipment
+from .interlocks import Interlocks
+from .modes import ModeDef
+from .numbers import NUM_STATES, Cmd, Mode, State, command_name, state_name
+from .times import ROLLOVER, ModeStateTimes, TimesSnapshot
 
 S = State
+
+
+class UnitView(Protocol):
+    """What the views are built from: a :class:`~.unit.Unit` (kept abstract here, so this module
+    and the engine do not import each other)."""
+
+    config: UnitConfig
+    mode: int
+    mode_def: ModeDef
+    mode_requested: int
+    mode_change_in_process: bool
+    mach_speed: float
+    cntrl_cmd: int
+    command_unit_mode: int
+    remote_enabled: bool
+    remote_commands: dict[int, tuple[int, int]]
+    parameters: list[Descriptor]
+    products: list[Product]
+    entered_at: float
+    equipment: Equipment
+    alarms: AlarmManager
+    times: ModeStateTimes
+    counters: Counters
+    interlocks: Interlocks
+
+    @property
+    def now(self) -> float: ...
+    @property
+    def stop_reason(self) -> AlarmEvent | None: ...
+    @property
+    def mode_change_not_allowed(self) -> bool: ...
+    def state_requested(self, state: State | None = None) -> State: ...
+    def valid_commands(self, state: State | None = None) -> Sequence[Cmd]: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -141,7 +175,7 @@ def date_time_array(t: float) -> tuple[int, ...]:
     return (d.year, d.month, d.day, d.hour, d.minute, d.second, d.microsecond)
 
 
-def _em_views(unit: Unit, state: int, sequence: int) -> tuple[EmView, ...]:
+def _em_views(unit: UnitView, state: int, sequence: int) -> tuple[EmView, ...]:
     cur = (state, sequence)
     return tuple(
         EmView(em.name, em.active, em.online, em.configured, em.last_report == cur,
@@ -151,10 +185,9 @@ def _em_views(unit: Unit, state: int, sequence: int) -> tuple[EmView, ...]:
     )  # fmt: skip
 
 
-def build_status(unit: Unit, mark: StatusMark) -> StatusView:
-    """The status as it was at ``mark`` (state, sequence and time of a transition); the other
-    fields are the unit's current ones."""
-    state = mark.state
+def build_status(unit: UnitView, time: float, state: State, sequence: int) -> StatusView:
+    """The status as it was at a transition or mark (``time``, ``state``, ``sequence``); the
+    other fields are the unit's current ones."""
     requested = unit.state_requested(state)
     in_execute = state is S.EXECUTE
     eq = unit.equipment
@@ -163,7 +196,7 @@ def build_status(unit: Unit, mark: StatusMark) -> StatusView:
         for ri in unit.config.remote_interfaces
     )
     return StatusView(
-        time=mark.time,
+        time=time,
         unit=unit.config.name,
         unit_mode_current=unit.mode,
         unit_mode_requested=unit.mode_requested,
@@ -174,8 +207,8 @@ def build_status(unit: Unit, mark: StatusMark) -> StatusView:
         mach_speed=unit.mach_speed,
         cur_mach_speed=unit.mach_speed if in_execute else 0.0,
         material_interlock=eq.material_interlock(),
-        blocked=eq.blocked() or any("blocked" in r for r, _ in unit.flags.interlocks.values()),
-        starved=eq.starved() or any("starved" in r for r, _ in unit.flags.interlocks.values()),
+        blocked=eq.blocked() or unit.interlocks.says("blocked"),
+        starved=eq.starved() or unit.interlocks.says("starved"),
         remote_interface=remote,
         parameter=tuple(unit.parameters),
         product=tuple(unit.products),
@@ -184,14 +217,13 @@ def build_status(unit: Unit, mark: StatusMark) -> StatusView:
         command_mach_speed=unit.mach_speed,
         state_current_name=state_name(state),
         unit_mode_current_name=unit.mode_def.name,
-        sequence=mark.sequence,
+        sequence=sequence,
         states_disabled=unit.mode_def.disabled_mask,
         commands_valid=tuple(int(c) for c in unit.valid_commands(state)),
         mode_change_not_allowed=unit.mode_change_not_allowed,
         remote_commands_enabled=unit.remote_enabled,
-        time_rollover_warning=unit.times.acc_time_since_reset + max(0.0, unit.now - unit.entered_at)
-        >= ROLLOVER,
-        equipment=_em_views(unit, state, mark.sequence),
+        time_rollover_warning=unit.times.acc_at(unit.now) >= ROLLOVER,
+        equipment=_em_views(unit, state, sequence),
         active_alarms=unit.alarms.active_count(),
         unacknowledged_alarms=unit.alarms.unacknowledged_count(),
         alarm_banner=unit.alarms.banner(),
@@ -243,7 +275,7 @@ def compute_oee(
     )
 
 
-def build_admin(unit: Unit, at: float) -> AdminView:
+def build_admin(unit: UnitView, at: float) -> AdminView:
     alarms, alarm_over = unit.alarms.listed(warnings=False)
     warnings, warning_over = unit.alarms.listed(warnings=True)
     _, mcum, _, scum, _ = unit.times.live(at)

@@ -1,24 +1,54 @@
-"""Persistence of a unit's admin data: times, counters, alarm history, stop reason and the
-sequence number, in SQLite.
+"""Persistence of a unit's admin data (times, counters, alarm history, stop reason, sequence): a
+snapshot, a write-ahead journal of the changes since, a lock, and recovery from a bad file.
 
-One row per unit holds a JSON document; every save replaces it in one transaction, so a process
-killed at any moment leaves either the previous or the new document, never a mix (SQLite's atomic
-commit; WAL journal). The state itself is never stored: a restarted unit is in Stopped.
+Files of a store at ``path`` (one store per unit; the configuration names it):
+
+- ``path``: SQLite (WAL), one row per unit holding the **snapshot** document, replaced in one
+  transaction periodically (``persistence.period``) and when the unit closes;
+- ``path.journal``: the **changes** since the snapshot, one line each (``crc32 json``), each
+  input's changes appended with one ``write()`` *before* the unit answers or publishes it
+  (write-ahead), so nothing a client was told is lost; a snapshot empties it;
+- ``path.lock``: held (``flock``) while a unit uses the store, naming the holder's process: two
+  units with the same cell/unit name cannot share a store (:class:`StoreLocked`).
+
+Durability: a process killed at any moment (SIGKILL, a crash) loses nothing it answered or
+published: once ``write()`` returned, the bytes are the kernel's, and the next start reads them.
+No ``fsync``: a power loss or a kernel crash can lose what the kernel had not written to the disk
+yet (Linux writes dirty pages back within about 30 s), and can tear the journal's last line; the
+reader keeps every whole record before a damaged one.
+
+Recovery: a file that is not a store of this version (garbage, another program's database,
+another schema, a document of the wrong types) or a damaged journal does not stop the unit: it
+is moved aside (``path.unreadable-<UTC time>``), the unit starts with what could be read (or
+empty), and :attr:`Store.problems` says what happened (the unit logs it and raises its
+``store_unreadable`` alarm).
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import fcntl
 import json
 import os
+import socket
 import sqlite3
+import time
+import zlib
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
 SCHEMA_VERSION = 1
+TABLE = "unit_admin"
 
 
 class StoreError(RuntimeError):
     """The admin store cannot be opened: one line naming the file and why."""
+
+
+class StoreLocked(StoreError):
+    """The store is held by another unit (another process, or another store object here)."""
 
 
 def _why(exc: BaseException) -> str:
@@ -28,63 +58,341 @@ def _why(exc: BaseException) -> str:
 
 
 class Store:
-    """``Store(path, unit)``; :meth:`load` returns the last saved document or None.
+    """``Store(path, unit)``: open (lock, recover) the store of ``unit``; :meth:`load` returns the
+    last document (snapshot and journal) or None, :meth:`append` journals changes, :meth:`save`
+    writes a snapshot.
 
-    Raises :class:`StoreError` when the file cannot be created, opened or written (the unit would
-    otherwise lose its counts at the first save)."""
+    Raises :class:`StoreError` when the files cannot be created, opened or written (the unit would
+    otherwise lose its counts at the first change), :class:`StoreLocked` when another unit holds
+    the store."""
 
     def __init__(self, path: str | os.PathLike[str], unit: str) -> None:
         self.path = Path(path)
         self.unit = unit
+        #: What recovery did, one sentence each (the unit logs them and raises an alarm).
+        self.problems: list[str] = []
+        self.saves = 0
+        self.appends = 0
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             for where in (self.path.parent, self.path):  # (root passes access(): sqlite decides)
                 if where.exists() and not os.access(where, os.W_OK):
                     raise PermissionError(13, f"{where} is not writable")
-            self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
-            self._db.execute("PRAGMA journal_mode=WAL")
-            # NORMAL in WAL mode: a commit survives the process being killed (not a power loss)
-            # and costs no fsync, so saving at every transition stays cheap.
-            self._db.execute("PRAGMA synchronous=NORMAL")
-            self._db.execute(
-                "CREATE TABLE IF NOT EXISTS unit_admin ("
-                " unit TEXT PRIMARY KEY, schema INTEGER NOT NULL, saved_at REAL NOT NULL,"
-                " document TEXT NOT NULL)"
-            )
+            self._lock = _lock(self.path, unit)
+        except (OSError, ValueError) as exc:
+            raise self._cannot_open(exc) from None
+        try:
+            self._document, self._n = self._open()
+            self._journal = os.open(_journal(self.path), os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)  # fmt: skip
         except (OSError, ValueError, sqlite3.Error) as exc:
-            raise StoreError(
-                f"{self.path}: cannot open the admin store of unit {unit}: {_why(exc)} "
-                "(persistence.path of the cell file; persistence: false runs without one)"
-            ) from None
-        self.saves = 0
+            os.close(self._lock)
+            raise self._cannot_open(exc) from None
+        except BaseException:
+            os.close(self._lock)
+            raise
+
+    def _cannot_open(self, exc: BaseException) -> StoreError:
+        return StoreError(
+            f"{self.path}: cannot open the admin store of unit {self.unit}: {_why(exc)} "
+            "(persistence.path of the cell file; persistence: false runs without one)"
+        )
+
+    # -- reading -------------------------------------------------------------------------------------
+    @classmethod
+    def read(cls, path: str | os.PathLike[str], unit: str) -> dict[str, Any] | None:
+        """The document a unit opening the store would load, read-only and without the lock
+        (tools, tests); raises if the files cannot be read."""
+        db = sqlite3.connect(f"file:{Path(path)}?mode=ro", uri=True)
+        try:
+            document = _row(db, unit, str(path))
+        finally:
+            db.close()
+        records, _ = _read_journal(_journal(Path(path)))
+        return _replay(document, records)
 
     def load(self) -> dict[str, Any] | None:
-        row = self._db.execute(
-            "SELECT schema, document FROM unit_admin WHERE unit = ?", (self.unit,)
-        ).fetchone()
-        if row is None:
-            return None
-        schema, document = row
-        if schema != SCHEMA_VERSION:
-            raise RuntimeError(
-                f"{self.path}: unit {self.unit!r} was saved with schema {schema}, "
-                f"this version reads {SCHEMA_VERSION}"
+        """The document as of the last change journaled: snapshot and journal."""
+        return self._document
+
+    def _open(self) -> tuple[dict[str, Any] | None, int]:
+        document: dict[str, Any] | None = None
+        db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+        try:
+            document = _row(db, self.unit, str(self.path))  # (reads only: a foreign file stays)
+            self._db = _configured(db)
+        except (sqlite3.Error, ValueError, UnicodeDecodeError) as exc:
+            with contextlib.suppress(Exception):
+                db.close()
+            aside = _move_aside(self.path, "-wal", "-shm")
+            self.problems.append(
+                f"{self.path.name} could not be read ({exc}): moved aside to {aside.name}; the "
+                "unit starts with the admin data its journal holds, if any"
             )
-        data: dict[str, Any] = json.loads(document)
-        return data
+            self._db = _configured(
+                sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+            )
+        self._db.execute(
+            f"CREATE TABLE IF NOT EXISTS {TABLE} (unit TEXT PRIMARY KEY, schema INTEGER NOT NULL,"
+            " saved_at REAL NOT NULL, document TEXT NOT NULL)"
+        )
+        journal = _journal(self.path)
+        records, damage = _read_journal(journal)
+        if damage is not None:
+            aside = _move_aside(journal)
+            self.problems.append(
+                f"{journal.name} is damaged ({damage}): the {len(records)} records before the "
+                f"damage were kept, the file moved aside to {aside.name}"
+            )
+            _write_journal(journal, records)
+        try:
+            document = _replay(document, records)
+        except (ValueError, KeyError, TypeError) as exc:
+            aside = _move_aside(journal)
+            self.problems.append(
+                f"{journal.name} does not apply to the snapshot ({exc}): moved aside to {aside.name}"
+            )
+        n = max((int(r["n"]) for r in records), default=0)
+        if document is not None:
+            n = max(n, int(document.get("journal", 0)))
+        return document, n
+
+    # -- writing -------------------------------------------------------------------------------------
+    def append(self, records: Iterable[Mapping[str, Any]]) -> None:
+        """Journal changes (each a record: ``{"set": {key: value}}`` or ``{"event": {...}}``),
+        numbered, with one ``write()`` (see the module docstring for what that guarantees)."""
+        lines = []
+        for record in records:
+            self._n += 1
+            lines.append(_line({"n": self._n, **record}))
+        if lines:
+            data = "".join(lines).encode()
+            while data:
+                data = data[os.write(self._journal, data) :]
+            self.appends += 1
 
     def save(self, document: dict[str, Any], now: float) -> None:
-        text = json.dumps(document, separators=(",", ":"))
+        """A snapshot of the whole document; the journal up to it is dropped."""
+        text = json.dumps({**document, "journal": self._n}, separators=(",", ":"))
         self._db.execute(
-            "INSERT INTO unit_admin (unit, schema, saved_at, document) VALUES (?, ?, ?, ?)"
+            f"INSERT INTO {TABLE} (unit, schema, saved_at, document) VALUES (?, ?, ?, ?)"
             " ON CONFLICT(unit) DO UPDATE SET schema = excluded.schema,"
             " saved_at = excluded.saved_at, document = excluded.document",
             (self.unit, SCHEMA_VERSION, now, text),
         )
+        os.ftruncate(self._journal, 0)  # records up to the snapshot's number are skipped anyway
         self.saves += 1
 
     def integrity_ok(self) -> bool:
         return bool(self._db.execute("PRAGMA integrity_check").fetchone()[0] == "ok")
 
     def close(self) -> None:
+        """Close the files and release the lock (idempotent)."""
+        if self._lock < 0:
+            return
         self._db.close()
+        os.close(self._journal)
+        os.close(self._lock)
+        self._lock = -1
+
+
+# -- the files -------------------------------------------------------------------------------------------
+def _journal(path: Path) -> Path:
+    return path.with_name(path.name + ".journal")
+
+
+def _lock(path: Path, unit: str) -> int:
+    """Hold ``path.lock`` (released when the process ends, however it ends)."""
+    lock_path = path.with_name(path.name + ".lock")
+    fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as exc:
+        holder = os.pread(fd, 500, 0).decode(errors="replace").strip() or "another process"
+        os.close(fd)
+        if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            raise StoreLocked(
+                f"{path} is in use by {holder}: two units with the same cell and unit name "
+                "cannot share a store (give one another name or persistence path)"
+            ) from None
+        raise
+    since = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime())
+    text = f"process {os.getpid()} on {socket.gethostname()} (unit {unit}, since {since} UTC)\n"
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, text.encode(), 0)
+    return fd
+
+
+def _configured(db: sqlite3.Connection) -> sqlite3.Connection:
+    db.execute("PRAGMA journal_mode=WAL")
+    # NORMAL in WAL mode: a commit survives the process being killed (not a power loss) and
+    # costs no fsync.
+    db.execute("PRAGMA synchronous=NORMAL")
+    return db
+
+
+def _row(db: sqlite3.Connection, unit: str, where: str) -> dict[str, Any] | None:
+    """The unit's snapshot, checked; ValueError when the file is not a store of this version."""
+    tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+    if tables - {TABLE}:
+        raise ValueError(f"not a PackML store: it holds the tables {', '.join(sorted(tables))}")
+    if not tables:
+        return None
+    row = db.execute(f"SELECT schema, document FROM {TABLE} WHERE unit = ?", (unit,)).fetchone()
+    if row is None:
+        return None
+    schema, text = row
+    if schema != SCHEMA_VERSION:
+        raise ValueError(f"unit {unit!r} was saved with schema {schema}, this version reads {SCHEMA_VERSION}")  # fmt: skip
+    try:
+        document = json.loads(text)
+    except (TypeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"the document of unit {unit!r} is not JSON ({exc})") from None
+    problem = document_problem(document)
+    if problem:
+        raise ValueError(f"the document of unit {unit!r} is not valid: {problem}")
+    return dict(document)
+
+
+def _line(record: Mapping[str, Any]) -> str:
+    text = json.dumps(record, separators=(",", ":"))
+    return f"{zlib.crc32(text.encode()):08x} {text}\n"
+
+
+def _read_journal(path: Path) -> tuple[list[dict[str, Any]], str | None]:
+    """The journal's records up to the first damaged one, and what the damage is (None)."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return [], None
+    records: list[dict[str, Any]] = []
+    for number, raw in enumerate(data.split(b"\n"), 1):
+        if not raw:
+            continue
+        crc, _, text = raw.partition(b" ")
+        try:
+            if int(crc, 16) != zlib.crc32(text):
+                raise ValueError("checksum")
+            record = json.loads(text)
+            if not isinstance(record, dict) or not isinstance(record.get("n"), int):
+                raise ValueError("not a record")
+        except ValueError as exc:
+            return records, f"line {number}: {exc}"
+        records.append(record)
+    return records, None
+
+
+def _write_journal(path: Path, records: list[dict[str, Any]]) -> None:
+    path.write_text("".join(_line(r) for r in records), encoding="utf-8")
+
+
+def _move_aside(path: Path, *companions: str) -> Path:
+    """Rename ``path`` (and its ``companions``: suffixes like -wal) to a name saying when and why."""
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    aside = path.with_name(f"{path.name}.unreadable-{stamp}")
+    n = 1
+    while aside.exists():
+        n += 1
+        aside = path.with_name(f"{path.name}.unreadable-{stamp}-{n}")
+    path.rename(aside)
+    for suffix in companions:
+        extra = path.with_name(path.name + suffix)
+        if extra.exists():
+            extra.rename(aside.with_name(aside.name + suffix))
+    return aside
+
+
+def _replay(
+    document: dict[str, Any] | None, records: list[dict[str, Any]]
+) -> dict[str, Any] | None:
+    """The snapshot with the journal's later records applied."""
+    after = int(document.get("journal", 0)) if document is not None else 0
+    records = [r for r in records if int(r["n"]) > after]
+    if not records:
+        return document
+    out: dict[str, Any] = dict(document) if document is not None else {}
+    for record in records:
+        if "set" in record:
+            out.update(record["set"])
+        if "event" in record:
+            alarms = out.setdefault("alarms", {"history": [], "history_dropped": 0})
+            history: list[dict[str, Any]] = alarms.setdefault("history", [])
+            event = record["event"]
+            where = next((i for i, e in enumerate(history) if e.get("serial") == event["serial"]), None)  # fmt: skip
+            if where is None:
+                history.insert(0, event)
+                del history[int(record.get("keep", len(history))) :]  # the ring's capacity
+            else:
+                history[where] = event
+            alarms["history_dropped"] = int(record.get("dropped", alarms.get("history_dropped", 0)))
+    problem = document_problem(out)
+    if problem:
+        raise ValueError(problem)
+    return out
+
+
+# -- what a document must look like ------------------------------------------------------------------------
+_NUMBER = (int, float)
+_EVENT_TYPES: Mapping[str, tuple[type, ...]] = {
+    "id": (int,), "value": (int,), "message": (str,), "category": (int,), "kind": (int,),
+    "time": _NUMBER,
+}  # fmt: skip
+
+
+def _numbers_by_index(x: Any) -> bool:
+    return isinstance(x, dict) and all(
+        isinstance(k, str) and k.isdigit() and isinstance(v, _NUMBER) and not isinstance(v, bool)
+        for k, v in x.items()
+    )
+
+
+def _event_problem(e: Any) -> str | None:
+    if not isinstance(e, dict):
+        return "an event is not a mapping"
+    for key, types in _EVENT_TYPES.items():
+        if not isinstance(e.get(key), types) or isinstance(e.get(key), bool):
+            return f"event field {key!r} is {e.get(key)!r}"
+    if not 0 <= e["kind"] <= 3:
+        return f"event kind {e['kind']} is not 0..3"
+    return None
+
+
+def document_problem(d: Any) -> str | None:
+    """What is wrong with a stored document (types and shapes), or None."""
+    if not isinstance(d, dict):
+        return "not a mapping"
+    if not isinstance(d.get("sequence", 0), int) or isinstance(d.get("sequence", 0), bool):
+        return f"sequence is {d.get('sequence')!r}"
+    times = d.get("times", {})
+    if not isinstance(times, dict):
+        return "times is not a mapping"
+    for key in ("mode_current", "mode_cumulative", "state_current", "state_cumulative"):
+        if not _numbers_by_index(times.get(key, {})):
+            return f"times.{key} is not a mapping of index to seconds"
+    for key in ("acc_time_since_reset", "planned_stop"):
+        if not isinstance(times.get(key, 0.0), _NUMBER):
+            return f"times.{key} is not a number"
+    counters = d.get("counters", {})
+    if not isinstance(counters, dict) or not all(
+        isinstance(v, list)
+        and all(isinstance(p, list) and len(p) == 2 and all(isinstance(x, int) and x >= 0 for x in p)
+                for p in v)
+        for v in counters.values()
+    ):  # fmt: skip
+        return "counters are not lists of [Count, AccCount]"
+    alarms = d.get("alarms", {})
+    if not isinstance(alarms, dict) or not isinstance(alarms.get("history", []), list):
+        return "alarms.history is not a list"
+    if not isinstance(alarms.get("history_dropped", 0), int):
+        return "alarms.history_dropped is not a number"
+    for e in alarms.get("history", []):
+        problem = _event_problem(e)
+        if problem:
+            return f"alarms.history: {problem}"
+    if d.get("stop_reason") is not None:
+        problem = _event_problem(d["stop_reason"])
+        if problem:
+            return f"stop_reason: {problem}"
+    for key in ("mach_speed", "saved_at"):
+        if not isinstance(d.get(key, 0.0), _NUMBER):
+            return f"{key} is not a number"
+    return None

@@ -1,13 +1,14 @@
 """Mode and state times (PACKML.md section 6): current and cumulative, per mode and per
 (mode, state), AccTimeSinceReset, both reset scopes and the Int32 rollover.
 
-Time only advances at :meth:`ModeStateTimes.enter` (every state or mode change) and is read at any
-instant with :meth:`snapshot`, so results depend on the clock values passed in, never on when the
-caller happened to look.
+Time only advances at state and mode changes (:meth:`ModeStateTimes.enter_states`,
+:meth:`ModeStateTimes.enter`) and is read at any instant with :meth:`snapshot`, so results depend
+on the clock values passed in, never on when the caller happened to look.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,10 +41,12 @@ class ModeStateTimes:
         self.acc_time_since_reset = 0.0
         self.planned_stop = 0.0  # OEE: Production time spent in a planned stop
         self._mode = mode
+        self._base = mode * NUM_STATES  # index of (mode, state 0) in the per-state arrays
         self._state = state
         self._planned = False
         self.modes_used: set[int] = {mode}  # only these modes can hold non-zero times
         self._since = now
+        self.resets = 0  # +1 at every reset (persistence compares; state and mode changes it sees)
 
     # -- accumulation ------------------------------------------------------------------------------
     def _close(self, now: float) -> None:
@@ -61,22 +64,41 @@ class ModeStateTimes:
             self.planned_stop += dt
         self._since = now
 
+    def enter_states(self, now: float, first: int, last: int, between: Sequence[int],
+                     planned: bool) -> None:  # fmt: skip
+        """The unit entered ``first``, the states ``between``, then ``last`` (maybe ``first``)
+        in the current mode at ``now``: a command and the State Completes that followed at once,
+        one call for them all. ``planned``: ``last`` is a planned stop (OEE)."""
+        if now > self._since:
+            self._close(now)
+        current = self.state_current
+        base = self._base
+        current[base + first] = 0.0
+        for state in between:
+            current[base + state] = 0.0
+        current[base + last] = 0.0
+        self._state = last
+        self._planned = planned
+
     def enter(self, now: float, mode: int, state: int, planned: bool = False) -> None:
-        """The unit entered ``state`` (and/or ``mode``) at ``now``: restart their current times.
-        (The engine's transition path calls ``_close`` and does the rest inline; mode changes and
-        tests come through here.)"""
+        """The unit entered ``state`` and/or ``mode`` at ``now``: restart their current times."""
         self._close(now)
         if mode != self._mode:
+            # ModeCurrentTime is "since the unit last entered mode m": 0 for the modes it is not
+            # in (PACKML.md 6)
+            self.mode_current[self._mode] = 0.0
             self.mode_current[mode] = 0.0
             self.modes_used.add(mode)
         self.state_current[mode * NUM_STATES + state] = 0.0
         self._mode = mode
+        self._base = mode * NUM_STATES
         self._state = state
         self._planned = planned
 
     # -- resets --------------------------------------------------------------------------------------
     def reset_current_mode(self, now: float) -> None:
         """The current mode's times and the times of all its states."""
+        self.resets += 1
         self._close(now)
         self._since = max(self._since, now)
         m = self._mode
@@ -86,6 +108,7 @@ class ModeStateTimes:
 
     def reset_all(self, now: float) -> None:
         """Every time, including AccTimeSinceReset."""
+        self.resets += 1
         self._close(now)
         self._since = max(self._since, now)
         for values in (
@@ -111,6 +134,10 @@ class ModeStateTimes:
         sc[i] += dt
         scum[i] += dt
         return mc, mcum, sc, scum, self.acc_time_since_reset + dt
+
+    def acc_at(self, now: float) -> float:
+        """AccTimeSinceReset as of ``now``."""
+        return self.acc_time_since_reset + max(0.0, now - self._since)
 
     def planned_stop_at(self, now: float) -> float:
         return self.planned_stop + (max(0.0, now - self._since) if self._planned else 0.0)
@@ -184,5 +211,5 @@ class ModeStateTimes:
         self.acc_time_since_reset = float(data.get("acc_time_since_reset", 0.0))
         self.planned_stop = float(data.get("planned_stop", 0.0))
         self._since = now
-        self.mode_current[self._mode] = 0.0
+        self.mode_current[:] = [0.0] * NUM_MODES  # a restarted unit entered its mode just now
         self.state_current[self._mode * NUM_STATES + self._state] = 0.0

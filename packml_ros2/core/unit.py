@@ -1,10 +1,20 @@
-"""The PackML unit engine: state machine, modes, EM aggregation, alarms, times and counters.
+"""The PackML unit engine: a :class:`Unit` takes inputs and drives the state machine the rule book
+(:mod:`.rules`) declares.
 
-A :class:`Unit` is pure Python: it takes its clock as a parameter and never looks at wall time
-itself. Every input (a command, a mode request, an EM report, an alarm...) first advances the engine
-to the clock's time, firing due deadlines (timeouts, dwell, periodic admin and saves) *at their own
+A unit is pure Python: it takes its clock as a parameter and never looks at wall time itself.
+Every input (a command, a mode request, an EM report, an alarm...) first advances the engine to the
+clock's time, firing due deadlines (timeouts, dwell, periodic admin and saves) *at their own
 times*; the results depend only on the inputs and their times, so replaying recorded inputs on the
 recorded clock reproduces the outputs exactly.
+
+What a unit is made of (each part owns its state; together they are the engine's state):
+
+- the machine: ``state``, ``mode``, ``sequence``, the mode change in process (this module);
+- :class:`~.equipment.Equipment` (EMs, State Complete aggregation), :class:`~.alarms.AlarmManager`,
+  :class:`~.times.ModeStateTimes`, :class:`~.counters.Counters`,
+  :class:`~.interlocks.Interlocks`, :class:`~.stopreason.StopReasons`;
+- :class:`~.deadlines.Deadlines` (what is due when) and :class:`~.publication.Publication` (the
+  output queue and its coalescing); the :class:`~.rules.Alert` the parts keep their bits in.
 
 Outputs are queued and taken with :meth:`Unit.drain`: transitions, status and alarm-list changes,
 admin snapshots due, and log lines. The ROS node (``packml_ros2.unit_node``) publishes them.
@@ -12,122 +22,52 @@ admin snapshots due, and log lines. The ROS node (``packml_ros2.unit_node``) pub
 
 from __future__ import annotations
 
-import heapq
 import math
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
-from enum import IntEnum
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any, NamedTuple
 
-from .alarms import AlarmDef, AlarmEvent, AlarmManager, Kind
-from .config import Descriptor, Ingredient, Product, UnitConfig
+from . import inputlog
+from .alarms import AlarmDef, AlarmEvent, AlarmManager
+from .config import Descriptor, Product, UnitConfig
 from .counters import Counters
+from .deadlines import Deadlines
+from .durable import Durable, document
 from .equipment import Equipment, EquipmentModule
-from .modes import ModeDef, mode_change_refusal, resolve
-from .numbers import (
-    ACTING,
-    NUM_STATES,
-    Cmd,
-    Mode,
-    State,
-    command_name,
-    names_of,
-    state_name,
-)
+from .interlocks import STOP_ID_BLOCKED, STOP_ID_STARVED, Interlocks
+from .modes import ModeDef
+from .numbers import Cmd, Mode, State, command_name, state_name
 from .packtags import AdminView, StatusView, build_admin, build_status
 from .persistence import Store
+from .publication import Publication as _Publication
+from .publication import StatusMark
 from .reasons import Answer, Reason
+from .rules import (
+    AT_ONCE_WITHOUT_EMS,
+    ENTRY,
+    EXCUSE_OFFLINE,
+    MODE_CHANGE_NOT_ALLOWED_SECONDS,
+    MODE_REQUESTS,
+    OPERATOR,
+    STATE_COMPLETE_REPORTS,
+    SUPERSEDED_SENTENCE,
+    Alert,
+    Entry,
+    Trigger,
+    Verdict,
+    Watch,
+    command_priority,
+    is_remote,
+    mode_change_refusal,
+    registration_refusal,
+    remote_locked,
+    rules_of,
+)
+from .stopreason import StopReasons
 from .times import ModeStateTimes
 
 S, C = State, Cmd
 Clock = Callable[[], float]
-
-
-class Trigger(IntEnum):
-    """Why a transition happened; mirrors ``packml_interfaces/msg/TransitionEvent`` TRIGGER_*."""
-
-    COMMAND = 0
-    STATE_COMPLETE = 1
-    ALARM = 2
-    INTERLOCK = 3
-    SKIP = 4
-    MODE = 5
-    EM_LOST = 6
-    TIMEOUT = 7
-    RESTART = 8
-
-
-#: Priority in one evaluation step: Abort > Stop > Hold > Suspend > other commands (PACKML.md 2),
-#: then mode changes, then State Complete reports.
-PRIORITY: dict[int, int] = {C.ABORT: 0, C.STOP: 1, C.HOLD: 2, C.SUSPEND: 3}
-OTHER_COMMANDS, MODE_REQUESTS, STATE_COMPLETE_REPORTS = 4, 5, 6
-#: Commands that start motion: refused while an active EM is missing, a reacting alarm is active
-#: or (Unsuspend) a line interlock still holds the unit.
-MOTION = frozenset({C.RESET, C.START, C.UNHOLD, C.UNSUSPEND})
-#: Commands refused while a reacting alarm is active: motion, and Clear while an alarm with the
-#: Abort reaction is (``alarms.BLOCKED_BY_REACTION`` decides per reaction).
-ALARM_GUARDED = MOTION | {C.CLEAR}
-#: Fault commands: valid from (nearly) every state, also while a mode change is in process (the
-#: change is then abandoned: PACKML.md 2, "Abort -> Aborting from every state ...").
-FAULT_COMMANDS = frozenset({C.ABORT, C.STOP})
-#: Fault-recovery states: EMs that went offline are excused from State Complete here.
-EXCUSE_OFFLINE = frozenset({S.STOPPING, S.ABORTING, S.CLEARING})
-#: Entering one of these records the StopReason (first event only) ...
-STOP_STATES = frozenset({S.STOPPING, S.ABORTING, S.HOLDING, S.SUSPENDING})
-#: ... which is re-armed when production is started again.
-REARM_STATES = frozenset({S.RESETTING, S.STARTING, S.UNHOLDING, S.UNSUSPENDING})
-#: Where the unit settles from each state (``Status.StateRequested``); wait states: themselves.
-SETTLE: dict[State, State] = {
-    S.STARTING: S.EXECUTE,
-    S.UNHOLDING: S.EXECUTE,
-    S.UNSUSPENDING: S.EXECUTE,
-    S.EXECUTE: S.EXECUTE,
-    S.RESETTING: S.IDLE,
-    S.COMPLETING: S.COMPLETE,
-    S.HOLDING: S.HELD,
-    S.SUSPENDING: S.SUSPENDED,
-    S.STOPPING: S.STOPPED,
-    S.ABORTING: S.ABORTED,
-    S.CLEARING: S.STOPPED,
-}
-#: OMAC stop-reason IDs (Beckhoff E_AlarmID ranges) for stops that were not alarms.
-STOP_ID_OPERATOR = 33  # operator action: cycle stop button
-STOP_ID_REMOTE = 4006  # out of service: remote stop requested
-STOP_ID_BLOCKED = 3002  # downstream: discharge blocked
-STOP_ID_STARVED = 2499  # upstream: undefined upstream reason
-#: What entering a state does besides the transition itself (bit flags, see _entry_actions).
-_RESET_ALARMS, _CLEAR_FIRST_OUT, _REARM, _STOP = 1, 2, 4, 8
-ENTRY_FLAGS: dict[State, int] = {
-    S.RESETTING: _RESET_ALARMS | _REARM,
-    S.CLEARING: _RESET_ALARMS,
-    S.STARTING: _CLEAR_FIRST_OUT | _REARM,
-    S.UNHOLDING: _REARM,
-    S.UNSUSPENDING: _REARM,
-    S.STOPPING: _STOP,
-    S.ABORTING: _STOP,
-    S.HOLDING: _STOP,
-    S.SUSPENDING: _STOP,
-}
-#: States whose entry only re-arms the stop reason when there are no alarms to reset and no
-#: first-outs to clear (the common case, inlined in Unit._transition).
-_REARMING = frozenset(s for s, f in ENTRY_FLAGS.items() if f & _REARM and not f & _STOP)
-#: A stop is planned (OEE) only while the unit stands in one of these.
-PLANNED_STOP_STATES = frozenset({S.STOPPED, S.IDLE, S.STOPPING})
-MODE_CHANGE_NOT_ALLOWED_SECONDS = 3.0
-#: Periodic deadlines (admin, save) missed by more than this many periods (the clock jumped, e.g.
-#: NTP after boot) are not replayed one by one: the next one is the last period point before now.
-MAX_CATCH_UP = 100
-#: Status changes that are not transitions (EM progress, alarms, speed) are published at most
-#: this often; transitions and mode events are published at once.
-STATUS_COALESCE = 0.05
-#: Admin is published periodically (admin_period) and after discrete changes (transitions, counts,
-#: alarms, resets), at most this often.
-ADMIN_COALESCE = 0.25
-_STATES = tuple(State)
-_CMDS = tuple(Cmd)
-_REPORT_OK = Answer(True, Reason.ACCEPTED, "State Complete accepted")
-_NO_ANSWER = Answer(False, Reason.COMMAND_NOT_ALLOWED, "")
-_new_tuple = tuple.__new__
 
 
 class Transition(NamedTuple):
@@ -146,37 +86,17 @@ class Transition(NamedTuple):
     detail: str = ""
 
 
-# Enum members as module globals for the hot paths below: attribute access on an Enum class costs
-# about 100 ns, a global about 20 ns, and these run on every transition.
-_ACCEPTED, _NOT_ALLOWED = Reason.ACCEPTED, Reason.COMMAND_NOT_ALLOWED
-_T_COMMAND, _T_INTERLOCK = Trigger.COMMAND, Trigger.INTERLOCK
-_EXECUTE, _SUSPENDING, _SUSPENDED = S.EXECUTE, S.SUSPENDING, S.SUSPENDED
-_UNSUSPEND = C.UNSUSPEND
-_PRODUCTION = Mode.PRODUCTION
-_OPERATOR = "operator"  # the default source of commands
-#: Without EMs, every acting state completes at once except Execute (the run ends by command).
-_COMPLETE_AT_ONCE = ACTING - {S.EXECUTE}
-
-
-class StatusMark(NamedTuple):
-    """Where a status publication was due; :meth:`Unit.drain` turns it into a StatusView."""
-
-    time: float
-    state: State
-    sequence: int
-
-
 # -- requests of one evaluation step -----------------------------------------------------------------
 @dataclass(frozen=True, slots=True)
 class CommandRequest:
     cmd: int
-    source: str = "operator"
+    source: str = OPERATOR
 
 
 @dataclass(frozen=True, slots=True)
 class ModeRequest:
     mode: int | str
-    source: str = "operator"
+    source: str = OPERATOR
 
 
 @dataclass(frozen=True, slots=True)
@@ -189,14 +109,16 @@ class CompleteReport:
 Request = CommandRequest | ModeRequest | CompleteReport
 
 
-#: An accepted command: (final state, skipped, answer, command as int, its trigger).
-_Accepted = tuple[State, tuple[State, ...], Answer, int, Trigger]
-#: State Complete from an acting state: (final state, skipped, trigger, final state enabled).
-_ScStep = tuple[State, tuple[State, ...], Trigger, bool]
+def _priority(r: Request) -> int:
+    if isinstance(r, CommandRequest):
+        return command_priority(r.cmd)
+    if isinstance(r, ModeRequest):
+        return MODE_REQUESTS
+    return STATE_COMPLETE_REPORTS
 
 
 class _Cmd(NamedTuple):
-    """A command inside the engine, with what caused it."""
+    """A command inside the engine (alarm reaction, EM loss, interlock), with what caused it."""
 
     cmd: int
     source: str
@@ -210,28 +132,29 @@ class _Cmd(NamedTuple):
 class Stats:
     """Counts for diagnostics."""
 
-    commands_accepted: int = 0
     commands_rejected: int = 0
     stale_reports: int = 0
     sc_ignored: int = 0
     bad_reports: int = 0
 
 
-@dataclass(slots=True)
-class _Flags:
-    mode_change_not_allowed_until: float = -math.inf
-    interlocks: dict[str, tuple[str, int]] = field(default_factory=dict)  # key -> (reason, stop id)
-    interlock_suspended: bool = False
-    interlock_attempt: tuple[int, int] = (-1, -1)
-    sc_refused: tuple[int, int] = (-1, -1)
+# Enum members as module globals for the hot paths below: attribute access on an Enum class costs
+# about 100 ns, a global about 20 ns, and these run on every transition.
+_ACCEPTED, _NOT_ALLOWED = Reason.ACCEPTED, Reason.COMMAND_NOT_ALLOWED
+_T_COMMAND, _T_INTERLOCK = Trigger.COMMAND, Trigger.INTERLOCK
+_REMOTE = int(Watch.REMOTE)
+_RESET_ALARMS, _CLEAR_FIRST_OUT = int(Entry.RESET_ALARMS), int(Entry.CLEAR_FIRST_OUT)
+_REARM, _STOP = int(Entry.REARM), int(Entry.STOP)
+#: Entry actions that are all a re-arm when no alarm is listed and no first-out is kept.
+_NOT_QUIET = ~(_REARM | _RESET_ALARMS | _CLEAR_FIRST_OUT)
 
-
-def _priority(r: Request) -> int:
-    if isinstance(r, CommandRequest):
-        return PRIORITY.get(r.cmd, OTHER_COMMANDS)
-    if isinstance(r, ModeRequest):
-        return MODE_REQUESTS
-    return STATE_COMPLETE_REPORTS
+_REPORT_OK = Answer(True, Reason.ACCEPTED, "State Complete accepted")
+_new_tuple = tuple.__new__
+#: Unknown EMs refused registration are named in the log once each, up to this many.
+MAX_STRAYS_LOGGED = 64
+#: Handlers of deadlines, by kind (methods of Unit).
+_HANDLERS = ("timeout", "dwell", "mode_timeout", "status", "lamp_off", "admin_change", "save",
+             "admin")  # fmt: skip
 
 
 class Unit:
@@ -239,39 +162,39 @@ class Unit:
 
     Inputs are methods (:meth:`command`, :meth:`set_mode`, :meth:`em_complete`, ...) answering
     with an :class:`~.reasons.Answer`; outputs are taken with :meth:`drain`; :meth:`advance` fires
-    due deadlines and should be called periodically (the node does, every 50 ms).
+    due deadlines (:meth:`next_deadline` says when the next one is due).
     """
 
-    # About 50 attributes: past 30, CPython gives up the compact per-instance dict and every
-    # attribute access on the hot paths gets slower; slots keep them fast (bench/engine.py).
+    # Past 30 attributes CPython gives up the compact per-instance dict and every attribute access
+    # on the hot paths gets slower; slots keep them fast (bench/engine.py).
     __slots__ = (  # noqa: RUF023 (grouped by concern, not sorted)
-        # state and mode
+        # the machine
         "state", "mode", "mode_def", "sequence", "entered_at", "mode_requested",
-        "mode_change_in_process", "_mode_source",
+        "mode_change_in_process", "_mode_source", "mode_change_not_allowed_until", "_sc_refused",
         # Command and Status tags
         "remote_enabled", "cntrl_cmd", "command_unit_mode", "mach_speed", "parameters", "products",
-        "remote_commands", "stop_reason", "_stop_armed",
+        "remote_commands",
         # parts
-        "config", "_clock", "store", "on_input", "restored", "flags", "stats", "times", "counters",
-        "alarms", "equipment",
-        # tables resolved at start
-        "_resolved", "_accepted", "_sc_resolved", "_timed",
+        "config", "rules", "_clock", "store", "_durable", "on_input", "restored", "alert", "stats",
+        "times",
+        "counters", "alarms", "equipment", "interlocks", "stops", "deadlines", "publication",
+        # the compiled rules the hot paths index, and configuration they test
+        "_accepted", "_accepted_mode", "_sc", "_timed",
         # evaluation
-        "_t", "_out", "_deadlines", "_next_due", "_deadline_counter", "_advance_to", "_internal",
-        "_step_winner", "_restart_detail",
-        # caches and publication
-        "_valid_cache", "_missing_cache", "_rev", "_status_key", "_status_flush_due", "_admin_key",
-        "_admin_flush_due", "_alarms_seen",
+        "_t", "_advance_to", "_internal", "_step_winner", "_restart_detail", "_handlers", "_out",
+        # caches
+        "_valid_cache", "_rev", "_strays",
     )  # fmt: skip
 
     def __init__(self, config: UnitConfig, clock: Clock, store: Store | None = None) -> None:
         self.config = config
+        self.rules = rules = rules_of(config)
         self._clock = clock
         self.store = store
         #: Called with (time, input name, arguments) for every input: the replay log.
         self.on_input: Callable[[float, str, dict[str, Any]], None] | None = None
         now = float(clock())  # the clock returns seconds as a float
-        self._t = now
+        self._t = self._advance_to = now
         self.state = S.STOPPED
         self.mode = int(config.initial_mode)
         self.mode_def: ModeDef = config.modes[self.mode]
@@ -280,6 +203,8 @@ class Unit:
         self.mode_requested = self.mode
         self.mode_change_in_process = False
         self._mode_source = ""
+        self.mode_change_not_allowed_until = -math.inf
+        self._sc_refused = -1  # the sequence whose State Complete was refused
         self.remote_enabled = config.remote_commands_enabled
         self.cntrl_cmd = 0
         self.command_unit_mode = self.mode
@@ -287,9 +212,7 @@ class Unit:
         self.parameters: list[Descriptor] = list(config.parameters)
         self.products: list[Product] = list(config.products)
         self.remote_commands: dict[int, tuple[int, int]] = {}  # interface number -> (cmd, value)
-        self.stop_reason: AlarmEvent | None = None
-        self._stop_armed = True
-        self.flags = _Flags()
+        self.alert = Alert()
         self.stats = Stats()
         self.times = ModeStateTimes(now, self.mode, self.state)
         self.counters = Counters(config.sizes.counters, dict(config.counters))
@@ -299,168 +222,133 @@ class Unit:
             config.sizes.alarms,
             config.sizes.warnings,
             config.sizes.history,
+            self.alert,
         )
-        self.equipment = Equipment()
+        self.equipment = Equipment(self.alert)
         for em_cfg in config.equipment_modules:
-            em = self.equipment.add(em_cfg.name, configured=True, active=em_cfg.active)
-            em.lost_reaction = em_cfg.lost_reaction
-            em.ignore_loss = not self._lost_reaction(em)
-        self._resolved = self._resolve_all()
+            ignore = not self._lost_reaction(em_cfg.lost_reaction)
+            self.equipment.add(em_cfg.name, True, em_cfg.active, em_cfg.lost_reaction, ignore)
+        self.interlocks = Interlocks(self.alert)
+        self.stops = StopReasons(config.planned_stop_ids)
+        self.deadlines = Deadlines()
+        self._out: list[tuple[str, Any]] = []  # the output queue (drain)
+        self.publication = _Publication(
+            self._queue, self.deadlines, self._status_key, self._admin_key, self.alarms
+        )
+        self._accepted = rules.accepted
+        self._accepted_mode = rules.accepted[self.mode]  # the current mode's
+        self._sc = rules.sc
         self._timed = frozenset(config.timeouts) | frozenset(config.min_dwell)
-        #: The accepted entries of _resolved as mode -> [state] -> {command: (final state, skipped,
-        #: answer, command as a plain int, trigger when an operator gave it)}: indexing by state and
-        #: command is about twice as fast as hashing a (state, mode, command) key.
-        self._accepted: dict[int, list[dict[int, _Accepted]]] = {
-            mode: [{} for _ in range(NUM_STATES)] for mode in config.modes
-        }
-        for (state, mode, cmd), (reason, final, skipped, answer) in self._resolved.items():
-            if reason is Reason.ACCEPTED and final is not None:
-                trigger = Trigger.SKIP if skipped else Trigger.COMMAND
-                self._accepted[mode][state][cmd] = (final, skipped, answer, int(cmd), trigger)
-        self._sc_resolved = self._resolve_state_complete()
-        self._out: list[tuple[str, Any]] = []
-        self._deadlines: list[tuple[float, int, str, Any]] = []
-        self._next_due = math.inf  # the earliest deadline's time (the heap's top), inf when none
-        self._deadline_counter = 0
-        self._advance_to = now  # the time _advance is bringing the unit to
         self._internal: list[_Cmd] = []
         self._valid_cache: dict[tuple[Any, ...], tuple[Cmd, ...]] = {}
-        self._missing_cache: tuple[int, list[EquipmentModule]] = (-1, [])
+        self._strays: set[str] = set()  # unknown EMs refused registration (logged once)
         self._rev = 0  # +1 on status-relevant changes not covered by other version counters
-        self._status_key: tuple[int, ...] = ()
-        self._status_flush_due = False
-        self._admin_key: tuple[int, ...] = ()
-        self._admin_flush_due = False
-        self._alarms_seen = -1
         self._step_winner: tuple[int, str] | None = None
         self._restart_detail = "unit started"
+        self._handlers: Mapping[str, Callable[[Any], None]] = {
+            kind: getattr(self, f"_on_{kind}") for kind in _HANDLERS
+        }
+        self._durable = (
+            None
+            if store is None
+            else Durable(store, self.times, self.counters, self.alarms, self.stops)
+        )
         self._restore(now)
         self._transition(S.STOPPED, Trigger.RESTART, source="unit", detail=self._restart_detail)
-        self._status_key = self._key()  # the start-up status is the baseline for later changes
+        self._journal()
+        self.publication.baseline()  # the start-up status is the baseline for later changes
         if store is not None:
             self._every("save", config.persistence_period)
         self._every("admin", config.admin_period)
 
-    def _resolve_all(
-        self,
-    ) -> dict[tuple[int, int, int], tuple[Reason, State | None, tuple[State, ...], Answer]]:
-        """(state, mode, command) -> (reason, final state, skipped, answer if accepted): the static
-        part of every check, from the transition table and each mode's disabled states."""
-        table = self.config.table
-        out: dict[tuple[int, int, int], tuple[Reason, State | None, tuple[State, ...], Answer]] = {}
-        for mode, mdef in self.config.modes.items():
-            for state in _STATES:
-                for cmd in _CMDS:
-                    first = table.target(state, cmd) if cmd else None
-                    if first is None:
-                        out[(state, mode, cmd)] = (Reason.COMMAND_NOT_ALLOWED, None, (), _NO_ANSWER)
-                        continue
-                    final, skipped = resolve(first, mdef.disabled, table.state_complete)
-                    if final in mdef.disabled:
-                        out[(state, mode, cmd)] = (
-                            Reason.STATE_DISABLED,
-                            final,
-                            skipped,
-                            _NO_ANSWER,
-                        )
-                        continue
-                    msg = f"{cmd.name} accepted: {state.name} -> {final.name}"
-                    out[(state, mode, cmd)] = (
-                        Reason.ACCEPTED,
-                        final,
-                        skipped,
-                        Answer(True, Reason.ACCEPTED, msg),
-                    )
-        return out
-
-    def _resolve_state_complete(self) -> dict[int, list[_ScStep | None]]:
-        """mode -> [acting state] -> State Complete's (final state, skipped, trigger, whether the
-        final state is enabled in the mode); None for states State Complete does not leave."""
-        table = self.config.table
-        out: dict[int, list[_ScStep | None]] = {}
-        for mode, mdef in self.config.modes.items():
-            steps: list[_ScStep | None] = [None] * NUM_STATES
-            for state, nxt in table.state_complete.items():
-                final, skipped = resolve(nxt, mdef.disabled, table.state_complete)
-                trigger = Trigger.SKIP if skipped else Trigger.STATE_COMPLETE
-                steps[state] = (final, skipped, trigger, final not in mdef.disabled)
-            out[mode] = steps
-        return out
+    @property
+    def stop_reason(self) -> AlarmEvent | None:
+        """``Admin.StopReason``: the first event of the last stop."""
+        return self.stops.reason
 
     # ================================================================================================
     # Inputs. Each advances to the clock first; ``on_input`` sees (time, name, arguments) for replay.
     # ================================================================================================
     def _enter(self) -> None:
-        if not self._status_key:  # the baseline of what the status shows (see _flush_status)
-            self._status_key = self._key()
+        pub = self.publication
+        if pub.status_key[0] != self.sequence:  # a transition was published since the last key
+            pub.baseline()
         now = self._clock()
-        if now >= self._next_due:
+        if now >= self.deadlines.next_due:
             self._advance(now)
         elif now > self._t:
             self._t = now
 
-    def _record(self, name: str, args: dict[str, Any]) -> None:
+    def _record(self, d: inputlog.InputDef, *values: Any) -> None:
+        """Log an input (its values in the order of the schema's fields): the replay log."""
         if self.on_input is not None:
-            self.on_input(self._t, name, args)
+            self.on_input(self._t, d.name, inputlog.fields_of(d, values))
 
     def _leave(self) -> None:
         self._settle()
-        self._flush_status()
+        self.publication.flush(self._t, self.sequence)
+        self._journal()
 
-    def command(self, cmd: int, source: str = _OPERATOR) -> Answer:
+    def command(self, cmd: int, source: str = OPERATOR) -> Answer:
         """A state command (``Command.CntrlCmd`` + ``CmdChangeRequest``)."""
         now = self._clock()
-        if now >= self._next_due:
-            if not self._status_key:
-                self._status_key = self._key()
+        if now >= self.deadlines.next_due:
+            if self.publication.status_key[0] != self.sequence:
+                self.publication.baseline()
             self._advance(now)
         elif now > self._t:
             self._t = now
-        source = source or _OPERATOR
+        bits = self.alert.bits
+        remote = False
+        if source is not OPERATOR:  # (the default: nothing to look at)
+            if not source:
+                source = OPERATOR
+            elif is_remote(source):
+                remote = True
+                if not self.remote_enabled:
+                    bits |= _REMOTE
         if self.on_input is not None:
-            self.on_input(self._t, "command", {"cmd": cmd, "source": source})
-        eq, flags = self.equipment, self.flags
-        entry = self._accepted[self.mode][self.state].get(cmd)
-        if (  # the fast path: the table alone decides (no guard can refuse, nothing remote)
-            entry is not None
-            and (
-                cmd not in ALARM_GUARDED
-                or not (eq.modules or self.alarms.current or flags.interlocks)
-            )
-            and not self.mode_change_in_process
-            and (source is _OPERATOR or not source.startswith("remote"))
-        ):
-            final, skipped, answer, cmd, trigger = entry
-            self.stats.commands_accepted += 1
-            self.cntrl_cmd = cmd
-            more = self._transition(final, trigger, cmd, source, skipped, "", None, True)
-            if not (more or flags.interlocks or flags.interlock_suspended):
+            self._record(inputlog.COMMAND, cmd, source)
+        entry = self._accepted_mode[self.state].get(cmd)
+        if entry is not None and not entry[5] & bits:  # (Accepted.watch)
+            # The fast path: the table accepts and no guard of this command watches anything set.
+            final, skipped, answer, number, trigger, _, flags = entry
+            if self.mode_change_in_process:  # (only Stop and Abort watch no mode change)
+                self._abandon_mode_change(f"{command_name(cmd)} from {source}")
+            if remote:
+                self._note_remote(number, source)
+            self.cntrl_cmd = number
+            if not self._transition(final, trigger, number, source, skipped, "", None, True, flags):
                 # Nothing for _settle and nothing changed after the last transition, whose
                 # status is published with it: that is the baseline, and stays so until the
-                # next input begins (which takes the key then, see _flush_status).
+                # next input begins (which takes the key then, see Publication.status_key).
+                if self._durable is not None:
+                    self._journal()
                 return answer
         else:
-            if not self._status_key:
-                self._status_key = self._key()
+            if self.publication.status_key[0] != self.sequence:
+                self.publication.baseline()
             self._step_winner = None  # (only a refusal reads it: not on the fast path)
             answer = self._apply_command(cmd, source, self.state, None, True)
+        eq, interlocks, pub = self.equipment, self.interlocks, self.publication
         if (  # anything left for _settle? (the command followed immediate State Complete itself)
             self._internal
             or self.mode_change_in_process
             or (eq.aggregating and not eq.pending)
-            or flags.interlocks
-            or flags.interlock_suspended
+            or interlocks.busy
         ):
             self._settle()
-        if self._status_key or self.alarms.version != self._alarms_seen:
-            self._flush_status()
+        if pub.status_key[0] == self.sequence or self.alarms.version != pub.alarms_seen:
+            pub.flush(self._t, self.sequence)
+        if self._durable is not None:
+            self._journal()
         return answer
 
-    def set_mode(self, mode: int | str, source: str = "operator") -> Answer:
+    def set_mode(self, mode: int | str, source: str = OPERATOR) -> Answer:
         """A mode change (``Command.UnitMode`` + ``UnitModeChangeRequest``), by number or name."""
         self._enter()
-        source = source or "operator"
-        self._record("set_mode", {"mode": mode, "source": source})
+        source = source or OPERATOR
+        self._record(inputlog.MODE, mode, source)
         answer = self._apply_mode(ModeRequest(mode, source))
         self._leave()
         return answer
@@ -470,14 +358,14 @@ class Unit:
         Suspend > other commands > mode changes > State Complete (PACKML.md section 2)."""
         self._enter()
         if self.on_input is not None:
-            self.on_input(self._t, "step", {"requests": [request_to_dict(r) for r in requests]})
+            self._record(inputlog.STEP, [inputlog.request_to_dict(r) for r in requests])
         start_state = self.state
         self._step_winner = None
         answers: list[Answer] = [Answer.ok("")] * len(requests)
         for i in sorted(range(len(requests)), key=lambda i: _priority(requests[i])):
             r = requests[i]
             if isinstance(r, CommandRequest):
-                answers[i] = self._apply_command(int(r.cmd), r.source or "operator", start_state)
+                answers[i] = self._apply_command(int(r.cmd), r.source or OPERATOR, start_state)
             elif isinstance(r, ModeRequest):
                 answers[i] = self._apply_mode(r)
             else:
@@ -488,32 +376,58 @@ class Unit:
     # -- equipment modules ------------------------------------------------------------------------------
     def em_complete(self, name: str, state: int, sequence: int) -> Answer:
         """State Complete from EM ``name`` for (``state``, ``sequence``)."""
-        self._enter()
+        # (_enter, inline: every EM reports every acting state, so this runs most of all)
+        pub = self.publication
+        if pub.status_key[0] != self.sequence:
+            pub.baseline()
+        now = self._clock()
+        if now >= self.deadlines.next_due:
+            self._advance(now)
+        elif now > self._t:
+            self._t = now
         if self.on_input is not None:
-            self.on_input(
-                self._t, "em_complete", {"name": name, "state": state, "sequence": sequence}
-            )
-        answer = self._apply_report(name, state, sequence)
-        if answer.accepted and not self.equipment.pending:
+            self._record(inputlog.EM_STATE_COMPLETE, name, state, sequence)
+        eq = self.equipment
+        if eq.report(name, state, sequence):
+            if eq.pending:
+                # Progress only: a status shows it (coalesced, and one is due already after the
+                # first report); nothing an admin or the alarm list shows changed.
+                if not pub.status_due:
+                    pub.flush(self._t, self.sequence)
+                return _REPORT_OK
             self._settle()  # the last report: State Complete (or the mode change) follows
-        self._flush_status()
+            pub.flush(self._t, self.sequence)
+            if self._durable is not None:
+                self._journal()
+            return _REPORT_OK
+        answer = self._refused_report(name, state, sequence)
+        pub.flush(self._t, self.sequence)
         return answer
 
-    def em_seen(self, name: str) -> Answer:
-        """The EM ``name`` is alive (first heartbeat, or back after being lost)."""
+    def em_seen(self, name: str, report: bool = False) -> Answer:
+        """The EM ``name`` is alive (first heartbeat, or back after being lost). An unknown EM
+        registers, where the configuration allows it; ``report``: the EM's own report is what
+        says so, which registers it in Production only at rest (rules, section 7)."""
         self._enter()
-        self._record("em_seen", {"name": name})
+        self._record(inputlog.EM_SEEN, name, report)
         em = self.equipment.get(name)
         if em is None:
-            if not self.config.allow_registration:
+            why = registration_refusal(
+                self.mode, self.state, self.config.allow_registration, report
+            )
+            if why is not None:
+                if name not in self._strays and len(self._strays) < MAX_STRAYS_LOGGED:
+                    self._strays.add(name)  # said once per name (its reports keep coming)
+                    self._log("warn", f"EM {name!r} not registered: {self.config.name} {why}")
                 self._leave()
                 return Answer.no(
-                    Reason.EM_UNKNOWN,
-                    f"EM {name!r} is not configured and {self.config.name} does not accept "
-                    "registrations (allow_registration: false)",
+                    Reason.EM_UNKNOWN, f"EM {name!r} is not configured and {self.config.name} {why}"
                 )
-            em = self.equipment.add(name, configured=False)
-            em.ignore_loss = not self._lost_reaction(em)
+            self._strays.discard(name)
+            ignore = not self._lost_reaction(None)
+            if not self.equipment.modules:  # the first EM: the equipment follows the unit now
+                self.equipment.begin(self.state, self.sequence)
+            em = self.equipment.add(name, False, True, None, ignore)
             self.alarms.log_event(f"EM {name} registered", self._t, source=f"em:{name}")
             self._log("info", f"EM {name} registered (active)")
         if not em.online:
@@ -528,7 +442,7 @@ class Unit:
     def em_lost(self, name: str, detail: str = "") -> Answer:
         """The EM ``name`` missed its lease (or left); the configured reaction applies."""
         self._enter()
-        self._record("em_lost", {"name": name, "detail": detail})
+        self._record(inputlog.EM_LOST, name, detail)
         em = self.equipment.get(name)
         if em is None or not em.online:
             self._leave()
@@ -536,7 +450,7 @@ class Unit:
         em.online = False
         self.equipment.changed_roster()
         # Inactive EMs are ignored (PACKML.md 4): switched off for diagnosis, losing them is no fault.
-        reaction = self._lost_reaction(em) if em.active else 0
+        reaction = self._lost_reaction(em.lost_reaction) if em.active else 0
         if self.state in EXCUSE_OFFLINE or not reaction:
             self.equipment.excuse(name)
         why = f" ({detail})" if detail else ""
@@ -568,10 +482,7 @@ class Unit:
     def em_interlock(self, name: str, blocked: bool, starved: bool, material: int = 0) -> Answer:
         """EM ``name`` reports Blocked/Starved (``Status.EquipmentInterlock``) and material bits."""
         self._enter()
-        self._record(
-            "em_interlock",
-            {"name": name, "blocked": blocked, "starved": starved, "material": material},
-        )
+        self._record(inputlog.EM_INTERLOCK, name, blocked, starved, material)
         em = self.equipment.get(name)
         if em is None:
             self._leave()
@@ -581,10 +492,11 @@ class Unit:
         key = f"em:{name}"
         if em.active and (blocked or starved):
             what = "blocked" if blocked else "starved"
-            stop_id = STOP_ID_BLOCKED if blocked else STOP_ID_STARVED
-            self.flags.interlocks[key] = (f"{name} {what}", stop_id)
+            self.interlocks.set(
+                key, f"{name} {what}", STOP_ID_BLOCKED if blocked else STOP_ID_STARVED
+            )
         else:
-            self.flags.interlocks.pop(key, None)
+            self.interlocks.clear(key)
         self._rev += 1
         self._leave()
         return Answer.ok("interlock updated")
@@ -593,9 +505,7 @@ class Unit:
         """EM ``name`` adds ``increment`` to counter ``index`` of ``kind``
         (``consumed`` / ``processed`` / ``defective``)."""
         self._enter()
-        self._record(
-            "em_count", {"name": name, "kind": kind, "index": index, "increment": increment}
-        )
+        self._record(inputlog.EM_COUNT, name, kind, index, increment)
         problem = self.counters.add(kind, int(index), int(increment))
         if problem:
             self.stats.bad_reports += 1
@@ -604,10 +514,10 @@ class Unit:
         self._leave()
         return Answer.ok("counted")
 
-    def set_em_active(self, name: str, active: bool, source: str = "operator") -> Answer:
+    def set_em_active(self, name: str, active: bool, source: str = OPERATOR) -> Answer:
         """Switch ModuleActive; only outside Production, and always logged."""
         self._enter()
-        self._record("set_em_active", {"name": name, "active": active, "source": source})
+        self._record(inputlog.EM_ACTIVE, name, active, source)
         answer = self._set_em_active(name, bool(active), source)
         self._leave()
         return answer
@@ -633,10 +543,10 @@ class Unit:
         self.alarms.log_event(f"EM {name} switched {word} by {source}", self._t, source=source)
         self._log("info", f"EM {name} switched {word} by {source}")
         if active:
-            self.equipment.require(name)
+            self.equipment.require(name)  # it joins the current state (rules, section 7)
         else:
             self.equipment.excuse(name)
-            self.flags.interlocks.pop(f"em:{name}", None)
+            self.interlocks.clear(f"em:{name}")
             # An inactive EM is no longer missing: its "EM lost" alarm goes inactive (latched), so
             # Clear and Reset recover without it (PACKML.md 9).
             self.alarms.clear(self.config.system_alarms.em_lost, em.index, self._t)
@@ -648,7 +558,7 @@ class Unit:
         alarm_id: int,
         value: int = 0,
         active: bool = True,
-        source: str = "operator",
+        source: str = OPERATOR,
         em: str = "",
         warning: bool | None = None,
         category: int = -1,
@@ -657,28 +567,16 @@ class Unit:
         """Raise or clear alarm (``alarm_id``, ``value``). Unconfigured alarms need a category and
         a message; ``warning``/``category``/``message`` override the configuration when given."""
         self._enter()
-        self._record(
-            "set_alarm",
-            {"alarm_id": alarm_id, "value": value, "active": active, "source": source, "em": em,
-             "warning": warning, "category": category, "message": message},
-        )  # fmt: skip
+        self._record(inputlog.ALARM, alarm_id, value, active, source, em, warning, category,
+                     message)  # fmt: skip
         answer = self._set_alarm(
             int(alarm_id), int(value), bool(active), source, em, warning, int(category), message
         )
         self._leave()
         return answer
 
-    def _set_alarm(
-        self,
-        alarm_id: int,
-        value: int,
-        active: bool,
-        source: str,
-        em: str,
-        warning: bool | None,
-        category: int,
-        message: str,
-    ) -> Answer:
+    def _set_alarm(self, alarm_id: int, value: int, active: bool, source: str, em: str,
+                   warning: bool | None, category: int, message: str) -> Answer:  # fmt: skip
         if not active:
             ev = self.alarms.clear(alarm_id, value, self._t)
             if ev is None:
@@ -728,11 +626,11 @@ class Unit:
         )
 
     def ack_alarms(
-        self, alarm_id: int | None = None, value: int = 0, source: str = "operator"
+        self, alarm_id: int | None = None, value: int = 0, source: str = OPERATOR
     ) -> Answer:
         """Acknowledge one alarm, or all with ``alarm_id=None``; AckDateTime is stamped once."""
         self._enter()
-        self._record("ack_alarms", {"alarm_id": alarm_id, "value": value, "source": source})
+        self._record(inputlog.ALARM_ACK, alarm_id, value, source)
         key = None if alarm_id is None else (int(alarm_id), int(value))
         if key is not None and key not in self.alarms.current:
             self._leave()
@@ -746,10 +644,10 @@ class Unit:
             return Answer.no(Reason.NOTHING_TO_DO, f"{which} already acknowledged")
         return Answer.ok(f"{n} acknowledged")
 
-    def reset_alarms(self, clear_first_out: bool = False, source: str = "operator") -> Answer:
+    def reset_alarms(self, clear_first_out: bool = False, source: str = OPERATOR) -> Answer:
         """Clear latched alarms that are no longer active (and optionally the first-outs)."""
         self._enter()
-        self._record("reset_alarms", {"clear_first_out": clear_first_out, "source": source})
+        self._record(inputlog.ALARM_RESET, clear_first_out, source)
         n = self.alarms.reset()
         if clear_first_out:
             self.alarms.clear_first_out()
@@ -759,10 +657,10 @@ class Unit:
         return Answer.ok(f"{n} cleared{tail}")
 
     # -- times, counters, speed, parameters --------------------------------------------------------------
-    def reset_times(self, all_times: bool = False, source: str = "operator") -> Answer:
+    def reset_times(self, all_times: bool = False, source: str = OPERATOR) -> Answer:
         """Reset the current mode's times (and its states'), or every time with ``all_times``."""
         self._enter()
-        self._record("reset_times", {"all_times": all_times, "source": source})
+        self._record(inputlog.TIMES_RESET, all_times, source)
         if all_times:
             self.times.reset_all(self._t)
             msg = "all times reset"
@@ -770,23 +668,21 @@ class Unit:
             self.times.reset_current_mode(self._t)
             msg = f"times of {self.mode_def.name} reset"
         self.alarms.log_event(f"{msg} by {source}", self._t, source=source)
-        self._save()
         self._leave()
         return Answer.ok(msg)
 
-    def reset_counters(self, source: str = "operator") -> Answer:
+    def reset_counters(self, source: str = OPERATOR) -> Answer:
         """``Count`` of every counter to 0; ``AccCount`` is never reset."""
         self._enter()
-        self._record("reset_counters", {"source": source})
+        self._record(inputlog.COUNTERS_RESET, source)
         self.counters.reset()
         self.alarms.log_event(f"counters reset by {source}", self._t, source=source)
-        self._save()
         self._leave()
         return Answer.ok("counters reset (AccCount kept)")
 
-    def set_mach_speed(self, speed: float, source: str = "operator") -> Answer:
+    def set_mach_speed(self, speed: float, source: str = OPERATOR) -> Answer:
         self._enter()
-        self._record("set_mach_speed", {"speed": speed, "source": source})
+        self._record(inputlog.SPEED, speed, source)
         if not math.isfinite(speed) or speed < 0:
             self._leave()
             return Answer.no(
@@ -797,26 +693,25 @@ class Unit:
         self._leave()
         return Answer.ok(f"MachSpeed {speed:g}")
 
-    def set_parameters(self, parameters: Iterable[Descriptor], source: str = "operator") -> Answer:
+    def set_parameters(self, parameters: Iterable[Descriptor], source: str = OPERATOR) -> Answer:
         """Set ``Command.Parameter[#]`` entries, matched by ID (a new ID takes a free slot)."""
         params = list(parameters)
         self._enter()
-        self._record(
-            "set_parameters", {"parameters": [p.__dict__ for p in params], "source": source}
-        )
+        if self.on_input is not None:
+            self._record(inputlog.PARAMETERS, [inputlog.descriptor_to_dict(p) for p in params],
+                         source)  # fmt: skip
         answer = self._merge(
             self.parameters, params, lambda p: p.id, self.config.sizes.parameters, "parameter"
         )
         self._leave()
         return answer
 
-    def set_product(self, products: Iterable[Product], source: str = "operator") -> Answer:
+    def set_product(self, products: Iterable[Product], source: str = OPERATOR) -> Answer:
         """Set ``Command.Product[#]`` entries, matched by ProductID."""
         items = list(products)
         self._enter()
-        self._record(
-            "set_product", {"products": [product_to_dict(p) for p in items], "source": source}
-        )
+        if self.on_input is not None:
+            self._record(inputlog.PRODUCTS, [inputlog.product_to_dict(p) for p in items], source)
         sizes = self.config.sizes
         for p in items:
             too_many = (
@@ -855,9 +750,9 @@ class Unit:
         return Answer.ok(f"{len(items)} {what}(s) set")
 
     def set_remote_enabled(self, enabled: bool) -> None:
-        """Whether commands with a ``remote...`` source are accepted."""
+        """Whether commands with a remote source are accepted (the remote lock, rules section 4)."""
         self._enter()
-        self._record("set_remote_enabled", {"enabled": enabled})
+        self._record(inputlog.REMOTE, enabled)
         self.remote_enabled = bool(enabled)
         self._rev += 1
         self._leave()
@@ -866,56 +761,43 @@ class Unit:
         """A line interlock from outside (the coordinator): suspend while set, unsuspend when
         cleared (``interlock_reaction: suspend``)."""
         self._enter()
-        self._record("set_interlock", {"active": active, "reason": reason, "source": source})
+        self._record(inputlog.INTERLOCK, active, reason, source)
         key = f"ext:{source}"
         if active:
             stop_id = STOP_ID_STARVED if "starv" in reason.lower() else STOP_ID_BLOCKED
-            self.flags.interlocks[key] = (reason or f"interlock from {source}", stop_id)
+            self.interlocks.set(key, reason or f"interlock from {source}", stop_id)
         else:
-            self.flags.interlocks.pop(key, None)
+            self.interlocks.clear(key)
         self._rev += 1
         self._leave()
         return Answer.ok(f"interlock {'set' if active else 'cleared'}")
 
     def advance(self) -> None:
-        """Fire every deadline due by the clock's time (call periodically)."""
+        """Fire every deadline due by the clock's time (call periodically, or at
+        :meth:`next_deadline`)."""
         self._enter()
         self._leave()
 
     def next_deadline(self) -> float | None:
         """When the engine has something to do next on its own (a timeout, a periodic admin...)."""
-        return None if self._next_due == math.inf else self._next_due
+        due = self.deadlines.next_due
+        return None if due == math.inf else due
 
     def fire_next(self, until: float) -> bool:
         """Fire the earliest deadline if it is due by ``until``; False when none is. Driving the
         engine one deadline at a time (and publishing after each) is what makes a live node and a
         replay produce the same messages (see packml_ros2.driver)."""
-        if until < self._next_due:
+        if until < self.deadlines.next_due:
             return False
-        if not self._status_key:
-            self._status_key = self._key()
+        if self.publication.status_key[0] != self.sequence:
+            self.publication.baseline()
         self._advance_to = until
-        kind, data = self._pop_deadline()
-        self._handlers()[kind](data)
-        self._settle()
-        self._flush_status()
+        self._fire()
         return True
 
-    def apply_input(self, name: str, args: dict[str, Any]) -> Answer | None:
-        """Apply a logged input (``on_input``'s name and arguments) again: the replay entry."""
-        if name not in INPUTS:
-            raise ValueError(
-                f"{name!r} is not an engine input (inputs: {', '.join(sorted(INPUTS))})"
-            )
-        args = dict(args)
-        if name == "step":
-            return self.step([request_from_dict(r) for r in args["requests"]])  # type: ignore[return-value]
-        if name == "set_parameters":
-            args["parameters"] = [Descriptor(**d) for d in args["parameters"]]
-        elif name == "set_product":
-            args["products"] = [product_from_dict(p) for p in args["products"]]
-        result: Answer | None = getattr(self, name)(**args)
-        return result
+    def apply_input(self, name: str, fields: Mapping[str, Any]) -> Answer | list[Answer] | None:
+        """Apply a logged input (:mod:`.inputlog`, schema 1) again: the replay entry."""
+        return inputlog.apply(self, name, fields)
 
     # ================================================================================================
     # Outputs and views
@@ -934,39 +816,34 @@ class Unit:
         """The status at a drained transition or mark: its state, sequence and time, the other
         fields as they are now."""
         if isinstance(mark, Transition):
-            mark = StatusMark(mark.time, mark.to_state, mark.sequence)
-        return build_status(self, mark)
+            return build_status(self, mark.time, mark.to_state, mark.sequence)
+        return build_status(self, mark.time, State(mark.state), mark.sequence)
 
     @property
     def now(self) -> float:
         return self._t
 
     def status(self) -> StatusView:
-        return build_status(self, StatusMark(self._t, self.state, self.sequence))
+        return build_status(self, self._t, self.state, self.sequence)
 
     def admin(self, at: float | None = None) -> AdminView:
         return build_admin(self, self._t if at is None else at)
 
     def valid_commands(self, state: State | None = None) -> tuple[Cmd, ...]:
-        """Commands an operator could issue now (cached per state, mode and constraints)."""
+        """Commands an operator could issue now (cached per state, mode and situation)."""
         state = self.state if state is None else state
-        key = (
-            state,
-            self.mode,
-            self.alarms.blocking_version,
-            self.equipment.roster_version,
-            bool(self.flags.interlocks),
-            self.mode_change_in_process,
-        )
+        key = (state, self.mode, self.alarms.blocking_version, self.equipment.roster_version,
+               bool(self.interlocks.active), self.mode_change_in_process)  # fmt: skip
         cached = self._valid_cache.get(key)
         if cached is None:
-            saved, self.state = self.state, state
-            try:
-                cached = tuple(
-                    c for c in _CMDS if c and self._check(c, "operator")[0] is Reason.ACCEPTED
-                )
-            finally:
-                self.state = saved
+            bits = self.alert.bits
+            rules = self.rules
+            cached = tuple(
+                Cmd(c)
+                for c, entry in sorted(self._accepted[self.mode][state].items())
+                if not entry.watch & bits
+                or rules.check(self, state, self.mode, c, OPERATOR).reason is _ACCEPTED
+            )
             if len(self._valid_cache) > 4096:
                 self._valid_cache.clear()
             self._valid_cache[key] = cached
@@ -974,89 +851,46 @@ class Unit:
 
     def state_requested(self, state: State | None = None) -> State:
         state = self.state if state is None else state
-        return SETTLE.get(state, state)
+        return self.rules.settles_in(state)
 
     @property
     def interlock_active(self) -> bool:
-        return bool(self.flags.interlocks)
+        return bool(self.interlocks.active)
 
     @property
     def mode_change_not_allowed(self) -> bool:
-        return self._t < self.flags.mode_change_not_allowed_until
+        return self._t < self.mode_change_not_allowed_until
 
     def missing_ems(self) -> list[EquipmentModule]:
         """Active EMs that are offline and whose loss is not ignored."""
-        version, cached = self._missing_cache
-        if version != self.equipment.roster_version:
-            cached = [em for em in self.equipment.missing() if self._lost_reaction(em)]
-            self._missing_cache = (self.equipment.roster_version, cached)
-        return cached
+        return self.equipment.missing()
+
+    # -- what the guards read (rules.Situation) ----------------------------------------------------------
+    def missing_names(self) -> list[str]:
+        return [em.name for em in self.equipment.missing()]
+
+    def blocking_alarm(self, blocked: Mapping[int, frozenset[Cmd]], cmd: int) -> str | None:
+        blocker = self.alarms.blocking(blocked, cmd)
+        if blocker is None:
+            return None
+        return f"alarm {blocker.label()} with reaction {command_name(blocker.reaction)}"
+
+    def interlock_reasons(self) -> list[str]:
+        return self.interlocks.reasons()
+
+    def mode_change_text(self) -> str:
+        waiting = ", ".join(sorted(self.equipment.pending)) or "none"
+        return (
+            f"mode change {self.mode_def.name} -> {self._mode_name(self.mode_requested)} in "
+            f"process (waiting for EMs: {waiting})"
+        )
 
     # ================================================================================================
     # The state machine
     # ================================================================================================
-    def _check(self, cmd: int, source: str) -> tuple[Reason, State | None, tuple[State, ...], str]:
-        """Whether ``cmd`` from ``source`` is valid now: (reason, final state, skipped, detail)."""
-        if not 1 <= cmd <= 10:
-            return Reason.UNKNOWN_COMMAND, None, (), ""
-        if not self.remote_enabled and source.startswith("remote"):
-            return Reason.REMOTE_DISABLED, None, (), ""
-        if self.mode_change_in_process and cmd not in FAULT_COMMANDS:
-            return Reason.MODE_CHANGE_IN_PROCESS, None, (), ""
-        reason, final, skipped, _ = self._resolved[(self.state, self.mode, cmd)]
-        if reason is not _ACCEPTED or cmd not in ALARM_GUARDED:
-            return reason, final, skipped, ""
-        if cmd in MOTION:
-            missing = self.missing_ems()
-            if missing:
-                return Reason.EM_MISSING, final, skipped, ", ".join(em.name for em in missing)
-        if self.alarms.current:
-            blocker = self.alarms.blocking(cmd)
-            if blocker is not None:
-                detail = f"alarm {blocker.label()} with reaction {command_name(blocker.reaction)}"
-                return Reason.ALARM_ACTIVE, final, skipped, detail
-        if cmd == _UNSUSPEND and self.flags.interlocks and self.config.interlock_reaction:
-            detail = "; ".join(r for r, _ in self.flags.interlocks.values())
-            return Reason.INTERLOCK_ACTIVE, final, skipped, detail
-        return _ACCEPTED, final, skipped, ""
-
-    def _refusal(
-        self, cmd: int, source: str, reason: Reason, final: State | None, detail: str
-    ) -> str:
-        name = command_name(cmd)
-        valid = names_of(self.valid_commands()) or "none"
-        where = f"{state_name(self.state)} in {self.mode_def.name} mode"
-        if reason is Reason.UNKNOWN_COMMAND:
-            text = (
-                f"command {cmd} is not a PackML command (1..10: {names_of(range(1, 11))}); "
-                f"now {where}"
-            )
-        elif reason is Reason.REMOTE_DISABLED:
-            text = (
-                f"{name} from {source} refused: remote commands are disabled on {self.config.name} "
-                f"(parameter remote_commands_enabled); now {where}"
-            )
-        elif reason is Reason.MODE_CHANGE_IN_PROCESS:
-            waiting = ", ".join(sorted(self.equipment.pending)) or "none"
-            text = (
-                f"{name} refused in {where}: mode change {self.mode_def.name} -> "
-                f"{self._mode_name(self.mode_requested)} in process (waiting for EMs: {waiting})"
-            )
-        elif reason is Reason.STATE_DISABLED:
-            target = state_name(final) if final is not None else "its target"
-            text = f"{name} not allowed in {where}: {target} is disabled in {self.mode_def.name}"
-        elif reason is Reason.EM_MISSING:
-            text = (
-                f"{name} refused in {where}: active EM {detail} offline; bring it back or switch "
-                "it inactive outside PRODUCTION"
-            )
-        elif reason is Reason.ALARM_ACTIVE:
-            text = f"{name} refused in {where}: {detail} is still active"
-        elif reason is Reason.INTERLOCK_ACTIVE:
-            text = f"{name} refused in {where}: interlock still active ({detail})"
-        else:
-            text = f"{name} not allowed in {where}"
-        return f"{text} (valid now: {valid})"
+    def _check(self, cmd: int, source: str) -> Verdict:
+        """Whether ``cmd`` from ``source`` is valid now (the checked path of the rule book)."""
+        return self.rules.check(self, self.state, self.mode, cmd, source)
 
     def _apply_command(
         self,
@@ -1070,38 +904,44 @@ class Unit:
         ``follow``: the command is alone in its step, so State Complete that is immediate follows
         at once (see :meth:`_transition`). (:meth:`command` has the fast path.)"""
         cmd = int(cmd)
-        reason, final_or_none, skipped, detail = self._check(cmd, source)
-        if reason is not _ACCEPTED or final_or_none is None:
-            return self._reject(cmd, source, start_state, cause, reason, final_or_none, detail)
-        final, skipped, answer, cmd, trigger = self._accepted[self.mode][self.state][cmd]
-        if self.mode_change_in_process:  # only Abort and Stop pass _check then
+        verdict = self._check(cmd, source)
+        if verdict.reason is not _ACCEPTED or verdict.final is None:
+            return self._reject(cmd, source, start_state, cause, verdict)
+        entry = self._accepted[self.mode][self.state][cmd]
+        if self.mode_change_in_process:  # only Abort and Stop pass the guards then
             self._abandon_mode_change(f"{command_name(cmd)} from {source}")
-        self.stats.commands_accepted += 1
-        self.cntrl_cmd = cmd
-        if source.startswith("remote"):
-            self._note_remote(cmd, source)
-        if cause is None:
-            detail = ""
-        else:
+        self.cntrl_cmd = entry.cmd
+        if is_remote(source):
+            self._note_remote(entry.cmd, source)
+        trigger, detail = entry.trigger, ""
+        if cause is not None:
             if cause.trigger is not _T_COMMAND:
                 trigger = cause.trigger
             detail = cause.detail
-        self._step_winner = (cmd, source)
-        self._transition(final, trigger, cmd, source, skipped, detail, cause, follow)
-        return answer
+        self._step_winner = (entry.cmd, source)
+        self._transition(entry.final, trigger, entry.cmd, source, entry.skipped, detail, cause,
+                         follow, entry.entry)  # fmt: skip
+        return entry.answer
 
-    def _reject(self, cmd: int, source: str, start_state: State, cause: _Cmd | None, reason: Reason,
-                final: State | None, detail: str) -> Answer:  # fmt: skip
+    def _reject(self, cmd: int, source: str, start_state: State, cause: _Cmd | None,
+                verdict: Verdict) -> Answer:  # fmt: skip
         self.stats.commands_rejected += 1
+        reason = verdict.reason
         winner = self._step_winner
-        was_valid = self._resolved.get((start_state, self.mode, cmd), (None,))[0] is _ACCEPTED
-        if winner is not None and reason is _NOT_ALLOWED and was_valid:
+        if (
+            winner is not None
+            and reason is _NOT_ALLOWED
+            and self.rules.table_verdict(start_state, self.mode, cmd).reason is _ACCEPTED
+        ):
             return Answer.no(
                 Reason.SUPERSEDED,
-                f"{command_name(cmd)} superseded by {command_name(winner[0])} from {winner[1]} in the "
-                f"same step (now {state_name(self.state)})",
-            )
-        msg = self._refusal(cmd, source, reason, final, detail)
+                SUPERSEDED_SENTENCE.format(command=command_name(cmd),
+                                           winner=command_name(winner[0]), source=winner[1],
+                                           state=state_name(self.state)),
+            )  # fmt: skip
+        where = f"{state_name(self.state)} in {self.mode_def.name} mode"
+        msg = self.rules.refusal_text(verdict, cmd, source, where, self.config.name,
+                                      self.mode_def.name, self.valid_commands())  # fmt: skip
         if cause is not None or source.startswith("em:"):
             self._log("info", f"{source}: {msg}")
         return Answer.no(reason, msg)
@@ -1115,10 +955,13 @@ class Unit:
                 self._rev += 1
 
     def _apply_report(self, name: str, state: int, sequence: int) -> Answer:
-        eq = self.equipment
-        if eq.report(name, state, sequence):
+        if self.equipment.report(name, state, sequence):
             return _REPORT_OK
-        if name not in eq.modules:
+        return self._refused_report(name, state, sequence)
+
+    def _refused_report(self, name: str, state: int, sequence: int) -> Answer:
+        """A report :meth:`Equipment.report` did not take: unknown EM, or stale (counted)."""
+        if name not in self.equipment.modules:
             self.stats.bad_reports += 1
             return Answer.no(Reason.EM_UNKNOWN, f"State Complete from unknown EM {name!r}")
         self.stats.stale_reports += 1
@@ -1138,100 +981,107 @@ class Unit:
         detail: str = "",
         cause: _Cmd | None = None,
         follow: bool = False,
+        entry: int = -1,
     ) -> bool:
-        """Enter ``to``. With ``follow``, then take State Complete as long as it is immediate
-        (nothing to wait for: no EM owes it, no dwell, nothing queued, no mode change): exactly
-        what :meth:`_settle` would do next, in one loop. Only for a request alone in its step:
-        in a :meth:`step`, the other requests are judged in the state the first one reached.
+        """Enter ``to`` (``entry``: its :class:`~.rules.Entry` actions as compiled, -1 to look them
+        up). With ``follow``, then take State Complete as long as it is immediate (nothing to
+        wait for: no EM owes it, no dwell, nothing queued, no mode change): exactly what
+        :meth:`_settle` would do next, in one loop. Only for a request alone in its step: in a
+        :meth:`step`, the other requests are judged in the state the first one reached.
 
         Returns, with ``follow``, whether :meth:`_settle` may have something left (a queued
-        command, a mode change, a State Complete it must refuse); False when the unit stopped in
-        a state that waits (interlocks aside, which the caller checks)."""
+        command, a mode change, a State Complete it must refuse, an interlock); False when the
+        unit stopped in a state that waits."""
         t = self._t
         mode = self.mode
-        times = self.times
-        emit = self._out.append
+        out = self._out.append
         eq = self.equipment
-        flags = self.flags
+        stops = self.stops
+        interlocks = self.interlocks
         alarms = self.alarms
         timed = self._timed
-        sc_steps = self._sc_resolved[mode]
-        state_current = times.state_current
-        base = mode * NUM_STATES
+        sc_steps = self._sc[mode]
+        # Equipment.begin decides who owes State Complete. Without an EM nobody does
+        # (AT_ONCE_WITHOUT_EMS); it only needs to know whether the state the unit stops in
+        # aggregates (the first EM to register brings it up to date: see em_seen).
+        with_ems = eq.modules
+        first = to  # the states entered (first, between, to), for the times
+        between: tuple[State, ...] = ()
+        if entry < 0:
+            entry = 0
+            for s in (*skipped, to):
+                entry |= int(ENTRY.get(s, 0))
+        # The interlock's claim on the suspension is judged at every entry while it holds one.
+        special = trigger is _T_INTERLOCK or interlocks.suspended
+        # Nothing in this loop queues a command or starts a mode change, and only entry actions
+        # change the alarm list: these are judged once, and after entry actions.
+        queued = self._internal or self.mode_change_in_process
+        alarms_changed = alarms.version != self.publication.alarms_seen
+        # The machine's fields are written when the loop is done (nothing in it reads them).
+        frm, seq = self.state, self.sequence
         while True:
-            frm = self.state
-            self.sequence = seq = self.sequence + 1
-            self.state = to
-            self.entered_at = t
-            if skipped or trigger is _T_INTERLOCK or flags.interlock_suspended:
-                self._entry_actions(to, skipped, trigger, cmd, source, cause)
-            elif to in ENTRY_FLAGS:
-                if to in _REARMING and not alarms.current and not alarms.first_out_by_category:
-                    self._stop_armed = True  # all _entry_actions would do: nothing to reset
+            seq += 1
+            if special or entry:
+                if (
+                    not special
+                    and entry & _REARM
+                    and not entry & _NOT_QUIET
+                    and not alarms.current
+                    and not alarms.first_out_by_category
+                ):
+                    stops.armed = True  # all _entry_actions would do: nothing to reset
                 else:
                     self._entry_actions(to, skipped, trigger, cmd, source, cause)
-            # ModeStateTimes.enter(t, mode, to, planned) for a transition within a mode, inlined:
-            # the call costs 13 % of a transition (bench/engine_instructions.py). Time has passed
-            # only before the first of a command's transitions.
-            if t > times._since:
-                times._close(t)
-            state_current[base + to] = 0.0
-            times._state = to
-            times._planned = self.stop_reason is not None and self._planned()  # OEE planned stops
-            emit(
-                (
-                    "transition",
-                    _new_tuple(
-                        Transition,
-                        (t, seq, frm, to, mode, mode, trigger, cmd, source, skipped, detail),
-                    ),
-                )
-            )
-            if not eq.modules:  # Equipment.begin, inlined for units without EMs
-                eq.state, eq.sequence = to, seq
-                eq.aggregating = aggregating = to in _COMPLETE_AT_ONCE
-            else:
-                if to is _EXECUTE:
-                    eq.begin(to, seq, eq.active_count() > 0, False)
-                else:
-                    eq.begin(to, seq, to in ACTING, to in EXCUSE_OFFLINE)
-                aggregating = eq.aggregating and not eq.pending
+                    special = interlocks.suspended
+                    alarms_changed = alarms.version != self.publication.alarms_seen
+            out(("transition", _new_tuple(Transition, (t, seq, frm, to, mode, mode, trigger, cmd,
+                                                       source, skipped, detail))))  # fmt: skip
+            if alarms_changed:  # the alarm list goes with the transition
+                self.publication.alarms_changed()
+                alarms_changed = False
+            due = eq.begin(to, seq) if with_ems else to in AT_ONCE_WITHOUT_EMS
             if timed and to in timed:  # (an empty set is cheaper to test than to search)
                 config = self.config
                 if to in config.timeouts:
-                    self._at(t + config.timeouts[to], "timeout", (to, seq))
+                    self.deadlines.at(t + config.timeouts[to], "timeout", (to, seq))
                 if to in config.min_dwell:
-                    self._at(t + config.min_dwell[to], "dwell", (to, seq))
-                    aggregating = False  # State Complete waits for the dwell (_settle)
-            alarms_version = alarms.version
-            if alarms_version != self._alarms_seen:
-                self._alarms_seen = alarms_version
-                emit(("alarms", alarms_version))
-            if self.store is not None:
-                self._save()
+                    self.deadlines.at(t + config.min_dwell[to], "dwell", (to, seq))
+                    due = False  # State Complete waits for the dwell (_settle)
             # State Complete, at once? (the order of _settle: queued commands, mode change, SC)
-            if not (follow and aggregating):
+            if not (follow and due):
                 more = False
                 break
-            if self._internal or self.mode_change_in_process:
+            if queued:
                 more = True
                 break
-            to, skipped, trigger, enabled = sc_steps[to]  # type: ignore[misc]  # acting: not None
+            final, skipped, trigger, enabled, entry = sc_steps[to]  # type: ignore[misc]
             if not enabled:
                 more = True  # _settle refuses it (and says so)
                 break
-            cmd, source, detail, cause = 0, "unit", "", None
-        # A status is published after every transition (never coalesced); the key of what it
-        # shows is taken when the input is done (_flush_status).
-        self._status_key = ()
-        return more
+            if to is not first:
+                between += (to,)  # (a third state in one step: rare)
+            frm = to
+            to = final
+            cmd = 0
+            source = "unit"
+            detail = ""
+            cause = None
+        self.sequence = seq
+        self.state = to
+        self.entered_at = t
+        self.times.enter_states(
+            t, first, to, between, stops.planned_reason and stops.planned(mode, to)
+        )
+        if not with_ems and eq.aggregating is not (to in AT_ONCE_WITHOUT_EMS):
+            eq.begin(to, seq)  # (without EMs only whether the state aggregates matters)
+        return more or interlocks.busy
 
     def _entry_actions(self, to: State, skipped: tuple[State, ...], trigger: Trigger, cmd: int,
                        source: str, cause: _Cmd | None) -> None:  # fmt: skip
-        """Alarm reset on Resetting/Clearing, first-out clear on Starting, the StopReason, the
-        interlock flag; skipped (disabled) states count as entered."""
+        """The :data:`~.rules.ENTRY` actions of the skipped states and ``to``, in order, and the
+        interlock's claim on the suspension."""
         for s in (*skipped, to) if skipped else (to,):
-            flags = ENTRY_FLAGS.get(s, 0)
+            flags = ENTRY.get(s, 0)
             if not flags:
                 continue
             alarms = self.alarms
@@ -1240,46 +1090,28 @@ class Unit:
             if flags & _CLEAR_FIRST_OUT and alarms.first_out_by_category:
                 alarms.clear_first_out()
             if flags & _REARM:
-                self._stop_armed = True
-            elif flags & _STOP and self._stop_armed:
-                self.stop_reason = self._stop_reason_of(cause or _Cmd(cmd, source, trigger))
-                self._stop_armed = False
-        if self.flags.interlock_suspended or trigger is _T_INTERLOCK:
-            if trigger is _T_INTERLOCK and (to is _SUSPENDING or _SUSPENDING in skipped):
-                self.flags.interlock_suspended = True
-            elif to is not _SUSPENDING and to is not _SUSPENDED:
-                self.flags.interlock_suspended = False
+                self.stops.armed = True
+            elif flags & _STOP and self.stops.armed:
+                self.stops.record(self._stop_reason_of(cause or _Cmd(cmd, source, trigger)))
+        interlocks = self.interlocks
+        if interlocks.suspended or trigger is _T_INTERLOCK:
+            interlocks.entered(to, skipped, trigger is _T_INTERLOCK)
 
     def _stop_reason_of(self, cause: _Cmd) -> AlarmEvent:
         if cause.alarm is not None:
             return cause.alarm
-        t = self._t
         if cause.trigger is Trigger.INTERLOCK:
-            return AlarmEvent(
-                cause.stop_id or STOP_ID_BLOCKED, cause.cmd, cause.detail or "interlock", 0,
-                Kind.EVENT, t, source=cause.source, reaction=cause.cmd, trigger=False, latched=False,
-            )  # fmt: skip
-        stop_id = STOP_ID_REMOTE if cause.source.startswith("remote") else STOP_ID_OPERATOR
-        return AlarmEvent(
-            stop_id, cause.cmd, f"{command_name(cause.cmd)} by {cause.source}", 0, Kind.COMMAND, t,
-            source=cause.source, reaction=cause.cmd, trigger=False, latched=False,
-        )  # fmt: skip
+            return self.stops.of_interlock(cause.cmd, cause.source, cause.detail,
+                                           cause.stop_id or STOP_ID_BLOCKED, self._t)  # fmt: skip
+        return self.stops.of_command(cause.cmd, cause.source, self._t)
 
     def _planned(self) -> bool:
-        """Whether the unit is in a planned stop now (OEE): Production, stopped, and the stop
-        reason is in ``planned_stop_ids`` (OMAC "out of service" 4000..4999 by default)."""
-        if (
-            self.stop_reason is None
-            or self.mode != _PRODUCTION
-            or self.state not in PLANNED_STOP_STATES
-        ):
-            return False
-        lo, hi = self.config.planned_stop_ids
-        return lo <= self.stop_reason.id <= hi
+        """Whether the unit is in a planned stop now (OEE)."""
+        return self.stops.planned(self.mode, self.state)
 
     def _sc_ready(self) -> bool:
         """Every EM that must report has (the caller checked); dwell and refusal remain."""
-        if self.flags.sc_refused[1] == self.sequence:
+        if self._sc_refused == self.sequence:
             return False
         min_dwell = self.config.min_dwell
         if min_dwell and self.state in min_dwell:
@@ -1289,7 +1121,7 @@ class Unit:
     def _refuse_state_complete(self, final: State) -> None:
         """State Complete would lead into a state disabled in this mode: ignore it (counted)."""
         self.stats.sc_ignored += 1
-        self.flags.sc_refused = (self.state, self.sequence)
+        self._sc_refused = self.sequence
         self._log(
             "info",
             f"State Complete of {state_name(self.state)} ignored: {state_name(final)} is disabled "
@@ -1300,10 +1132,10 @@ class Unit:
         """Apply what follows from the current situation until nothing more does: queued internal
         commands (alarm reactions, EM loss, interlocks) by priority, then State Complete."""
         eq = self.equipment
-        flags = self.flags
+        interlocks = self.interlocks
         for _ in range(1000):
             if self._internal:
-                queue = sorted(self._internal, key=lambda r: PRIORITY.get(r.cmd, OTHER_COMMANDS))
+                queue = sorted(self._internal, key=lambda r: command_priority(r.cmd))
                 self._internal = []
                 start = self.state
                 self._step_winner = None
@@ -1318,46 +1150,29 @@ class Unit:
             if (
                 eq.aggregating
                 and not eq.pending
-                and (
-                    (not self.config.min_dwell and flags.sc_refused[1] != self.sequence)
+                and (  # (_sc_ready without the call in the common case: no dwell configured)
+                    (not self.config.min_dwell and self._sc_refused != self.sequence)
                     or self._sc_ready()
                 )
             ):
-                step = self._sc_resolved[self.mode][self.state]
-                assert step is not None  # aggregating: an acting state
-                final, skipped, trigger, enabled = step
+                final, skipped, trigger, enabled, entry = self._sc[self.mode][self.state]  # type: ignore[misc]  # aggregating: an acting state
                 if enabled:
-                    self._transition(final, trigger, 0, "unit", skipped, "", None, True)
+                    self._transition(final, trigger, 0, "unit", skipped, "", None, True, entry)
                     continue
                 self._refuse_state_complete(final)
-            if (flags.interlocks or flags.interlock_suspended) and self._interlock_action():
+            if interlocks.busy and self._interlock_action():
                 continue
             return
 
     def _interlock_action(self) -> bool:
         if not self.config.interlock_reaction:
             return False
-        key = (self.state, self.sequence)
-        if self.flags.interlock_attempt == key:
+        action = self.interlocks.action(self.state, self.sequence)
+        if action is None:
             return False
-        if self.flags.interlocks and self.state is S.EXECUTE:
-            reason, stop_id = next(iter(self.flags.interlocks.values()))
-            self.flags.interlock_attempt = key
-            self._internal.append(
-                _Cmd(C.SUSPEND, "interlock", Trigger.INTERLOCK, reason, stop_id=stop_id)
-            )
-            return True
-        if (
-            not self.flags.interlocks
-            and self.flags.interlock_suspended
-            and self.state is S.SUSPENDED
-        ):
-            self.flags.interlock_attempt = key
-            self._internal.append(
-                _Cmd(C.UNSUSPEND, "interlock", Trigger.INTERLOCK, "interlock cleared")
-            )
-            return True
-        return False
+        cmd, detail, stop_id = action
+        self._internal.append(_Cmd(cmd, "interlock", Trigger.INTERLOCK, detail, stop_id=stop_id))
+        return True
 
     # -- modes ---------------------------------------------------------------------------------------------
     def _mode_name(self, number: int) -> str:
@@ -1373,7 +1188,7 @@ class Unit:
                 f"mode {r.mode!r} is not configured on {self.config.name} (now {state_name(self.state)} "
                 f"in {self.mode_def.name} mode; configured: {configured})",
             )
-        if r.source.startswith("remote") and not self.remote_enabled:
+        if remote_locked(r.source, self.remote_enabled):
             return Answer.no(
                 Reason.REMOTE_DISABLED,
                 f"mode change to {target.name} from {r.source} refused: remote commands are "
@@ -1389,10 +1204,10 @@ class Unit:
             return Answer.ok(f"already in {target.name}")
         why = mode_change_refusal(self.mode_def, target, self.state)
         if why is not None:
-            self.flags.mode_change_not_allowed_until = self._t + MODE_CHANGE_NOT_ALLOWED_SECONDS
-            self._at(self.flags.mode_change_not_allowed_until, "lamp_off", None)
+            self.mode_change_not_allowed_until = self._t + MODE_CHANGE_NOT_ALLOWED_SECONDS
+            self.deadlines.at(self.mode_change_not_allowed_until, "lamp_off")
             self._rev += 1
-            self._capture_status()
+            self._status_now()
             return Answer.no(
                 Reason.MODE_CHANGE_NOT_ALLOWED,
                 f"mode change {self.mode_def.name} -> {target.name} not allowed in "
@@ -1400,21 +1215,23 @@ class Unit:
             )
         self.command_unit_mode = target.number
         self.mode_requested = target.number
-        self.mode_change_in_process = True
+        self._mode_changing(True)
         self._mode_source = r.source
         self.sequence += 1
-        self.equipment.begin(
-            self.state, self.sequence, self.equipment.active_count() > 0, excuse_offline=True
-        )
-        self._at(self._t + self.config.mode_change_timeout, "mode_timeout", self.sequence)
-        self._capture_status()
+        self.equipment.begin_mode_change(self.sequence)
+        self.deadlines.at(self._t + self.config.mode_change_timeout, "mode_timeout", self.sequence)
+        self._status_now()
         return Answer.ok(f"mode change {self.mode_def.name} -> {target.name} accepted")
+
+    def _mode_changing(self, on: bool) -> None:
+        self.mode_change_in_process = on
+        self.alert.set(Watch.MODE_CHANGE, on)
 
     def _abandon_mode_change(self, why: str) -> None:
         """A fault command arrived while a mode change was in process: the mode stays."""
         target = self.mode_requested
         self.mode_requested = self.mode
-        self.mode_change_in_process = False
+        self._mode_changing(False)
         self._rev += 1
         self._log(
             "warn",
@@ -1430,21 +1247,19 @@ class Unit:
         frm = self.mode
         self.mode = self.mode_requested
         self.mode_def = self.config.modes[self.mode]
-        self.mode_change_in_process = False
+        self._accepted_mode = self._accepted[self.mode]
+        self._mode_changing(False)
         self.times.enter(self._t, self.mode, self.state, self._planned())
-        self.equipment.begin(self.state, self.sequence, False, excuse_offline=True)
+        self.equipment.end_aggregation()
         self._out.append(
-            (
-                "transition",
-                Transition(self._t, self.sequence, self.state, self.state, frm, self.mode, Trigger.MODE,
-                           0, self._mode_source, (), f"{self._mode_name(frm)} -> {self.mode_def.name}"),
-            )
+            ("transition", Transition(self._t, self.sequence, self.state, self.state, frm, self.mode,
+                                      Trigger.MODE, 0, self._mode_source, (),
+                                      f"{self._mode_name(frm)} -> {self.mode_def.name}"))
         )  # fmt: skip
+        self.publication.with_record()
         self._log(
             "info", f"mode {self._mode_name(frm)} -> {self.mode_def.name} ({self._mode_source})"
         )
-        self._status_key = ()  # a status is published after the transition record
-        self._save()
 
     # -- alarms inside -------------------------------------------------------------------------------------
     def _raise(
@@ -1464,49 +1279,27 @@ class Unit:
             )
         return raised.rising
 
-    def _lost_reaction(self, em: EquipmentModule) -> int:
-        return self.config.em_lost_reaction if em.lost_reaction is None else em.lost_reaction
+    def _lost_reaction(self, configured: int | None) -> int:
+        return self.config.em_lost_reaction if configured is None else configured
 
     # -- deadlines ----------------------------------------------------------------------------------------
-    def _at(self, when: float, kind: str, data: Any) -> None:
-        self._deadline_counter += 1
-        heapq.heappush(self._deadlines, (when, self._deadline_counter, kind, data))
-        self._next_due = self._deadlines[0][0]
-
-    def _pop_deadline(self) -> tuple[str, Any]:
-        """Take the earliest deadline and bring the unit's time to it: (kind, data)."""
-        when, _, kind, data = heapq.heappop(self._deadlines)
-        self._next_due = self._deadlines[0][0] if self._deadlines else math.inf
-        self._t = max(self._t, when)
-        return kind, data
-
     def _every(self, kind: str, period: float) -> None:
-        when = self._t + period
-        behind = self._advance_to - when
-        if behind > MAX_CATCH_UP * period:  # the clock jumped: do not replay every missed period
-            when += period * math.floor(behind / period)
-        self._at(when, kind, period)
+        self.deadlines.every(self._t, self._advance_to, kind, period)
 
-    def _handlers(self) -> dict[str, Callable[[Any], None]]:
-        return {
-            "timeout": self._on_timeout,
-            "dwell": self._on_dwell,
-            "mode_timeout": self._on_mode_timeout,
-            "status": self._on_status,
-            "lamp_off": self._on_lamp_off,
-            "admin_change": self._on_admin_change,
-            "save": self._on_save,
-            "admin": self._on_admin,
-        }
+    def _fire(self) -> None:
+        """Fire the earliest deadline at its own time, then settle and publish."""
+        when, kind, data = self.deadlines.pop()
+        self._t = max(self._t, when)
+        self._handlers[kind](data)
+        self._settle()
+        self.publication.flush(self._t, self.sequence)
+        self._journal()
 
     def _advance(self, now: float) -> None:
-        handlers = self._handlers()
         self._advance_to = now
-        while now >= self._next_due:
-            kind, data = self._pop_deadline()
-            handlers[kind](data)
-            self._settle()
-            self._flush_status()
+        deadlines = self.deadlines
+        while now >= deadlines.next_due:
+            self._fire()
         self._t = max(self._t, now)
 
     def _on_timeout(self, data: tuple[State, int]) -> None:
@@ -1533,8 +1326,8 @@ class Unit:
         waiting = ", ".join(sorted(self.equipment.pending))
         target = self.mode_requested
         self.mode_requested = self.mode
-        self.mode_change_in_process = False
-        self.equipment.begin(self.state, self.sequence, False, excuse_offline=True)
+        self._mode_changing(False)
+        self.equipment.end_aggregation()
         sa = self.config.system_alarms
         d = AlarmDef(
             sa.mode_change_timeout,
@@ -1545,155 +1338,88 @@ class Unit:
         self._raise(d, source="unit", trigger=Trigger.TIMEOUT)
         self.alarms.clear(d.id, d.value, self._t)
         self._rev += 1
-        self._capture_status()
+        self._status_now()
 
     def _on_lamp_off(self, _: Any) -> None:
         """``mode_change_not_allowed`` went out (3 s after the refusal): publish that."""
         if not self.mode_change_not_allowed:
             self._rev += 1
-            self._capture_status()
+            self._status_now()
 
     def _on_status(self, _: Any) -> None:
-        self._status_flush_due = False
-        if self._key() != self._status_key:
-            self._capture_status()
+        self.publication.status_deadline(self._t, self.state, self.sequence)
 
     def _on_admin_change(self, _: Any) -> None:
-        self._admin_flush_due = False
-        self._admin_key = self._admin_state()
-        self._out.append(("admin", build_admin(self, self._t)))
-
-    def _admin_state(self) -> tuple[int, ...]:
-        return (self.sequence, self.counters.version, self.alarms.version, self._rev)
+        self.publication.admin(build_admin(self, self._t), coalesced=True)
 
     def _on_save(self, period: float) -> None:
-        self._save()
+        self._snapshot()
         self._every("save", period)
 
     def _on_admin(self, period: float) -> None:
-        self._admin_key = self._admin_state()
-        self._out.append(("admin", build_admin(self, self._t)))
+        self.publication.admin(build_admin(self, self._t), coalesced=False)
         self._every("admin", period)
 
-    # -- status publication ---------------------------------------------------------------------------
-    def _key(self) -> tuple[int, ...]:
+    # -- publication ------------------------------------------------------------------------------------
+    def _status_key(self) -> tuple[int, ...]:
+        """What a status shows changed when this changed."""
         return (self.sequence, self._rev, self.equipment.version, self.alarms.version)
 
-    def _capture_status(self) -> None:
-        """A transition or mode event: publish the status now."""
-        self._status_key = (self.sequence, self._rev, self.equipment.version, self.alarms.version)
-        self._out.append(("status", StatusMark(self._t, self.state, self.sequence)))
-        if self.alarms.version != self._alarms_seen:
-            self._alarms_seen = self.alarms.version
-            self._out.append(("alarms", self.alarms.version))
+    def _admin_key(self) -> tuple[int, ...]:
+        """What an admin shows changed (discretely: times change all the time) when this did."""
+        return (self.sequence, self.counters.version, self.alarms.version, self._rev)
 
-    def _flush_status(self) -> None:
-        """Other changes (EM progress, alarms, speed...) are published at most every 50 ms.
+    def _queue(self, item: tuple[str, Any]) -> None:
+        """An output of the publication (the unit's queue is swapped at every drain)."""
+        self._out.append(item)
 
-        ``_status_key`` is what the last published status showed; ``()`` after a transition (its
-        status is published with it) until the input ends, or, after a command's fast path, until
-        the next input begins: the key taken then is the baseline, since nothing changes between
-        inputs."""
-        if not self._status_key:  # a transition published the status: that is the new baseline
-            self._status_key = self._key()
-        elif not self._status_flush_due and self._key() != self._status_key:
-            self._status_flush_due = True
-            self._at(self._t + STATUS_COALESCE, "status", None)
-        if self.alarms.version != self._alarms_seen:
-            self._alarms_seen = self.alarms.version
-            self._out.append(("alarms", self.alarms.version))
-        if not self._admin_flush_due and self._admin_state() != self._admin_key:
-            self._admin_flush_due = True
-            self._at(self._t + ADMIN_COALESCE, "admin_change", None)
+    def _status_now(self) -> None:
+        self.publication.status_now(self._t, self.state, self.sequence)
 
     def _log(self, level: str, text: str) -> None:
-        self._out.append(("log", (level, text)))
+        self.publication.log(level, text)
 
-    # -- persistence -----------------------------------------------------------------------------------
+    # -- persistence (core/durable.py) ------------------------------------------------------------
     def document(self) -> dict[str, Any]:
         """What persistence stores: everything of the admin data, never the state."""
-        return {
-            "sequence": self.sequence,
-            "times": self.times.to_dict(self._t),
-            "counters": self.counters.to_dict(),
-            "alarms": self.alarms.to_dict(),
-            "stop_reason": self.stop_reason.to_dict() if self.stop_reason else None,
-            "mach_speed": self.mach_speed,
-            "saved_at": self._t,
-        }
+        return document(self.times, self.counters, self.alarms, self.stops, self.sequence,
+                        self.mach_speed, self._t)  # fmt: skip
 
-    def _save(self) -> None:
-        if self.store is not None:
-            self.store.save(self.document(), self._t)
+    def _journal(self) -> None:
+        """Write-ahead: the input's durable changes reach the store before it is answered."""
+        if self._durable is not None:
+            self._durable.journal(self.sequence, self.mode, self.mach_speed, self._t)
+
+    def _snapshot(self) -> None:
+        if self._durable is not None:
+            self._durable.snapshot(self.sequence, self.mode, self.mach_speed, self._t)
 
     def _restore(self, now: float) -> None:
-        data = self.store.load() if self.store is not None else None
-        self.restored: dict[str, Any] | None = data
-        if data is None:
+        self.restored: dict[str, Any] | None = None
+        if self._durable is None:
             return
-        self.sequence = int(data.get("sequence", 0))
-        self.times.restore(data.get("times", {}), now)
-        self.counters.restore(data.get("counters", {}))
-        self.alarms.restore(data.get("alarms", {}))
-        if data.get("stop_reason"):
-            self.stop_reason = AlarmEvent.from_dict(data["stop_reason"])
-        self.mach_speed = float(data.get("mach_speed", self.mach_speed))
-        self._restart_detail = "unit restarted"
-        gap = now - float(data.get("saved_at", now))
-        self.alarms.log_event(f"unit restarted (last saved {gap:.1f} s before)", now, source="unit")
+        restored = self._durable.restore(now)
+        data = self.restored = restored.document
+        if data is not None:
+            self.sequence = restored.sequence
+            if restored.mach_speed is not None:
+                self.mach_speed = restored.mach_speed
+            self._restart_detail = "unit restarted"
+            gap = now - float(data.get("saved_at", now))
+            self.alarms.log_event(f"unit restarted (last saved {gap:.1f} s before)", now, source="unit")  # fmt: skip
+        sa = self.config.system_alarms
+        for n, problem in enumerate(restored.problems, 1):
+            self._log("warn", f"persistence: {problem}")
+            d = AlarmDef(sa.store_unreadable, n, f"persistence: {problem}"[:240],
+                         sa.store_unreadable_category)  # fmt: skip
+            self._raise(d, source="unit")
+            self.alarms.clear(d.id, d.value, now)
 
     def close(self) -> None:
-        """Save a last time and close the store."""
-        self._save()
+        """Save a last snapshot and close the store."""
+        self._snapshot()
         if self.store is not None:
             self.store.close()
-
-
-def request_to_dict(r: Request) -> dict[str, Any]:
-    if isinstance(r, CommandRequest):
-        return {"kind": "command", "cmd": r.cmd, "source": r.source}
-    if isinstance(r, ModeRequest):
-        return {"kind": "mode", "mode": r.mode, "source": r.source}
-    return {"kind": "complete", "em": r.em, "state": r.state, "sequence": r.sequence}
-
-
-def request_from_dict(d: dict[str, Any]) -> Request:
-    kind = d["kind"]
-    if kind == "command":
-        return CommandRequest(int(d["cmd"]), d["source"])
-    if kind == "mode":
-        return ModeRequest(d["mode"], d["source"])
-    return CompleteReport(d["em"], int(d["state"]), int(d["sequence"]))
-
-
-#: Every input method of Unit (what ``on_input`` reports and ``apply_input`` accepts).
-INPUTS = frozenset({
-    "command", "set_mode", "step", "em_complete", "em_seen", "em_lost", "em_interlock", "em_count",
-    "set_em_active", "set_alarm", "ack_alarms", "reset_alarms", "reset_times", "reset_counters",
-    "set_mach_speed", "set_parameters", "set_product", "set_remote_enabled", "set_interlock", "advance",
-})  # fmt: skip
-
-
-def product_from_dict(d: dict[str, Any]) -> Product:
-    return Product(
-        d["product_id"],
-        tuple(Descriptor(**v) for v in d.get("process_variables", [])),
-        tuple(
-            Ingredient(i["ingredient_id"], tuple(Descriptor(**v) for v in i.get("parameter", [])))
-            for i in d.get("ingredients", [])
-        ),
-    )
-
-
-def product_to_dict(p: Product) -> dict[str, Any]:
-    return {
-        "product_id": p.product_id,
-        "process_variables": [d.__dict__ for d in p.process_variables],
-        "ingredients": [
-            {"ingredient_id": i.ingredient_id, "parameter": [d.__dict__ for d in i.parameter]}
-            for i in p.ingredients
-        ],
-    }
 
 
 __all__ = [
@@ -1705,6 +1431,4 @@ __all__ = [
     "Transition",
     "Trigger",
     "Unit",
-    "request_from_dict",
-    "request_to_dict",
 ]

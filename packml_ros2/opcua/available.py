@@ -1,13 +1,11 @@
 """Which states and transitions a unit has in a mode: the source of OPC 30050's
 ``AvailableStates`` / ``AvailableTransitions``.
 
-:func:`unit_graph` is the one place that reads the engine's rules for them. It derives the graph
-from the unit's compiled transition table (``UnitConfig.table``: the 2015 or 2022 model with the
-unit's ``hold_from`` / ``complete_from``) and the mode's disabled states (``ModeDef.disabled``,
-implications applied), walking a command through disabled acting states with the engine's own
-:func:`packml_ros2.core.modes.resolve`, as :class:`packml_ros2.core.Unit` does when it compiles its
-tables. When the engine exposes its rule book (``packml_ros2.core.rules``), this function becomes
-a call to it; nothing else in the OPC UA server reads the rules.
+:func:`unit_graph` reads them from the unit's compiled rule book
+(:func:`packml_ros2.core.rules.rules_of`: the 2015 or 2022 model with the unit's ``hold_from`` /
+``complete_from``, the mode's disabled states, commands passing through disabled acting states),
+the same declaration the engine decides transitions with; nothing else in the OPC UA server reads
+the rules.
 """
 
 from __future__ import annotations
@@ -16,8 +14,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from ..core.config import UnitConfig
-from ..core.modes import resolve
 from ..core.numbers import Cmd, State
+from ..core.rules import rules_of
 
 
 @dataclass(frozen=True)
@@ -32,24 +30,14 @@ class Graph:
 
 
 def unit_graph(config: UnitConfig, mode: int) -> Graph:
-    """The states and transitions of the unit ``config`` in ``mode`` (an unknown mode: none
-    disabled)."""
-    mode_def = config.modes.get(mode)
-    disabled = mode_def.disabled if mode_def is not None else frozenset()
-    table = config.table
-    states = frozenset(s for s in State if s is not State.UNDEFINED and s not in disabled)
+    """The states and transitions of the unit ``config`` in ``mode`` (an unknown mode: the
+    model's graph, none disabled)."""
+    rules = rules_of(config)
+    known = mode in config.modes
+    states = rules.available_states(mode) if known else frozenset(s for s in State if s is not State.UNDEFINED)  # fmt: skip
     edges: dict[tuple[State, State], set[Cmd]] = {}
-    steps: list[tuple[State, State, Cmd | None]] = [
-        (frm, first, cmd) for (frm, cmd), first in table.commands.items()
-    ]
-    steps += [(frm, first, None) for frm, first in table.state_complete.items()]
-    for frm, first, cmd in steps:
-        if frm in disabled:
-            continue
-        final, _ = resolve(first, disabled, table.state_complete)
-        if final in disabled:
-            continue
-        causes = edges.setdefault((frm, final), set())
-        if cmd is not None:
-            causes.add(cmd)
-    return Graph(states, {edge: frozenset(c) for edge, c in edges.items()})
+    for edge in rules.edges(mode if known else None):
+        causes = edges.setdefault((edge.from_state, edge.to_state), set())
+        if edge.trigger is not None:
+            causes.add(edge.trigger)
+    return Graph(frozenset(states) - {State.UNDEFINED}, {e: frozenset(c) for e, c in edges.items()})

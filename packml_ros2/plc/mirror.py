@@ -31,7 +31,8 @@ from ..core.alarms import AlarmEvent, Kind
 from ..core.config import UnitConfig
 from ..core.numbers import ACTING, WAIT, Cmd, State, command_name, names_of, state_name
 from ..core.reasons import Reason
-from ..core.unit import SETTLE, Transition, Trigger
+from ..core.rules import SETTLE, Trigger
+from ..core.unit import Transition
 from ..opcua.available import Graph, unit_graph
 from ..opcua.mapping import COMMAND_METHODS
 from ..opcua.nodeset import MachineDef, PackMLModel

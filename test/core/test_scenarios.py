@@ -779,7 +779,7 @@ def test_times_current_and_cumulative_per_mode_and_state() -> None:
     times = unit.admin().times
     P, M, N = Mode.PRODUCTION, Mode.MAINTENANCE, 18
     assert times.mode_current[P] == 3 and times.mode_cumulative[P] == 18
-    assert times.mode_current[M] == 7 and times.mode_cumulative[M] == 7
+    assert times.mode_current[M] == 0 and times.mode_cumulative[M] == 7  # left: 0 (PACKML.md 6)
     assert times.state_current[P * N + S.IDLE] == 3
     assert times.state_cumulative[P * N + S.IDLE] == 8
     assert times.state_cumulative[P * N + S.STOPPED] == 10

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 import pytest
+from packml_interfaces.srv import SetEmActive
 
 from packml_ros2.core import Cmd
 from packml_ros2.equipment_module import EquipmentModule, StateContext
@@ -234,3 +235,41 @@ def test_an_em_that_restarts_rejoins_at_the_current_state_and_sequence(ros, cell
     client.wait_state("EXECUTE", timeout=5)
     assert second.names() == [f"starting {starting.sequence}"]
     assert not any(t.trigger_name == "EM_LOST" for t in client.transitions.messages)
+
+
+def test_an_em_switched_active_mid_state_joins_it(ros, tmp_path: Path) -> None:
+    """Issue 14: in Maintenance, an EM switched active while the unit waits in an acting state
+    owes State Complete for it: it runs that state's hook and reports (it used to never report:
+    the unit hung in Resetting, or in Aborting with no command left)."""
+    release = threading.Event()
+
+    class Busy(Recorder):
+        def on_resetting(self, ctx: StateContext) -> None:
+            self.note("resetting")
+            while not release.is_set() and ctx.sleep(0.01):
+                pass
+
+    class Late(Recorder):
+        async def on_resetting(self, ctx: StateContext) -> None:
+            self.note(f"resetting {ctx.sequence}")
+
+    cell_file, cell_name = write_cell(
+        tmp_path,
+        {"u": {"initial_mode": "maintenance", "em_lease": 2.0,
+               "equipment_modules": {"busy": {}, "late": {"active": False}}}},
+    )  # fmt: skip
+    ros.add(UnitNode(unit_config_of(cell_file, "u"), context=ros.context))
+    client = UnitClient(ros, cell_name, "u")
+    client.ready()
+    busy = em(ros, Busy, cell_name, "busy")
+    late = em(ros, Late, cell_name, "late")
+    online(client, "busy")
+    online(client, "late")
+    client.trigger("reset")
+    resetting = client.wait_state("RESETTING")
+    wait_note(busy, "resetting")
+    assert not late.names()  # inactive: it sat this state out
+    assert client.call(SetEmActive, "set_em_active", em="late", active=True).accepted
+    wait_note(late, f"resetting {resetting.sequence}")
+    release.set()
+    client.wait_state("IDLE", timeout=5)

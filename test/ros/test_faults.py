@@ -52,8 +52,9 @@ def test_full_production_cycles_with_three_em_processes(ros, processes, tmp_path
         client.wait_state("IDLE")
         assert client.trigger("start").success
         client.wait_entered("EXECUTE")  # for about 0.3 s: waited for as a transition
-        # Execute completes when every EM finished its run; then Completing -> Complete
-        client.wait_state("COMPLETE", timeout=10)
+        # Execute completes when every EM finished its run; then Completing -> Complete (waited
+        # for as a transition: the status of it can arrive before the transitions before it)
+        client.wait_entered("COMPLETE", timeout=10)
         runs = cycle + 1
         admin = client.admin.wait_for(
             lambda a, runs=runs: a.prod_processed_count[0].count >= 4 * runs, 5, "processed count"
@@ -127,8 +128,8 @@ def test_em_killed_in_an_acting_state_triggers_the_reaction(
     )
     # recovery without the gripper (PACKML.md 9): Maintenance, switch it inactive, Clear, Reset
     assert client.call(SetMode, "set_mode", mode_name="maintenance").accepted
-    # (accepted = the change began: the EMs still online confirm it; under load that takes a while)
-    client.wait_status(lambda s: s.unit_mode_current_name == "MAINTENANCE", 10, "MAINTENANCE")
+    # accepted, the change waits for the online EM (robot) to confirm it: switching EMs needs it done
+    client.wait_status(lambda s: s.unit_mode_current_name == "MAINTENANCE", 10, "Maintenance")
     assert client.call(SetEmActive, "set_em_active", em="gripper", active=False).accepted
     assert client.trigger("clear").success
     client.wait_state("STOPPED")
@@ -234,3 +235,17 @@ def test_stale_state_complete_from_an_earlier_transition_is_ignored(
         )
     )
     client.wait_state("IDLE")
+
+
+def test_a_second_unit_of_the_same_name_does_not_share_its_store(
+    ros, processes, tmp_path: Path
+) -> None:
+    """Issue 14: the store is locked; the second unit says which process holds it and exits."""
+    cell_file, cell = write_cell(tmp_path, {"u": {}})
+    first = start_unit_process(processes, cell_file, "u")
+    UnitClient(ros, cell, "u").ready()
+    second = start_unit_process(processes, cell_file, "u")
+    assert second.popen.wait(30) == 2, second.output()
+    assert f"is in use by process {first.pid}" in second.output(), second.output()
+    assert "Traceback" not in second.output()
+    assert first.running()

@@ -621,6 +621,49 @@ def test_a_lost_em_triggers_its_reaction_within_the_lease_and_rejoins(
     em.stop_heartbeats()
 
 
+def test_the_configured_lease_decides_not_the_ems_promise(ros, make_unit) -> None:
+    """Issue 14: an EM promising 6 s is still lost after the unit's em_lease (0.5 s); one
+    promising 0.3 s but beating every 0.5 s is not lost (em_lease 2 s)."""
+    unit = make_unit({"equipment_modules": {"gripper": {}, "robot": {}}, "em_lease": 0.5})
+    gripper = FakeEm(ros, unit, "gripper", lease=6.0, period=0.1)
+    gripper.start_heartbeats()
+    unit.wait_status(lambda m: em_of(m, "gripper").online, 5.0, "gripper online")
+    unit.mark()
+    last = gripper.stop_heartbeats()
+    unit.wait_status(lambda m: not em_of(m, "gripper").online, 3.0, "gripper lost")
+    detected = time.monotonic() - last
+    assert detected <= 0.5 + 0.5, f"lost after {detected:.2f} s"
+
+    unit = make_unit({"equipment_modules": {"robot": {}}, "em_lease": 2.0, "persistence": False})
+    robot = FakeEm(ros, unit, "robot", lease=0.3, period=0.5)
+    robot.start_heartbeats()
+    unit.wait_status(lambda m: em_of(m, "robot").online, 5.0, "robot online")
+    seen: set[float] = set()
+    wait_until(lambda: seen.add(robot.last_heartbeat) or len(seen) >= 5, 10, "5 heartbeats")
+    assert em_of(unit.status.last, "robot").online
+    assert not any(t.trigger == TransitionEvent.TRIGGER_EM_LOST for t in unit.transitions.messages)
+    robot.stop_heartbeats()
+
+
+def test_a_stray_heartbeat_never_registers_an_em_mid_production(ros, make_unit) -> None:
+    """Issue 14: one heartbeat of an unknown EM while the unit produces must not register it
+    (its loss would abort the unit, and Clear would stay refused in Production); at rest it
+    registers (allow_registration: true, the default)."""
+    unit = make_unit({"em_lease": 0.5})
+    unit.drive("reset", "start")
+    stray = FakeEm(ros, unit, "stray")
+    stray.send(EmReport.KIND_HEARTBEAT)
+    with pytest.raises(TimeoutError):
+        unit.wait_status(lambda m: any(e.name == "stray" for e in m.equipment_modules), 1.5)
+    assert unit.status.last.state_current_name == "EXECUTE"
+    assert not any(t.trigger == TransitionEvent.TRIGGER_EM_LOST for t in unit.transitions.messages)
+    unit.drive("stop")
+    stray.start_heartbeats()
+    unit.wait_status(lambda m: any(e.name == "stray" and e.online for e in m.equipment_modules),
+                     5.0, "stray registered at rest")  # fmt: skip
+    stray.stop_heartbeats()
+
+
 # -- 5. Alarm services -----------------------------------------------------------------------------------
 def raise_alarm(unit: Unit, alarm_id: int, category: int, message: str) -> None:
     resp = unit.call(SetAlarm, "set_alarm", id=alarm_id, category=category, message=message,

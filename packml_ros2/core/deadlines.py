@@ -1,0 +1,54 @@
+"""The engine's own timeline: what is due when (state timeouts, minimum dwell, the mode-change
+timeout, the mode-change-not-allowed lamp, coalesced status and admin publications, periodic admin
+and saves).
+
+:class:`Deadlines` owns the heap and the time of the earliest deadline (``next_due``, ``inf`` when
+none). The unit fires them in time order, each at its own time, so results depend only on the
+clock values of its inputs. ``next_due`` is also what a driver may sleep until instead of polling.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from typing import Any
+
+#: Periodic deadlines missed by more than this many periods (the clock jumped, e.g. NTP after
+#: boot) are not replayed one by one: the next one is the last period point before now.
+MAX_CATCH_UP = 100
+
+
+class Deadlines:
+    """A heap of (time, order, kind, data); ``kind`` names the handler of the unit."""
+
+    __slots__ = ("_counter", "heap", "next_due")
+
+    def __init__(self) -> None:
+        self.heap: list[tuple[float, int, str, Any]] = []
+        self.next_due = math.inf  #: the earliest deadline's time, inf when none
+        self._counter = 0
+
+    def __len__(self) -> int:
+        return len(self.heap)
+
+    def at(self, when: float, kind: str, data: Any = None) -> None:
+        """``kind`` is due at ``when`` (deadlines at the same time fire in the order set)."""
+        self._counter += 1
+        heapq.heappush(self.heap, (when, self._counter, kind, data))
+        self.next_due = self.heap[0][0]
+
+    def pop(self) -> tuple[float, str, Any]:
+        """The earliest deadline: (time, kind, data)."""
+        when, _, kind, data = heapq.heappop(self.heap)
+        self.next_due = self.heap[0][0] if self.heap else math.inf
+        return when, kind, data
+
+    def every(self, now: float, behind_to: float, kind: str, period: float) -> None:
+        """The next of a periodic ``kind``: ``period`` after ``now``; if that is already far
+        behind ``behind_to`` (the time the unit is being brought to), the last period point
+        before it."""
+        when = now + period
+        behind = behind_to - when
+        if behind > MAX_CATCH_UP * period:
+            when += period * math.floor(behind / period)
+        self.at(when, kind, period)

@@ -1,0 +1,136 @@
+"""What survives a restart of a unit (PACKML.md 6): its admin data, never its state.
+
+:class:`Durable` links the unit's parts (times, counters, alarms, stop reason) to its
+:class:`~.persistence.Store`: the snapshot document (:meth:`Durable.document`), the journal of each
+input's changes, written before the unit answers or publishes (:meth:`Durable.journal`:
+write-ahead), and the restore at start-up (:meth:`Durable.restore`). It remembers what it last
+wrote, so an input journals only what changed: counters, alarm occurrences (by serial), the stop
+reason, the machine speed, and the sequence and times after state and mode changes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from .alarms import AlarmEvent, AlarmManager
+from .counters import Counters
+from .stopreason import StopReasons
+from .times import ModeStateTimes
+
+
+class StoreLike(Protocol):
+    """A :class:`~.persistence.Store`, or a stand-in (replay's, which writes nothing)."""
+
+    def load(self) -> dict[str, Any] | None: ...
+    def save(self, document: dict[str, Any], now: float) -> None: ...
+    def close(self) -> None: ...
+
+
+@dataclass
+class Restored:
+    """What a unit restored: the document (None: nothing stored) and what went wrong."""
+
+    document: dict[str, Any] | None
+    sequence: int = 0
+    mach_speed: float | None = None
+    problems: list[str] = field(default_factory=list)
+
+
+def document(times: ModeStateTimes, counters: Counters, alarms: AlarmManager, stops: StopReasons,
+             sequence: int, mach_speed: float, now: float) -> dict[str, Any]:  # fmt: skip
+    """What persistence stores of a unit: everything of the admin data, never the state."""
+    stop_reason = stops.reason
+    return {
+        "sequence": sequence,
+        "times": times.to_dict(now),
+        "counters": counters.to_dict(),
+        "alarms": alarms.to_dict(),
+        "stop_reason": stop_reason.to_dict() if stop_reason else None,
+        "mach_speed": mach_speed,
+        "saved_at": now,
+    }
+
+
+class Durable:
+    __slots__ = ("_append", "_written", "alarms", "counters", "stops", "store", "times")
+
+    def __init__(self, store: StoreLike, times: ModeStateTimes, counters: Counters,
+                 alarms: AlarmManager, stops: StopReasons) -> None:  # fmt: skip
+        self.store = store
+        #: None for a store that keeps no journal (a replay's): journal() then only forgets
+        self._append = getattr(store, "append", None)
+        self.times, self.counters, self.alarms, self.stops = times, counters, alarms, stops
+        #: (sequence, mode, times resets, counters version, stop reason, speed) as last written
+        self._written: tuple[Any, ...] = ()
+        alarms.take_changed()  # from now on the alarms note which occurrences change
+
+    def document(self, sequence: int, mach_speed: float, now: float) -> dict[str, Any]:
+        """The snapshot: everything of the admin data, never the state."""
+        return document(
+            self.times, self.counters, self.alarms, self.stops, sequence, mach_speed, now
+        )
+
+    def snapshot(self, sequence: int, mode: int, mach_speed: float, now: float) -> None:
+        self.store.save(self.document(sequence, mach_speed, now), now)
+        self.alarms.take_changed()
+        self._written = self._state(sequence, mode, mach_speed)
+
+    def _state(self, sequence: int, mode: int, mach_speed: float) -> tuple[Any, ...]:
+        times, counters, stops = self.times, self.counters, self.stops
+        return (sequence, mode, times.resets, counters.version, stops.reason, mach_speed)
+
+    def journal(self, sequence: int, mode: int, mach_speed: float, now: float) -> None:
+        """Write what changed since the last call (one ``write()``): before the unit answers."""
+        changed = self.alarms.changed
+        if self._append is None:
+            if changed:
+                changed.clear()
+            return
+        state = self._state(sequence, mode, mach_speed)
+        if state == self._written and not changed:
+            return
+        records: list[dict[str, Any]] = []
+        written = self._written or (None,) * len(state)
+        changes: dict[str, Any] = {}
+        if state[:3] != written[:3]:  # a state or mode change, a reset: times and sequence
+            changes["sequence"] = sequence
+            changes["times"] = self.times.to_dict(now)
+            changes["saved_at"] = now
+        if state[3] != written[3]:
+            changes["counters"] = self.counters.to_dict()
+        if state[4] is not written[4]:
+            changes["stop_reason"] = state[4].to_dict() if state[4] is not None else None
+        if state[5] != written[5]:
+            changes["mach_speed"] = mach_speed
+        if changes:
+            records.append({"set": changes})
+        alarms = self.alarms
+        dropped, keep = alarms.history_dropped, alarms.history_capacity
+        records += [
+            {"event": ev.to_dict(), "dropped": dropped, "keep": keep}
+            for ev in alarms.take_changed()
+        ]
+        if records:
+            self._append(records)
+        self._written = state
+
+    def restore(self, now: float) -> Restored:
+        """Load the stored admin data into the parts (the unit sets the sequence and speed)."""
+        data = self.store.load()
+        problems = list(getattr(self.store, "problems", []))
+        out = Restored(data, problems=problems)
+        if data is None:
+            return out
+        try:
+            out.sequence = int(data.get("sequence", 0))
+            self.times.restore(data.get("times", {}), now)
+            self.counters.restore(data.get("counters", {}))
+            self.alarms.restore(data.get("alarms", {}))
+            if data.get("stop_reason"):
+                self.stops.set(AlarmEvent.from_dict(data["stop_reason"]))
+            out.mach_speed = float(data.get("mach_speed", 0.0))
+        except (TypeError, ValueError, KeyError) as exc:
+            problems.append(f"the stored admin data could not be restored ({exc}): the unit starts without it")  # fmt: skip
+        self.alarms.take_changed()
+        return out

@@ -1,0 +1,74 @@
+"""Line interlocks (PACKML.md 4): Blocked/Starved reported by the unit's EMs and interlocks set from
+outside (the coordinator) suspend the unit while it is in Execute and unsuspend it when all are
+cleared, if the unit was suspended by one (``interlock_reaction: suspend``; the rule:
+:data:`.rules.INTERLOCK_SUSPEND`, :data:`.rules.INTERLOCK_RESUME`).
+
+:class:`Interlocks` owns the active interlocks, whether the unit's suspension is theirs, and which
+(state, sequence) it last acted in (one attempt per state entry). It keeps the ``INTERLOCK`` bit of
+the unit's :class:`~.rules.Alert`.
+"""
+
+from __future__ import annotations
+
+from .numbers import Cmd, State
+from .rules import INTERLOCK_RESUME, INTERLOCK_SUSPEND, Alert, Watch
+
+#: OMAC stop-reason IDs (Beckhoff E_AlarmID ranges) of interlock stops.
+STOP_ID_BLOCKED = 3002  # downstream: discharge blocked
+STOP_ID_STARVED = 2499  # upstream: undefined upstream reason
+
+
+class Interlocks:
+    __slots__ = ("active", "alert", "attempt", "busy", "suspended")
+
+    def __init__(self, alert: Alert) -> None:
+        self.alert = alert
+        self.active: dict[str, tuple[str, int]] = {}  #: key -> (reason, stop-reason ID)
+        self.suspended = False  #: the unit is in Suspending/Suspended because of an interlock
+        self.attempt: tuple[int, int] = (-1, -1)  #: (state, sequence) of the last action
+        self.busy = False  #: an interlock is active or holds the suspension: the unit must look
+
+    def __bool__(self) -> bool:
+        return bool(self.active)
+
+    def set(self, key: str, reason: str, stop_id: int) -> None:
+        self.active[key] = (reason, stop_id)
+        self.alert.set(Watch.INTERLOCK, True)
+        self.busy = True
+
+    def clear(self, key: str) -> None:
+        self.active.pop(key, None)
+        self.alert.set(Watch.INTERLOCK, bool(self.active))
+        self.busy = bool(self.active) or self.suspended
+
+    def reasons(self) -> list[str]:
+        return [reason for reason, _ in self.active.values()]
+
+    def says(self, word: str) -> bool:
+        """Whether an interlock's reason contains ``word`` (``blocked``/``starved``)."""
+        return any(word in reason for reason, _ in self.active.values())
+
+    def action(self, state: State, sequence: int) -> tuple[Cmd, str, int] | None:
+        """The command an interlock asks for now, once per (state, sequence): Suspend in Execute
+        while one is active, Unsuspend in Suspended once all are cleared (if they suspended
+        the unit). (command, detail, stop-reason ID) or None."""
+        key = (int(state), sequence)
+        if self.attempt == key:
+            return None
+        if self.active and state is INTERLOCK_SUSPEND[0]:
+            self.attempt = key
+            reason, stop_id = next(iter(self.active.values()))
+            return INTERLOCK_SUSPEND[1], reason, stop_id
+        if not self.active and self.suspended and state is INTERLOCK_RESUME[0]:
+            self.attempt = key
+            return INTERLOCK_RESUME[1], "interlock cleared", 0
+        return None
+
+    def entered(self, state: State, skipped: tuple[State, ...], by_interlock: bool) -> None:
+        """The unit entered ``state`` (through ``skipped``): the suspension is the interlocks'
+        when they caused Suspending, and no longer once the unit left the Suspend states."""
+        if by_interlock and (state is State.SUSPENDING or State.SUSPENDING in skipped):
+            self.suspended = True
+        elif state is not State.SUSPENDING and state is not State.SUSPENDED:
+            self.suspended = False
+        self.busy = bool(self.active) or self.suspended
