@@ -16,6 +16,8 @@ from .rules import INTERLOCK_RESUME, INTERLOCK_SUSPEND, Alert, Watch
 #: OMAC stop-reason IDs (Beckhoff E_AlarmID ranges) of interlock stops.
 STOP_ID_BLOCKED = 3002  # downstream: discharge blocked
 STOP_ID_STARVED = 2499  # upstream: undefined upstream reason
+#: Interlocks set from outside (``set_interlock``) a unit holds at most: one per source.
+MAX_EXTERNAL = 16
 
 
 class Interlocks:
