@@ -381,8 +381,13 @@ class CoordinatorNode(Node):
             unit.interlock_pending = False
             what = f"interlock on {unit.name} ({reason})" if want else f"clearing the interlock on {unit.name}"  # fmt: skip
             exc = future.exception()
-            if exc is not None or not future.result().accepted:
-                why = str(exc) if exc is not None else future.result().message
+            answer = None if exc is not None else future.result()
+            # (a clear of what the unit does not hold from us: nothing to do is done)
+            done = answer is not None and (
+                answer.accepted or (not want and answer.result == Result.NOTHING_TO_DO)
+            )
+            if not done:
+                why = str(exc) if answer is None else answer.message
                 unit.interlock_retry_at = time.monotonic() + INTERLOCK_RETRY
                 if why != unit.interlock_error:  # once per distinct problem, not every retry
                     unit.interlock_error = why
