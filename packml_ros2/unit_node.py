@@ -3,7 +3,8 @@
 Services (relative to the node, e.g. ``/demo_cell/robot_cell/command``): ``command``, ``set_mode``,
 the Trigger shortcuts ``reset`` ... ``complete``, ``reset_times``, ``reset_counters``,
 ``ack_alarms``, ``reset_alarms``, ``query_alarms``, ``set_alarm``, ``set_mach_speed``,
-``set_unit_parameters``, ``set_product``, ``set_em_active``, ``set_interlock``.
+``set_unit_parameters``, ``set_product``, ``set_em_active``, ``set_interlock``,
+``set_remote_commands`` (the remote lock: from a local source only).
 Topics: ``status``, ``transitions``, ``admin``, ``alarms``, ``input_log``, ``/diagnostics``;
 EMs report on ``em_reports``.
 
@@ -12,6 +13,7 @@ Run: ``unit_node <cell.yaml> [unit] [--ros-args -p remote_commands_enabled:=true
 
 from __future__ import annotations
 
+import inspect
 import json
 import sys
 from collections.abc import Callable, Sequence
@@ -34,11 +36,13 @@ from packml_interfaces.srv import (
     SetMachSpeed,
     SetMode,
     SetProduct,
+    SetRemoteCommands,
     SetUnitParameters,
 )
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.subscription import MessageInfo
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
@@ -56,7 +60,11 @@ from .core import (
     state_name,
 )
 from .core.config import CoordinatorConfig
+from .core.limits import LogLimiter, printable
 from .core.liveliness import Liveliness
+from .core.reasons import Reason
+from .core.reports import LEAVE, Writers, report_problem
+from .core.rules import lock_change_refusal
 from .core.secrets import redacted_yaml
 from .driver import FrozenClock, UnitDriver
 
@@ -87,6 +95,11 @@ class UnitNode(Node):
         self.unit = Unit(config, clock=self.clock, store=self.store)
         self.driver = UnitDriver(self.unit, self.clock, self._emit)
         self.liveliness = Liveliness(config.em_lease)
+        #: which writer speaks for each EM (core.reports): a forger's reports are refused
+        self.writers = Writers(config.em_lease / 2)
+        self.refused_reports = 0
+        self._log_limiter = LogLimiter()
+        self._lock_change = False  # set while set_remote_commands changes the parameter
         self._inputs: list[UnitInput] = []
         self._input_index = 0
         self._record = bool(self.get_parameter("record_inputs").value)
@@ -114,7 +127,9 @@ class UnitNode(Node):
             "admin": self.pub_admin,
             "alarms": self.pub_alarms,
         }
-        self.create_subscription(EmReport, "~/em_reports", self._on_report, qos.EM_REPORTS)
+        self._reports = self.create_subscription(
+            EmReport, "~/em_reports", with_info(self._on_report), qos.EM_REPORTS
+        )
         self._create_services()
         self._timers = [
             self.create_timer(ADVANCE_PERIOD, self._on_tick),
@@ -135,7 +150,10 @@ class UnitNode(Node):
         self.declare_parameter(
             "remote_commands_enabled",
             config.remote_commands_enabled,
-            ParameterDescriptor(description="accept commands whose source starts with 'remote'"),
+            ParameterDescriptor(
+                description="accept requests from remote sources (hmi:, opcua:, coordinator, "
+                "remote:); switched only by set_remote_commands from a local source"
+            ),
         )
         self.declare_parameter(
             "persistence_path",
@@ -154,9 +172,18 @@ class UnitNode(Node):
 
     def _validate_parameters(self, params: list[Parameter]) -> SetParametersResult:
         for p in params:
-            if p.name == "remote_commands_enabled" and p.type_ != Parameter.Type.BOOL:
+            if p.name != "remote_commands_enabled":
+                continue
+            if p.type_ != Parameter.Type.BOOL:
                 return SetParametersResult(
                     successful=False, reason="remote_commands_enabled must be a bool"
+                )
+            if not self._lock_change:  # the parameter service names no source: not local
+                return SetParametersResult(
+                    successful=False,
+                    reason=f"remote_commands_enabled is switched only from a local source: call "
+                    f"{self.get_fully_qualified_name()}/set_remote_commands "
+                    f"(packml remote {self.config.name} on|off)",
                 )
         return SetParametersResult(successful=True)
 
@@ -185,6 +212,7 @@ class UnitNode(Node):
             (SetProduct, "set_product", self._srv_set_product),
             (SetEmActive, "set_em_active", self._srv_set_em_active),
             (SetInterlock, "set_interlock", self._srv_set_interlock),
+            (SetRemoteCommands, "set_remote_commands", self._srv_set_remote_commands),
         ]
         for cmd in Cmd:
             if cmd:
@@ -315,17 +343,73 @@ class UnitNode(Node):
     def _srv_set_interlock(
         self, req: SetInterlock.Request, resp: SetInterlock.Response
     ) -> SetInterlock.Response:
-        answer = self._run(self.unit.set_interlock, req.active, req.reason, req.source or "remote")
+        answer = self._run(self.unit.set_interlock, req.active, req.reason, req.source)
         return self._answer(resp, answer)
 
+    def _srv_set_remote_commands(
+        self, req: SetRemoteCommands.Request, resp: SetRemoteCommands.Response
+    ) -> SetRemoteCommands.Response:
+        """The remote lock, from a local source only (core.rules.lock_change_refusal)."""
+        source = req.source or "operator"
+        refused = lock_change_refusal(source, self.config.name)
+        if refused is not None:
+            return self._answer(resp, refused)
+        word = "enabled" if req.enabled else "disabled"
+        if self.unit.remote_enabled == req.enabled:
+            resp.accepted, resp.message = True, f"remote commands already {word}"
+            return resp
+        self._lock_change = True
+        try:
+            result = self.set_parameters([Parameter("remote_commands_enabled", value=req.enabled)])
+        finally:
+            self._lock_change = False
+        resp.accepted = result[0].successful
+        resp.result = int(Reason.ACCEPTED if resp.accepted else Reason.INVALID_ARGUMENT)
+        resp.message = f"remote commands {word} by {source}" if resp.accepted else result[0].reason
+        if resp.accepted:
+            self._log("info", resp.message)
+        return resp
+
     # -- equipment modules ---------------------------------------------------------------------------
-    def _on_report(self, msg: EmReport) -> None:
-        self.driver.report(self._now(), msg, self.liveliness)
+    def _on_report(self, msg: EmReport, info: MessageInfo) -> None:
+        """An EM report: checked field by field, and taken only from the writer that speaks for
+        its EM (core.reports); then applied (driver.report)."""
+        now = self._now()
+        problem = report_problem(msg, self.unit.sequence)
+        if problem is None:
+            gid = info.get("publisher_gid")
+            writer = bytes(gid["data"]) if gid else b""
+            taken, note = self.writers.claim(msg.em, writer, now, self._writer_gone)
+            if note is not None:
+                self._log("warn" if not taken else "info", note)
+            if not taken:
+                self.refused_reports += 1
+                return
+        else:
+            self.refused_reports += 1
+            self.unit.stats.bad_reports += 1
+            self._log("warn", f"EM report refused: {problem}")
+            return
+        self.driver.report(now, msg, self.liveliness)
+        if msg.kind == LEAVE or msg.em not in self.unit.equipment.modules:
+            self.writers.release(msg.em)  # left, or not an EM of the unit: keep nothing
+
+    def _writer_gone(self, writer: bytes) -> bool:
+        """Whether ``writer`` no longer publishes EM reports here (its node or process ended)."""
+        topic = self._reports.topic_name
+        return all(
+            bytes(bytearray(e.endpoint_gid))[: len(writer)] != writer
+            for e in self.get_publishers_info_by_topic(topic)
+        )
 
     def _on_tick(self) -> None:
         now = self._now()
         for name, lease in self.liveliness.expired(now):
+            self.writers.release(name)
             self.driver.call(now, self.unit.em_lost, name, f"no report for {lease:g} s")
+        summary = self._log_limiter.due(now)
+        if summary is not None:
+            self.get_logger().warning(summary)
         self.driver.catch_up(now)
         self._flush_inputs()
 
@@ -365,6 +449,14 @@ class UnitNode(Node):
         self.pub_admin.publish(convert.admin(self.unit.admin()))
 
     def _log(self, level: str, text: str) -> None:
+        """A log line of the engine or the node: callers' text escaped (no forged lines), repeated
+        lines rate-limited (core.limits)."""
+        write, summary = self._log_limiter.admit(text, self._now())
+        if summary is not None:
+            self.get_logger().warning(summary)
+        if not write:
+            return
+        text = printable(text, 1000)
         # rclpy ties a severity to each call site: one call per level.
         if level == "warn":
             self.get_logger().warning(text)
@@ -408,6 +500,21 @@ class UnitNode(Node):
     def destroy_node(self) -> None:
         self.close()
         super().destroy_node()
+
+
+def with_info(callback: Callable[[Any, MessageInfo], None]) -> Callable[..., None]:
+    """``callback(msg, info)`` as a subscription callback every executor calls right: rclpy's
+    Python executors pass (msg, info), its EventsExecutor (rclpy 9.1) one (msg, info) tuple."""
+
+    def call(*args: Any) -> None:
+        msg, info = args if len(args) == 2 else args[0]
+        callback(msg, info)
+
+    two = inspect.Parameter.POSITIONAL_ONLY
+    call.__signature__ = inspect.Signature(  # type: ignore[attr-defined]  # what rclpy inspects
+        [inspect.Parameter("msg", two), inspect.Parameter("info", two)]
+    )
+    return call
 
 
 def pick_unit(cell: CellConfig, cell_file: str, unit: str | None) -> UnitConfig:

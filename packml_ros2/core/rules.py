@@ -581,13 +581,19 @@ ACTIVATED_EM_JOINS_CURRENT_STATE = True
 #: stray report (a typo, another cell's EM) would make the unit wait for it, and abort when it goes
 #: silent; the EM registers with its next report once the unit rests.
 REGISTRATION_AT_REST: frozenset[State] = frozenset({S.STOPPED, S.IDLE, S.ABORTED, S.COMPLETE})
+#: A unit takes at most this many EMs (configured and registered): a flood of made-up names
+#: registers no more.
+MAX_EMS = 64
 
 
 def registration_refusal(mode: int, state: State, allow_registration: bool,
-                         by_report: bool) -> str | None:  # fmt: skip
-    """Why an unknown EM cannot register now (``by_report``: its own report asks), or None."""
+                         by_report: bool, count: int = 0) -> str | None:  # fmt: skip
+    """Why an unknown EM cannot register now (``by_report``: its own report asks; ``count``: the
+    EMs the unit has), or None."""
     if not allow_registration:
         return "does not accept registrations (allow_registration: false)"
+    if count >= MAX_EMS:
+        return f"has {count} EMs, as many as a unit takes ({MAX_EMS})"
     if by_report and mode == Mode.PRODUCTION and state not in REGISTRATION_AT_REST:
         rest = ", ".join(s.name for s in sorted(REGISTRATION_AT_REST))
         return f"registers EMs by their reports in PRODUCTION only at rest ({rest}), not in {state.name}"
@@ -884,6 +890,7 @@ __all__ = [
     "IMPLIED_DISABLED",
     "LOCAL_KINDS",
     "LOCKED_INPUTS",
+    "MAX_EMS",
     "MOTION",
     "ONLY_WITH_ACTIVE_EMS",
     "PRIORITY",

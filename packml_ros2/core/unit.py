@@ -416,7 +416,7 @@ class Unit:
         em = self.equipment.get(name)
         if em is None:
             why = registration_refusal(
-                self.mode, self.state, self.config.allow_registration, report
+                self.mode, self.state, self.config.allow_registration, report, len(self.equipment)
             )
             if why is not None:
                 if name not in self._strays and len(self._strays) < MAX_STRAYS_LOGGED:

@@ -227,7 +227,7 @@ def test_alarms_are_acknowledged_and_reset_through_the_bridge(make_cell) -> None
     cell.wait_status(lambda s: s["state_name"] == "IDLE", "IDLE")
     mark = len(cell.events)
     raised = cell.client.call(SetAlarm, "set_alarm", id=201, value=0, active=True, category=-1,
-                              source="test")  # fmt: skip
+                              source="operator:test")  # fmt: skip
     assert raised.accepted, raised.message_out
     listed = cell.wait_event(
         lambda e: e["topic"] == "alarms" and len(e["data"]["alarms"]) == 1, "the alarm", mark
@@ -255,7 +255,7 @@ def test_alarms_are_acknowledged_and_reset_through_the_bridge(make_cell) -> None
     assert nothing["result_name"] == "NOTHING_TO_DO", nothing
 
     cell.client.call(
-        SetAlarm, "set_alarm", id=201, value=0, active=False, category=-1, source="test"
+        SetAlarm, "set_alarm", id=201, value=0, active=False, category=-1, source="operator:test"
     )
     mark = len(cell.events)
     reset = cell.bridge.act_sync(UNIT, "reset_alarms")

@@ -349,10 +349,10 @@ def test_an_injected_alarm_shows_in_banner_and_list_and_is_acknowledged(env: Env
     unit = f"/{env.cell}/robot_cell"
     expect(page.locator("#banner-alarm")).not_to_have_class(re.compile(r"\bactive\b"))
     raised = env.ros.call(SetAlarm, f"{unit}/set_alarm",
-                          SetAlarm.Request(id=201, active=True, category=-1, source="test"))  # fmt: skip
+                          SetAlarm.Request(id=201, active=True, category=-1, source="operator:test"))  # fmt: skip
     assert raised.accepted, raised.message_out
     env.ros.call(SetAlarm, f"{unit}/set_alarm",
-                 SetAlarm.Request(id=301, active=True, warning=True, category=-1, source="test"))  # fmt: skip
+                 SetAlarm.Request(id=301, active=True, warning=True, category=-1, source="operator:test"))  # fmt: skip
     banner = page.locator("#banner-alarm")
     expect(banner).to_have_class(re.compile(r"\bactive\b"))
     expect(banner).to_contain_text("Gripper vacuum lost")
@@ -374,7 +374,7 @@ def test_an_injected_alarm_shows_in_banner_and_list_and_is_acknowledged(env: Env
     env.ros.call(
         SetAlarm,
         f"{unit}/set_alarm",
-        SetAlarm.Request(id=201, active=False, category=-1, source="test"),
+        SetAlarm.Request(id=201, active=False, category=-1, source="operator:test"),
     )
     expect(row).to_have_attribute("data-operator-state", "1")  # inactive, unacknowledged: amber
     amber = background(row)
@@ -388,7 +388,7 @@ def test_an_injected_alarm_shows_in_banner_and_list_and_is_acknowledged(env: Env
     page.click("[data-alarm-unit=robot_cell] button:has-text('Reset alarms')")
     expect(row).to_have_count(0)
     env.ros.call(SetAlarm, f"{unit}/set_alarm",
-                 SetAlarm.Request(id=301, active=False, warning=True, category=-1, source="test"))  # fmt: skip
+                 SetAlarm.Request(id=301, active=False, warning=True, category=-1, source="operator:test"))  # fmt: skip
     no_problems(page)
     page.close()
 

@@ -233,8 +233,10 @@ def filler(cell: Cell, ros: Any) -> UnitClient:
     """The filler over ROS, brought to Stopped in Production with no alarm first."""
     unit = UnitClient(ros, cell.name, "filler")
     unit.ready()
-    unit.call(SetAlarm, "set_alarm", id=201, value=0, active=False, category=-1, source="test")
-    unit.call(ResetAlarms, "reset_alarms", clear_first_out=True, source="test")
+    unit.call(
+        SetAlarm, "set_alarm", id=201, value=0, active=False, category=-1, source="operator:test"
+    )
+    unit.call(ResetAlarms, "reset_alarms", clear_first_out=True, source="operator:test")
     status = unit.status.last
     if status.state_current_name != "STOPPED":
         if status.state_current_name not in ("ABORTING", "ABORTED"):
@@ -243,7 +245,7 @@ def filler(cell: Cell, ros: Any) -> UnitClient:
         unit.command(Cmd.CLEAR)
         unit.wait_state("STOPPED")
     if unit.status.last.unit_mode_current != 1:
-        unit.call(SetMode, "set_mode", mode=1, source="test")
+        unit.call(SetMode, "set_mode", mode=1, source="operator:test")
     unit.wait_status(
         lambda m: (
             m.state_current_name == "STOPPED" and m.unit_mode_current == 1 and not m.active_alarms
@@ -607,7 +609,7 @@ def test_alarms_and_counters(cell: Cell, filler: UnitClient) -> None:
     assert count["Unit"]["DisplayName"]["text"] == "pcs"
 
     raised = filler.call(
-        SetAlarm, "set_alarm", id=201, value=0, active=True, category=-1, source="test"
+        SetAlarm, "set_alarm", id=201, value=0, active=True, category=-1, source="operator:test"
     )
     assert raised.accepted, raised.message_out
     alarm, extent, stop_reason, history, machine = cell.run([
