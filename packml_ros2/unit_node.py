@@ -36,12 +36,10 @@ from packml_interfaces.srv import (
     SetMachSpeed,
     SetMode,
     SetProduct,
-    SetRemoteCommands,
     SetUnitParameters,
 )
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.subscription import MessageInfo
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -62,11 +60,10 @@ from .core import (
 from .core.config import CoordinatorConfig
 from .core.limits import LogLimiter, printable
 from .core.liveliness import Liveliness
-from .core.reasons import Reason
 from .core.reports import LEAVE, Writers, report_problem
-from .core.rules import lock_change_refusal
 from .core.secrets import redacted_yaml
 from .driver import FrozenClock, UnitDriver
+from .remote_lock import RemoteLock
 
 T = TypeVar("T")
 SORTS = {QueryAlarms.Request.SORT_TIME: "time", QueryAlarms.Request.SORT_CATEGORY_TIME: "category",
@@ -99,7 +96,6 @@ class UnitNode(Node):
         self.writers = Writers(config.em_lease / 2)
         self.refused_reports = 0
         self._log_limiter = LogLimiter()
-        self._lock_change = False  # set while set_remote_commands changes the parameter
         self._inputs: list[UnitInput] = []
         self._input_index = 0
         self._record = bool(self.get_parameter("record_inputs").value)
@@ -136,8 +132,10 @@ class UnitNode(Node):
             self.create_timer(DIAGNOSTICS_PERIOD, self._publish_diagnostics),
         ]
         self._closed = False
-        self.add_post_set_parameters_callback(self._on_parameters_set)
-        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.remote_lock = RemoteLock(
+            self, config.name, config.remote_commands_enabled,
+            lambda enabled: self._run(self.unit.set_remote_enabled, enabled),
+        )  # fmt: skip
         self._publish_start()
         self.get_logger().info(
             f"PackML unit {self.get_fully_qualified_name()} up: {state_name(self.unit.state)} in "
@@ -147,14 +145,6 @@ class UnitNode(Node):
 
     # -- parameters ----------------------------------------------------------------------------------
     def _declare_parameters(self, config: UnitConfig, store_path: str | None) -> None:
-        self.declare_parameter(
-            "remote_commands_enabled",
-            config.remote_commands_enabled,
-            ParameterDescriptor(
-                description="accept requests from remote sources (hmi:, opcua:, coordinator, "
-                "remote:); switched only by set_remote_commands from a local source"
-            ),
-        )
         self.declare_parameter(
             "persistence_path",
             store_path if store_path is not None else (config.persistence_path or ""),
@@ -169,28 +159,6 @@ class UnitNode(Node):
                 description="publish every engine input on ~/input_log", read_only=True
             ),
         )
-
-    def _validate_parameters(self, params: list[Parameter]) -> SetParametersResult:
-        for p in params:
-            if p.name != "remote_commands_enabled":
-                continue
-            if p.type_ != Parameter.Type.BOOL:
-                return SetParametersResult(
-                    successful=False, reason="remote_commands_enabled must be a bool"
-                )
-            if not self._lock_change:  # the parameter service names no source: not local
-                return SetParametersResult(
-                    successful=False,
-                    reason=f"remote_commands_enabled is switched only from a local source: call "
-                    f"{self.get_fully_qualified_name()}/set_remote_commands "
-                    f"(packml remote {self.config.name} on|off)",
-                )
-        return SetParametersResult(successful=True)
-
-    def _on_parameters_set(self, params: list[Parameter]) -> None:
-        for p in params:
-            if p.name == "remote_commands_enabled":
-                self._run(self.unit.set_remote_enabled, bool(p.value))
 
     # -- clock ----------------------------------------------------------------------------------------
     def _now(self) -> float:
@@ -212,7 +180,6 @@ class UnitNode(Node):
             (SetProduct, "set_product", self._srv_set_product),
             (SetEmActive, "set_em_active", self._srv_set_em_active),
             (SetInterlock, "set_interlock", self._srv_set_interlock),
-            (SetRemoteCommands, "set_remote_commands", self._srv_set_remote_commands),
         ]
         for cmd in Cmd:
             if cmd:
@@ -345,30 +312,6 @@ class UnitNode(Node):
     ) -> SetInterlock.Response:
         answer = self._run(self.unit.set_interlock, req.active, req.reason, req.source)
         return self._answer(resp, answer)
-
-    def _srv_set_remote_commands(
-        self, req: SetRemoteCommands.Request, resp: SetRemoteCommands.Response
-    ) -> SetRemoteCommands.Response:
-        """The remote lock, from a local source only (core.rules.lock_change_refusal)."""
-        source = req.source or "operator"
-        refused = lock_change_refusal(source, self.config.name)
-        if refused is not None:
-            return self._answer(resp, refused)
-        word = "enabled" if req.enabled else "disabled"
-        if self.unit.remote_enabled == req.enabled:
-            resp.accepted, resp.message = True, f"remote commands already {word}"
-            return resp
-        self._lock_change = True
-        try:
-            result = self.set_parameters([Parameter("remote_commands_enabled", value=req.enabled)])
-        finally:
-            self._lock_change = False
-        resp.accepted = result[0].successful
-        resp.result = int(Reason.ACCEPTED if resp.accepted else Reason.INVALID_ARGUMENT)
-        resp.message = f"remote commands {word} by {source}" if resp.accepted else result[0].reason
-        if resp.accepted:
-            self._log("info", resp.message)
-        return resp
 
     # -- equipment modules ---------------------------------------------------------------------------
     def _on_report(self, msg: EmReport, info: MessageInfo) -> None:

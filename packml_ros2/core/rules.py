@@ -677,7 +677,7 @@ class Rules:
 
     Questions for faces: :meth:`edges`, :meth:`available_states`, :meth:`available_transitions`,
     :meth:`valid_commands`, :meth:`target`, :meth:`settles_in`, :meth:`command_target`,
-    :meth:`mode_change_refusal`."""
+    :meth:`mode_change_refusal`, :meth:`chain`, :meth:`reach`."""
 
     def __init__(self, table: TransitionTable, modes: Mapping[int, Any],
                  interlock_reaction: int = C.SUSPEND) -> None:  # fmt: skip
@@ -796,6 +796,21 @@ class Rules:
         when the table refuses it."""
         entry = self.accepted[mode][state].get(cmd) if 1 <= cmd <= 10 else None
         return None if entry is None else (entry.final, entry.skipped)
+
+    def chain(self, first: State) -> tuple[State, ...]:
+        """``first``, then on by State Complete up to the wait state (or Execute) it settles in:
+        the states a command into ``first`` passes through (the model's; no mode)."""
+        out = [first]
+        sc = self.table.state_complete
+        while out[-1] in sc and out[-1] is not S.EXECUTE:
+            out.append(sc[out[-1]])
+        return tuple(out)
+
+    def reach(self, state: State, cmd: int) -> tuple[State, ...]:
+        """Where ``cmd`` leads from ``state`` in the model: :meth:`chain` of its first state; ()
+        when the table has no such transition."""
+        first = self.table.commands.get((state, Cmd(cmd))) if 1 <= cmd <= 10 else None
+        return () if first is None else self.chain(first)
 
     @staticmethod
     def settles_in(state: State) -> State:

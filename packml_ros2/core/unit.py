@@ -34,7 +34,7 @@ from .counters import Counters
 from .deadlines import Deadlines
 from .durable import Durable, document
 from .equipment import Equipment, EquipmentModule
-from .interlocks import MAX_EXTERNAL, STOP_ID_BLOCKED, STOP_ID_STARVED, Interlocks
+from .interlocks import STOP_ID_BLOCKED, STOP_ID_STARVED, Interlocks, external_refusal
 from .limits import speed_refusal
 from .modes import ModeDef
 from .numbers import Cmd, Mode, State, command_name, state_name
@@ -827,30 +827,18 @@ class Unit:
 
     def _set_interlock(self, active: bool, reason: str, source: str) -> Answer:
         key = f"ext:{source}"
-        held = self.interlocks.active
         name = self.config.name
+        held = [k[4:] for k in self.interlocks.active if k.startswith("ext:")]
+        refused = external_refusal(held, active, source, name)
+        if refused is not None:
+            return refused
         if active:
-            if key not in held and sum(k.startswith("ext:") for k in held) >= MAX_EXTERNAL:
-                return Answer.no(
-                    Reason.INVALID_ARGUMENT,
-                    f"interlock from {source} refused: {name} holds {MAX_EXTERNAL} interlocks "
-                    "from outside already (one per source)",
-                )
             stop_id = STOP_ID_STARVED if "starv" in reason.lower() else STOP_ID_BLOCKED
             self.interlocks.set(key, reason or f"interlock from {source}", stop_id)
-            self._rev += 1
-            return Answer.ok(f"interlock from {source} set on {name}")
-        if key not in held:
-            others = [k[4:] for k in held if k.startswith("ext:")]
-            still = f" (held by {', '.join(others)})" if others else ""
-            return Answer.no(
-                Reason.NOTHING_TO_DO,
-                f"nothing cleared: {name} holds no interlock from {source}{still}; each source "
-                "clears only its own",
-            )
-        self.interlocks.clear(key)
+        else:
+            self.interlocks.clear(key)
         self._rev += 1
-        return Answer.ok(f"interlock from {source} cleared on {name}")
+        return Answer.ok(f"interlock from {source} {'set' if active else 'cleared'} on {name}")
 
     def advance(self) -> None:
         """Fire every deadline due by the clock's time (call periodically, or at

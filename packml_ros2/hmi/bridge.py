@@ -2,8 +2,8 @@
 alarms, transitions) and the coordinator's CellStatus through :class:`~packml_ros2.client.CellProxy`,
 keeps the latest of each as a JSON-able dict, and pushes every change to its listeners at once.
 
-Actions go to the units' (and the coordinator's) services with source ``hmi``; each returns the
-service's answer as a dict ``{accepted, result, result_name, message, ...}``. With a token
+Actions go to the units' (and the coordinator's) services with source ``hmi:<user>``; each returns
+the service's answer as a dict ``{accepted, result, result_name, message, ...}``. With a token
 configured, an action without it (or with a wrong one) is refused here with result
 ``UNAUTHORIZED`` and never reaches the unit.
 
@@ -32,7 +32,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
 from ..client import CellProxy, Unavailable, call_future
-from ..core import CellConfig
+from ..core import CellConfig, rules
 from ..core.numbers import ACTING, MAX_MODE, Cmd, State, command_name, parse_command, state_name
 from ..core.reasons import Reason
 from ..core.schema import shown
@@ -41,7 +41,6 @@ from .access import Access, Principal
 Event = dict[str, Any]
 Listener = Callable[[Event], None]
 
-SOURCE = "hmi"
 STALE_AFTER = 3.0  # s without any message from a unit (it publishes admin every second): offline
 TRANSITIONS_KEPT = 30
 HISTORY_KEPT = 50
@@ -55,6 +54,12 @@ OEE_FIELDS = (
     "aborted_time", "processed", "defective",
 )  # fmt: skip
 _node_ids = itertools.count()
+
+
+def source_of(principal: Principal) -> str:
+    """The ``source`` of every request the HMI sends for ``principal``: ``hmi:<name>`` (the rule
+    book's grammar: remote, so the units' remote lock applies)."""
+    return rules.source_of("hmi", principal.name)
 
 
 class ActionError(LookupError):
@@ -492,14 +497,14 @@ class Bridge:
         args: Mapping[str, Any] | None = None,
         token: str | None = None,
     ) -> Future[dict[str, Any]]:
-        """Call ``action`` of ``unit`` (None: the cell coordinator) with source ``hmi``; a future
-        of the answer dict. Raises :class:`ActionError` for an unknown unit or action."""
+        """Call ``action`` of ``unit`` (None: the cell coordinator) with source ``hmi:<user>``; a
+        future of the answer dict. Raises :class:`ActionError` for an unknown unit or action."""
         args = dict(args or {})
         builder = self.builder(unit, action)
         done: Future[dict[str, Any]] = Future()
-        denied = self.authorized(token)
-        if denied is not None:
-            done.set_result(denied)
+        principal = self.access.verify(token)
+        if not isinstance(principal, Principal):
+            done.set_result(principal.body())
             return done
         try:
             service, fields = builder(args)
@@ -508,7 +513,7 @@ class Bridge:
             answer = refusal(Reason.INVALID_ARGUMENT, f"{action}: {text[:300]}")
             done.set_result({**answer, "code": BAD_ARGUMENT})
             return done
-        fields["source"] = SOURCE
+        fields["source"] = source_of(principal)
         if unit is not None:
             future = self.proxy.unit(unit).call(service, **fields)
             where = f"{self.cell.cell}/{unit}"

@@ -16,6 +16,7 @@ from packml_ros2.core import rules as R
 from packml_ros2.core.config import Descriptor, Product
 from packml_ros2.core.interlocks import MAX_EXTERNAL
 from packml_ros2.core.limits import LogLimiter, printable, speed_limit
+from packml_ros2.core.numbers import parse_command, parse_state
 from test.core.helpers import FakeClock
 from test.core.test_scenarios import make, online, to_execute
 
@@ -224,3 +225,15 @@ def test_the_log_limiter_writes_a_few_of_a_kind_then_counts() -> None:
     summary = limiter.due(110.5)
     assert summary is not None and "90 repeated log line(s)" in summary
     assert limiter.admit("refused 'name' #1", 111.0) == (True, None)
+
+
+@pytest.mark.parametrize("parse", [parse_state, parse_command])
+def test_a_name_that_is_not_one_is_quoted_bounded_and_escaped(parse: Any) -> None:
+    """Issue 15 item 4: a caller's text in a parse error is cut and escaped (it was quoted whole
+    with !r: a 1 MB name made a 1 MB error for the HMI, the CLI and the logs)."""
+    for text in ("x" * 1_000_000, "9" * 100_000, "HOLD\n[ERROR] forged", "\u202eDLOH", "99"):
+        with pytest.raises(ValueError) as caught:
+            parse(text)
+        message = str(caught.value)
+        assert len(message) < 120 and message.isprintable(), message
+    assert parse("hold" if parse is parse_command else "held") in (Cmd.HOLD, State.HELD)

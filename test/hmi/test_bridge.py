@@ -34,6 +34,7 @@ UNIT = "filler"
 TOKEN = "s3cret-token"
 UNIT_DOC: dict[str, Any] = {
     "description": "Bottle filler",
+    "remote_commands_enabled": True,  # the HMI is a remote source (hmi:<user>)
     "admin_period": 0.2,
     "min_dwell": {"resetting": 0.05, "starting": 0.05},  # each acting state is published
     "counters": {"processed": [{"id": 1, "name": "bottles", "unit": "pcs"}]},
@@ -159,7 +160,7 @@ def test_actions_go_out_with_source_hmi_and_changes_arrive_in_order(make_cell) -
     reset = cell.wait_event(
         lambda e: e["topic"] == "transition" and e["data"]["command"] == "RESET", "the RESET", mark
     )
-    assert reset["data"]["source"] == "hmi" and reset["unit"] == UNIT
+    assert reset["data"]["source"] == "hmi:anyone" and reset["unit"] == UNIT
     assert reset["received"] <= time.time() * 1000
 
     mark = len(cell.events)

@@ -186,13 +186,18 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cell]:
         tmp,
         {
             "filler": {
+                "remote_commands_enabled": True,  # OPC UA is a remote source
                 "mach_speed": 40,
                 "mach_design_speed": 50,
                 "counters": {"processed": [{"id": 1, "name": "bottles", "unit": "pcs"}]},
                 "alarms": [{"id": 201, "message": "Nozzle clogged", "category": 2, "em": "nozzle"}],
                 "equipment_modules": {"nozzle": {"sim": {"durations": FAST, "cycle_time": 0.1}}},
             },
-            "capper": {"description": "Capper downstream", "model": "2015"},
+            "capper": {
+                "description": "Capper downstream",
+                "model": "2015",
+                "remote_commands_enabled": True,
+            },
         },
         coordinator={"enabled": False},
     )
@@ -507,7 +512,7 @@ def test_arguments_are_checked_and_refusals_change_nothing(cell: Cell, filler: U
     assert float_mode["inputArgumentResults"] == ["BadTypeMismatch"]
     assert too_fast["status"] == "BadInvalidArgument"
     assert too_fast["inputArgumentResults"] == ["BadOutOfRange"]
-    assert "filler accepts 0 .. 50 (MachDesignSpeed)" in too_fast["diagnostics"]["localizedText"]
+    assert "filler takes 0 .. 50 (mach_design_speed)" in too_fast["diagnostics"]["localizedText"]
     assert double_speed["status"] == "BadInvalidArgument"  # a Double where a Float is declared
     assert negative["status"] == "BadInvalidArgument"
     assert reset_arg["status"] == "BadTooManyArguments"

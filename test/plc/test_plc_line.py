@@ -342,7 +342,9 @@ def test_the_bridge_drives_this_projects_own_opcua_face_with_a_secured_user_sess
 ) -> None:
     port = free_port()
     remote_path, remote = write_cell(
-        tmp_path, {"filler": {"alarms": [{"id": 201, "message": "Nozzle clogged", "category": 2}]}},
+        tmp_path,
+        {"filler": {"remote_commands_enabled": True,  # the bridge is an OPC UA (remote) client
+                    "alarms": [{"id": 201, "message": "Nozzle clogged", "category": 2}]}},
         coordinator={"enabled": False, "unit_lease": LEASE},
     )  # fmt: skip
     doc = yaml.safe_load(remote_path.read_text())
