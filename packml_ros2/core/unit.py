@@ -95,6 +95,7 @@ STOP_ID_OPERATOR = 33  # operator action: cycle stop button
 STOP_ID_REMOTE = 4006  # out of service: remote stop requested
 STOP_ID_BLOCKED = 3002  # downstream: discharge blocked
 STOP_ID_STARVED = 2499  # upstream: undefined upstream reason
+STOP_ID_SHUTDOWN = 1000  # machine internal, vendor defined: the unit's own process shut down
 #: What entering a state does besides the transition itself (bit flags, see _entry_actions).
 _RESET_ALARMS, _CLEAR_FIRST_OUT, _REARM, _STOP = 1, 2, 4, 8
 ENTRY_FLAGS: dict[State, int] = {
@@ -861,6 +862,26 @@ class Unit:
         self.remote_enabled = bool(enabled)
         self._rev += 1
         self._leave()
+
+    def shutdown(self, detail: str = "") -> Answer:
+        """The unit's own process is shutting down (Ctrl-C, SIGTERM): recorded as what it is, an
+        event in the alarm history and, when the unit was producing (Execute or on its way
+        there), its StopReason, so the restarted unit tells why it stopped. The state is not
+        changed; status, alarms and admin go out at once (the process ends after this)."""
+        self._enter()
+        self._record("shutdown", {"detail": detail})
+        message = f"unit shut down{f' ({detail})' if detail else ''} in {state_name(self.state)}"
+        self.alarms.log_event(message, self._t, source="unit")
+        if self._stop_armed and SETTLE.get(self.state) is S.EXECUTE:
+            self.stop_reason = AlarmEvent(STOP_ID_SHUTDOWN, 0, message, 9, Kind.EVENT, self._t,
+                                          source="unit", trigger=False, latched=False)  # fmt: skip
+            self._stop_armed = False
+            self._rev += 1
+        self._capture_status()
+        self._admin_key = self._admin_state()
+        self._out.append(("admin", build_admin(self, self._t)))
+        self._leave()
+        return Answer.ok(message)
 
     def set_interlock(self, active: bool, reason: str = "", source: str = "remote") -> Answer:
         """A line interlock from outside (the coordinator): suspend while set, unsuspend when
@@ -1671,6 +1692,7 @@ INPUTS = frozenset({
     "command", "set_mode", "step", "em_complete", "em_seen", "em_lost", "em_interlock", "em_count",
     "set_em_active", "set_alarm", "ack_alarms", "reset_alarms", "reset_times", "reset_counters",
     "set_mach_speed", "set_parameters", "set_product", "set_remote_enabled", "set_interlock", "advance",
+    "shutdown",
 })  # fmt: skip
 
 
