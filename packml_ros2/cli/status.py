@@ -24,6 +24,7 @@ def status(args: argparse.Namespace) -> int:
             if args.unit:
                 unit = s.unit(args.unit)
                 unit.wait_status(timeout=s.timeout)
+                unit.wait_admin(timeout=s.timeout)  # latched too: counters, times, OEE
                 print(detail(unit))
                 return 0
             cell = s.cell()

@@ -146,6 +146,14 @@ def test_launch_in_one_process_and_the_cli_verbs(launched, tmp_path: Path) -> No
     ready = launch.output()
     assert f"packml cmd {cell} reset" in ready and "ros2 topic echo" in ready  # what to try
 
+    # the verbs answer as soon as the cell is complete (the coordinator lists its units), not at
+    # the end of their discovery timeout (they did: 5 s every time; bench/cli.py measures it)
+    for verb in (("status",), ("status", "filler"), ("alarms",)):
+        t0 = time.monotonic()
+        status = packml(*verb, "--timeout", "30")
+        took = time.monotonic() - t0
+        assert status.returncode == 0, status.stderr
+        assert took < 15, f"packml {' '.join(verb)} took {took:.1f} s"
     status = packml("status")
     assert status.returncode == 0, status.stderr
     assert "filler" in status.stdout and "capper" in status.stdout and "STOPPED" in status.stdout
