@@ -16,7 +16,7 @@ import pytest
 from .test_launch import run_the_demo_cell_and_ctrl_c
 from .tools import ROOT, Background, code_blocks, require, shell
 
-pytestmark = [pytest.mark.ros, pytest.mark.slow]
+pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.timeout(900)]
 
 
 def workspace_lines() -> list[str]:

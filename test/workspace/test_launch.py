@@ -16,7 +16,7 @@ from test.ros.cells import saved_admin, saved_faults, shutdown_noise
 
 from .tools import README, ROOT, Background, packml, require, wait_all_ems_online
 
-pytestmark = [pytest.mark.ros, pytest.mark.slow]
+pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.timeout(300)]
 UNITS = ("robot_cell", "case_packer")
 
 

@@ -20,7 +20,7 @@ from .tools import (
     wait_all_ems_online,
 )
 
-pytestmark = [pytest.mark.ros, pytest.mark.slow]
+pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.timeout(300)]
 
 
 def readme_ros2_commands() -> list[tuple[str, list[str]]]:

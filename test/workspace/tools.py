@@ -12,7 +12,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 import pytest
@@ -85,12 +85,21 @@ def shell(
     script: str, home: Path, cwd: Path, timeout: float = 120
 ) -> subprocess.CompletedProcess[str]:
     """``script`` in bash with the venv active (the underlay), stopping at the first failure;
-    ``stdout`` holds what a terminal would show (stderr interleaved)."""
-    return subprocess.run(
+    ``stdout`` holds what a terminal would show (stderr interleaved). On a timeout (or the test's)
+    every process it started is killed, builds included."""
+    proc = subprocess.Popen(
         ["bash", "-c", f"set -eo pipefail\n. {shlex.quote(str(VENV_BIN / 'activate'))}\n{script}"],
         cwd=cwd, env=environment(home), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-        text=True, timeout=timeout, check=False,
+        text=True, start_new_session=True,
     )  # fmt: skip
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    except BaseException:
+        with suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        raise
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out)
 
 
 class Background:
@@ -131,9 +140,10 @@ class Background:
         return self.output()[self.marked :]
 
     def kill(self) -> None:
-        if self.proc.poll() is None:
+        """Whatever of the session is left (the processes of a failed test)."""
+        with suppress(ProcessLookupError):
             os.killpg(self.proc.pid, signal.SIGKILL)
-            self.proc.wait()
+        self.proc.wait()
         self._out.close()
 
 
