@@ -123,6 +123,9 @@ def main() -> int:
                 entry["median_wall_s"] = round(statistics.median(entry["wall_s"]), 3)
                 entry["median_settle_s"] = round(statistics.median(entry["settle_s"]), 3)
                 entry["median_overhead_s"] = round(statistics.median(extra), 3)
+        except Exception:
+            print((Path(tmp) / "cell.log").read_text(errors="replace")[-4000:], file=sys.stderr)
+            raise
         finally:
             cell.send_signal(2)
             cell.wait(30)

@@ -108,6 +108,9 @@ class UnitProxy:
     node: Node
     path: str
     on_change: Callable[[str, str, Any], None] | None = None  # (unit path, topic, msg)
+    #: the topics to follow (default all): a short-lived tool that shows the status needs neither
+    #: the transitions' 100-message history nor the alarm list
+    topics: tuple[str, ...] = ("status", "admin", "alarms", "transitions")
     status: Status | None = None
     admin: Admin | None = None
     alarms: AlarmList | None = None
@@ -125,7 +128,7 @@ class UnitProxy:
             "alarms": (AlarmList, self._on("alarms"), qos.ALARMS),
             "transitions": (TransitionEvent, self._on_transition, qos.TRANSITIONS),
         }
-        self._subs = {topic: self._subscribe(topic) for topic in self._topics}
+        self._subs = {topic: self._subscribe(topic) for topic in self.topics}
 
     def _subscribe(self, topic: str) -> Any:
         msg_type, callback, profile = self._topics[topic]
@@ -139,7 +142,7 @@ class UnitProxy:
         Useful when a unit comes back after a network partition: the old subscription would get
         what it missed only by reliable repair, at the writer's next heartbeat (seconds).
         ``transitions`` then delivers its history again (up to 100 already seen ones)."""
-        for topic in topics or tuple(self._topics):
+        for topic in topics or self.topics:
             old = self._subs.get(topic)
             self._subs[topic] = self._subscribe(topic)
             if old is not None:
@@ -254,10 +257,12 @@ class CellProxy:
         cell: str,
         units: Iterable[str] = (),
         on_change: Callable[[str, str, Any], None] | None = None,
+        topics: tuple[str, ...] = UnitProxy.topics,
     ) -> None:
         self.node = node
         self.cell = cell
         self.on_change = on_change
+        self.topics = topics  # what each unit's proxy follows
         self.units: dict[str, UnitProxy] = {}
         self.cell_status: CellStatus | None = None
         for unit in units:
@@ -275,7 +280,7 @@ class CellProxy:
         path = resolve_unit(unit, self.cell)
         name = path.rsplit("/", 1)[-1]
         if name not in self.units:
-            self.units[name] = UnitProxy(self.node, path, self.on_change)
+            self.units[name] = UnitProxy(self.node, path, self.on_change, self.topics)
         return self.units[name]
 
     def discover(self, timeout: float = 3.0, expect: int = 0) -> list[str]:
@@ -339,9 +344,12 @@ def _graph_units(node: Node) -> _Graph:
     return found
 
 
-def discover_cells(node: Node, timeout: float = 3.0) -> dict[str, list[str]]:
+def discover_cells(node: Node, timeout: float = 3.0, until: str = "") -> dict[str, list[str]]:
     """Cells and their units visible on the graph: ``{cell: [unit, ...]}``, once no new unit has
-    appeared for :data:`DISCOVERY_SETTLE` seconds (at the latest after ``timeout``)."""
+    appeared for :data:`DISCOVERY_SETTLE` seconds, or at once when every cell found has a
+    coordinator (whose cell status lists its units: :meth:`CellProxy.discover` completes them);
+    with ``until``, once a unit of that name is found (or the graph settled without it); at the
+    latest after ``timeout``."""
     deadline = time.monotonic() + timeout
     found: dict[str, set[str]] = {}
     changed = time.monotonic()
@@ -350,7 +358,13 @@ def discover_cells(node: Node, timeout: float = 3.0) -> dict[str, list[str]]:
         now = time.monotonic()
         if graph != found:
             found, changed = graph, now
-        if (found and now - changed >= DISCOVERY_SETTLE) or now >= deadline:
+        coordinated = all(f"/{cell}/coordinator/status" in graph.topics for cell in found)
+        settled = bool(found) and now - changed >= DISCOVERY_SETTLE
+        if until:
+            done = settled or any(until in units for units in found.values())
+        else:
+            done = settled or (bool(found) and coordinated)
+        if done or now >= deadline:
             return {cell: sorted(units) for cell, units in sorted(found.items())}
         time.sleep(0.02)
 

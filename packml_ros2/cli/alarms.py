@@ -48,7 +48,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 
 def alarms(args: argparse.Namespace) -> int:
-    with session(args) as s:
+    with session(args, topics=("status",)) as s:
         try:
             units: list[UnitProxy] = (
                 [s.unit(args.unit)] if args.unit else list(s.cell().units.values())

@@ -21,8 +21,11 @@ from ..client import CellProxy, Unavailable, UnitProxy, discover_cells
 
 
 class Session:
-    def __init__(self, args: argparse.Namespace) -> None:
+    def __init__(
+        self, args: argparse.Namespace, topics: tuple[str, ...] = UnitProxy.topics
+    ) -> None:
         self.args = args
+        self.topics = topics  # what the units' proxies follow (see UnitProxy.topics)
         self.timeout: float = getattr(args, "timeout", 5.0)
         self.context = Context()
         run.default_environment()
@@ -76,7 +79,7 @@ class Session:
                 )
             name = next(iter(cells))
         if name not in self._cells:
-            self._cells[name] = CellProxy(self.node, name)
+            self._cells[name] = CellProxy(self.node, name, topics=self.topics)
         proxy = self._cells[name]
         if discover and name not in self._discovered:
             proxy.discover(self.timeout)
@@ -92,6 +95,9 @@ class Session:
         if cell_name is None:
             cells = self.graph()
             owners = [c for c, units in cells.items() if name in units]
+            if not owners:  # perhaps not discovered yet (the graph stops early with a coordinator)
+                cells = self._graph = discover_cells(self.node, self.timeout, until=name)
+                owners = [c for c, units in cells.items() if name in units]
             if not owners:
                 known = ", ".join(f"{c}/{u}" for c, units in cells.items() for u in units) or "none"
                 raise LookupError(f"no unit {name!r} found (units: {known})")
@@ -111,8 +117,10 @@ class Session:
 
 
 @contextmanager
-def session(args: argparse.Namespace) -> Iterator[Session]:
-    s = Session(args)
+def session(
+    args: argparse.Namespace, topics: tuple[str, ...] = UnitProxy.topics
+) -> Iterator[Session]:
+    s = Session(args, topics)
     try:
         yield s
     finally:
