@@ -8,7 +8,7 @@ import os
 import sys
 import threading
 from collections.abc import Iterator
-from contextlib import contextmanager, suppress
+from contextlib import contextmanager
 from typing import Any
 
 import rclpy
@@ -34,6 +34,7 @@ class Session:
         )
         self.node = Node(f"packml_cli_{os.getpid()}", context=self.context)
         self.executor = MultiThreadedExecutor(context=self.context)
+        self._closing = False
         self.executor.add_node(self.node)
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
@@ -42,10 +43,18 @@ class Session:
         self._graph: dict[str, list[str]] | None = None
 
     def _spin(self) -> None:
-        with suppress(ExternalShutdownException, rclpy.executors.ShutdownException):
+        try:
             self.executor.spin()
+        except (ExternalShutdownException, rclpy.executors.ShutdownException):
+            pass
+        except RuntimeError as exc:
+            # rclpy 9.1: MultiThreadedExecutor.shutdown closes its thread pool while spin() may
+            # still hand it a callback (ros2/rclpy#1724); nothing is lost at the end of a verb.
+            if not (self._closing and "after shutdown" in str(exc)):
+                raise
 
     def close(self) -> None:
+        self._closing = True
         self.executor.shutdown(timeout_sec=2)
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
