@@ -38,8 +38,9 @@ from packml_interfaces.srv import (
     SetProduct,
     SetUnitParameters,
 )
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.subscription import MessageInfo
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -70,6 +71,9 @@ SORTS = {QueryAlarms.Request.SORT_TIME: "time", QueryAlarms.Request.SORT_CATEGOR
          QueryAlarms.Request.SORT_TIME_NEWEST: "newest"}  # fmt: skip
 ADVANCE_PERIOD = 0.05  # s: deadlines (timeouts, dwell, admin) and EM leases are checked this often
 DIAGNOSTICS_PERIOD = 1.0
+#: s: an EM that leaves (shuts down in order) is lost this long after its goodbye, unless the
+#: unit shuts down meanwhile: a cell stopped with Ctrl-C, every process at once, records no fault.
+EM_LEAVE_GRACE = 1.0
 
 
 class UnitNode(Node):
@@ -96,6 +100,7 @@ class UnitNode(Node):
         self.writers = Writers(config.em_lease / 2)
         self.refused_reports = 0
         self._log_limiter = LogLimiter()
+        self._leaving: dict[str, tuple[float, EmReport]] = {}  # EM -> (when it is lost, goodbye)
         self._inputs: list[UnitInput] = []
         self._input_index = 0
         self._record = bool(self.get_parameter("record_inputs").value)
@@ -132,6 +137,7 @@ class UnitNode(Node):
             self.create_timer(DIAGNOSTICS_PERIOD, self._publish_diagnostics),
         ]
         self._closed = False
+        self.add_on_set_parameters_callback(self._validate_parameters)
         self.remote_lock = RemoteLock(
             self, config.name, config.remote_commands_enabled,
             lambda enabled: self._run(self.unit.set_remote_enabled, enabled),
@@ -153,12 +159,30 @@ class UnitNode(Node):
             ),
         )
         self.declare_parameter(
+            "em_leave_grace",
+            EM_LEAVE_GRACE,
+            ParameterDescriptor(
+                description="seconds between an EM's goodbye and its loss (no loss when the unit "
+                "shuts down meanwhile, as when a whole cell is stopped)"
+            ),
+        )
+        self.declare_parameter(
             "record_inputs",
             True,
             ParameterDescriptor(
                 description="publish every engine input on ~/input_log", read_only=True
             ),
         )
+
+    def _validate_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        for p in params:
+            if p.name == "em_leave_grace" and not (
+                p.type_ in (Parameter.Type.DOUBLE, Parameter.Type.INTEGER) and 0 <= p.value <= 60
+            ):
+                return SetParametersResult(
+                    successful=False, reason="em_leave_grace must be 0 to 60 seconds"
+                )
+        return SetParametersResult(successful=True)
 
     # -- clock ----------------------------------------------------------------------------------------
     def _now(self) -> float:
@@ -316,26 +340,42 @@ class UnitNode(Node):
     # -- equipment modules ---------------------------------------------------------------------------
     def _on_report(self, msg: EmReport, info: MessageInfo) -> None:
         """An EM report: checked field by field, and taken only from the writer that speaks for
-        its EM (core.reports); then applied (driver.report)."""
+        its EM (core.reports); then applied (driver.report), a goodbye after a grace."""
         now = self._now()
         problem = report_problem(msg, self.unit.sequence)
-        if problem is None:
-            gid = info.get("publisher_gid")
-            writer = bytes(gid["data"]) if gid else b""
-            taken, note = self.writers.claim(msg.em, writer, now, self._writer_gone)
-            if note is not None:
-                self._log("warn" if not taken else "info", note)
-            if not taken:
-                self.refused_reports += 1
-                return
-        else:
+        if problem is not None:
             self.refused_reports += 1
             self.unit.stats.bad_reports += 1
             self._log("warn", f"EM report refused: {problem}")
             return
-        self.driver.report(now, msg, self.liveliness)
+        gid = info.get("publisher_gid")
+        writer = bytes(gid["data"]) if gid else b""
+        taken, note = self.writers.claim(msg.em, writer, now, self._writer_gone)
+        if note is not None:
+            self._log("warn" if not taken else "info", note)
+        if not taken:
+            self.refused_reports += 1
+            return
         if msg.kind == LEAVE or msg.em not in self.unit.equipment.modules:
             self.writers.release(msg.em)  # left, or not an EM of the unit: keep nothing
+        if msg.kind == LEAVE:
+            # An EM's goodbye counts after a grace: when a whole cell is stopped (Ctrl-C under
+            # ros2 launch: every process gets SIGINT at once), its EMs' goodbyes can arrive before
+            # this process notices its own signal; its shutdown then drops them (no false fault).
+            if not run.shutting_down():
+                grace = float(self.get_parameter("em_leave_grace").value)
+                self._leaving[msg.em] = (now + grace, msg)
+                if grace <= 0:
+                    self._apply_leaves(now)
+            return
+        self._leaving.pop(msg.em, None)  # anything else from it: it is back (or never left)
+        self.driver.report(now, msg, self.liveliness)
+
+    def _apply_leaves(self, now: float) -> None:
+        for name, (due, msg) in list(self._leaving.items()):
+            if due <= now:
+                del self._leaving[name]
+                self.driver.report(now, msg, self.liveliness)
 
     def _writer_gone(self, writer: bytes) -> bool:
         """Whether ``writer`` no longer publishes EM reports here (its node or process ended)."""
@@ -346,9 +386,13 @@ class UnitNode(Node):
         )
 
     def _on_tick(self) -> None:
+        if run.shutting_down():
+            return  # this process is stopping: EMs going silent now are no news
         now = self._now()
+        self._apply_leaves(now)
         for name, lease in self.liveliness.expired(now):
             self.writers.release(name)
+            self._leaving.pop(name, None)
             self.driver.call(now, self.unit.em_lost, name, f"no report for {lease:g} s")
         summary = self._log_limiter.due(now)
         if summary is not None:
@@ -389,7 +433,7 @@ class UnitNode(Node):
                      "persistence": self.store is not None, "schema": inputlog.SCHEMA}  # fmt: skip
             self._on_input(self.unit.now, inputlog.START, start)
         self.driver.flush()
-        self.pub_admin.publish(convert.admin(self.unit.admin()))
+        self.pub_admin.publish(self.driver.admin_message())
 
     def _log(self, level: str, text: str) -> None:
         """A log line of the engine or the node: callers' text escaped (no forged lines), repeated
@@ -430,15 +474,25 @@ class UnitNode(Node):
             self.pub_inputs.publish(msg)
 
     def close(self) -> None:
-        """Stop the timers and save a last time (idempotent); destroy_node calls it too."""
+        """Record the unit's shutdown (an event; the StopReason when it was producing), publish
+        it, stop the timers and save a last time (idempotent); destroy_node calls it too."""
         if self._closed:
             return
         self._closed = True
         for timer in self._timers:
             self.destroy_timer(timer)
+        self._leaving.clear()  # goodbyes of EMs that stop with this unit: no loss
+        reason = run.shutdown_reason() or "node closed"
+        self._run(self.unit.shutdown, reason)  # publishes only while the context is up
         self._flush_inputs()
         self.unit.close()
         self.unit.store = None  # a callback still running after this must not touch the file
+        if self.context.ok():
+            saved = f"; admin data saved to {self.store.path}" if self.store else ""
+            self.get_logger().info(
+                f"PackML unit {self.get_fully_qualified_name()} shut down ({reason}) in "
+                f"{state_name(self.unit.state)}{saved}"
+            )
 
     def destroy_node(self) -> None:
         self.close()
