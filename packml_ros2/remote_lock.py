@@ -60,7 +60,7 @@ class RemoteLock:
                     successful=False,
                     reason=f"{NAME} is switched only from a local source: call "
                     f"{self.node.get_fully_qualified_name()}/set_remote_commands "
-                    f"(packml remote {self.unit} on|off)",
+                    "(packml_interfaces/srv/SetRemoteCommands)",
                 )
         return SetParametersResult(successful=True)
 
