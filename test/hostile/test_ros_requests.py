@@ -274,3 +274,31 @@ def test_thousands_of_hostile_service_requests_and_reports_change_nothing(
     assert sum(counts.values()) >= COUNT and {R.REMOTE_DISABLED, R.INVALID_ARGUMENT} <= set(counts)
     print(f"{sent} requests + {REPORTS} reports in {elapsed:.1f} s; RSS {growth:+.1f} MB; "
           f"log {size} bytes; {counts}")  # fmt: skip
+
+
+def test_a_forged_state_complete_never_ends_resetting_the_ems_own_does(
+    ros: Any, make_unit: Any
+) -> None:
+    """Issue 15 item 3: a second writer's State Complete for a configured EM (right state and
+    sequence) used to end Resetting early; only the writer that speaks for the EM is heard."""
+    unit = make_unit({"equipment_modules": {"nozzle": {}}})
+    em = FakeEm(ros, unit, "nozzle", lease=2.0, period=0.2)
+    em.start_heartbeats()
+    unit.client.wait_status(lambda m: all(e.online for e in m.equipment_modules), what="EM online")
+    forger = rclpy.create_node("forger", namespace=f"/{unit.cell}/filler", context=ros.context)
+    pub = forger.create_publisher(EmReport, "em_reports", qos.EM_REPORTS)
+    ros.add(forger)
+    wait_until(lambda: pub.get_subscription_count() >= 1, what="the unit subscribed")
+    assert unit.command(1).accepted
+    resetting = unit.wait_state("RESETTING")
+    refused = unit.node.refused_reports
+    for _ in range(5):
+        pub.publish(EmReport(em="nozzle", kind=EmReport.KIND_STATE_COMPLETE,
+                             state=resetting.state_current, sequence=resetting.sequence))  # fmt: skip
+    wait_until(lambda: unit.node.refused_reports >= refused + 5, 10, "the forged reports refused")
+    now = unit.client.status.last
+    assert (now.state_current, now.sequence) == (resetting.state_current, resetting.sequence)
+    assert not next(e for e in now.equipment_modules if e.name == "nozzle").state_complete
+    em.complete(resetting)
+    unit.wait_state("IDLE")
+    em.stop_heartbeats()
