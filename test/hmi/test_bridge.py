@@ -16,7 +16,8 @@ from typing import Any
 
 import httpx
 import pytest
-from packml_interfaces.srv import SetAlarm
+from packml_interfaces.msg import Result
+from packml_interfaces.srv import SetAlarm, SetRemoteCommands
 
 from packml_ros2.core import load_cell
 from packml_ros2.core.config import parse_cell
@@ -197,6 +198,27 @@ def test_actions_go_out_with_source_hmi_and_changes_arrive_in_order(make_cell) -
     on = cell.bridge.act_sync(UNIT, "set_em_active", {"em": "nozzle", "active": True})
     assert on["accepted"], on
     cell.wait_status(lambda s: s["equipment_modules"][0]["active"], "nozzle active")
+
+
+def test_hmi_actions_follow_the_units_remote_lock(make_cell) -> None:
+    """Issue 15 item 2: HMI actions are remote (hmi:<user>): while the unit's lock holds every
+    action that changes it is refused with REMOTE_DISABLED (they bypassed it before); reading
+    stays free, and the lock cannot be switched from the HMI's source."""
+    cell = make_cell()
+    off = cell.client.call(SetRemoteCommands, "set_remote_commands", enabled=False, source="")
+    assert off.accepted, off.message
+    before = cell.client.status.last
+    for action, args in (("command", {"command": "reset"}), ("set_mach_speed", {"mach_speed": 5}),
+                         ("reset_counters", {}), ("ack_alarms", {}), ("set_mode", {"mode": 3})):  # fmt: skip
+        answer = cell.bridge.act_sync(UNIT, action, args)
+        assert not answer["accepted"] and answer["result_name"] == "REMOTE_DISABLED", answer
+        assert "from hmi:anyone refused: remote commands are disabled" in answer["message"]
+    now = cell.client.status.last
+    assert (now.sequence, now.mach_speed, now.unit_mode_current) == (
+        before.sequence, before.mach_speed, before.unit_mode_current)  # fmt: skip
+    sneaky = cell.client.call(SetRemoteCommands, "set_remote_commands", enabled=True,
+                              source="hmi:anyone")  # fmt: skip
+    assert not sneaky.accepted and sneaky.result == Result.UNAUTHORIZED, sneaky.message
 
 
 def test_arguments_are_checked_before_anything_is_sent(make_cell) -> None:
