@@ -392,3 +392,27 @@ def test_killed_unit_is_reported_lost_and_back_online(ros, processes, tmp_path: 
     assert coordinator.running()
     assert coordinator.stop() == 0, coordinator.output()
     assert "unit b lost" in coordinator.output() and "unit b online again" in coordinator.output()
+
+
+def test_concurrent_cell_stops_all_succeed_once_the_cell_stopped(ros, tmp_path: Path) -> None:
+    """Issue 15 item 8: ten STOPs at once used to cancel each other (9 of 10 answered failure
+    although the cell stopped); a STOP while a STOP runs joins it and says so."""
+    units = {"infeed": _unit(), "filler": _unit()}
+    cell = Cell(ros, tmp_path, units, {"start_order": ["filler", "infeed"]})
+    assert cell.trigger("reset").success
+    cell.wait(lambda m: m.state_current_name == "IDLE" and not m.busy, "cell idle")
+    answers: list[Trigger.Response] = []
+    threads = [threading.Thread(target=lambda: answers.append(cell.trigger("stop", 40)))
+               for _ in range(10)]  # fmt: skip
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert len(answers) == 10
+    failed = [a.message for a in answers if not a.success]
+    assert not failed, failed
+    assert sum(a.message.startswith("STOP done in order") for a in answers) >= 1
+    assert all(
+        a.message.startswith(("STOP done", "STOP joined the STOP in progress")) for a in answers
+    )
+    cell.wait(lambda m: m.state_current_name == "STOPPED" and not m.busy, "cell stopped")
