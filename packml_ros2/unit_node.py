@@ -97,7 +97,7 @@ class UnitNode(Node):
         self.driver = UnitDriver(self.unit, self.clock, self._emit)
         self.liveliness = Liveliness(config.em_lease)
         #: which writer speaks for each EM (core.reports): a forger's reports are refused
-        self.writers = Writers(config.em_lease / 2)
+        self.writers = Writers()
         self.refused_reports = 0
         self._log_limiter = LogLimiter()
         self._leaving: dict[str, tuple[float, EmReport]] = {}  # EM -> (when it is lost, goodbye)

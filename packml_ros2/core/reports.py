@@ -11,14 +11,14 @@ the input log records nothing.
 :class:`Writers` binds each EM name to the DDS writer (publisher GID) its reports come from. A
 report for that name from another writer is refused while the bound writer is alive: a forged
 State Complete cannot end an acting state early, a forged Leave cannot make the unit lose an EM.
-The binding moves to a new writer when the old one has left the graph (the EM's process ended)
-or has been silent for half the unit's ``em_lease`` (two heartbeats missed: an EM restarted
-after a crash), and is released when the EM is lost or leaves.
+The binding moves to a new writer when the old one has left the graph (the EM's process ended),
+and is released when the EM is lost (its lease expired: an EM restarted after a crash is heard
+from then on) or leaves. Silence alone moves nothing: a forger flooding the topic delays the
+real EM's heartbeats at the unit, and must not take the name over for that.
 
 What remains unprotected: DDS on the domain is unauthenticated (the pinned Fast DDS wheels have
 no DDS Security). A writer that speaks for an EM name first — before the EM, or while it is down —
-is the EM for the unit until it goes silent; a forger that also keeps the real EM from
-reporting (it cannot, on a working network, without the process) takes it over. Only SROS2
+is the EM for the unit until it is lost or leaves. Only SROS2
 (authenticated, access-controlled DDS) closes that: see the README's security section.
 """
 
@@ -95,11 +95,9 @@ def report_problem(msg: Any, sequence: int) -> str | None:
 
 class Writers:
     """EM name -> the writer (an opaque ID: the DDS publisher GID) its reports are taken from, on
-    the caller's clock. ``takeover_after``: seconds of silence after which another writer may
-    take a name over (half the unit's ``em_lease``)."""
+    the caller's clock (the time of its last report, for the refusal's sentence)."""
 
-    def __init__(self, takeover_after: float) -> None:
-        self.takeover_after = takeover_after
+    def __init__(self) -> None:
         self._bound: dict[str, list[Any]] = {}  # name -> [writer, last report time]
         self.refused = 0
 
@@ -116,14 +114,13 @@ class Writers:
             bound[1] = now
             return True, None
         silent = now - bound[1]
-        if silent >= self.takeover_after or (gone is not None and gone(bound[0])):
+        if gone is not None and gone(bound[0]):
             self._bound[name] = [writer, now]
-            why = "its writer left" if silent < self.takeover_after else f"silent {silent:.1f} s"
-            return True, f"EM {name} reports from a new writer ({why}: restarted)"
+            return True, f"EM {name} reports from a new writer (its writer left: restarted)"
         self.refused += 1
         return False, (
             f"report for EM {name} from another writer refused: {name} reports from one writer, "
-            f"alive {silent:.1f} s ago (two nodes with one name, or a forger)"
+            f"heard {silent:.1f} s ago and still on the graph (two nodes with one name, or a forger)"
         )
 
     def release(self, name: str) -> None:

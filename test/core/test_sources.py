@@ -17,6 +17,7 @@ from packml_ros2.core.config import Descriptor, Product
 from packml_ros2.core.interlocks import MAX_EXTERNAL
 from packml_ros2.core.limits import LogLimiter, printable, speed_limit
 from packml_ros2.core.numbers import parse_command, parse_state
+from packml_ros2.core.reports import Writers
 from test.core.helpers import FakeClock
 from test.core.test_scenarios import make, online, to_execute
 
@@ -237,3 +238,21 @@ def test_a_name_that_is_not_one_is_quoted_bounded_and_escaped(parse: Any) -> Non
         message = str(caught.value)
         assert len(message) < 120 and message.isprintable(), message
     assert parse("hold" if parse is parse_command else "held") in (Cmd.HOLD, State.HELD)
+
+
+def test_one_writer_speaks_for_an_em_until_it_leaves_the_graph_or_the_em_is_lost() -> None:
+    """Issue 15 item 3: reports for an EM are taken from the writer that spoke first; another
+    writer is refused however long the first was silent (a flood delays the real heartbeats),
+    and takes over only when the first left the graph, or after the EM was lost (released)."""
+    writers = Writers()
+    left: set[bytes] = set()
+    assert writers.claim("nozzle", b"em", 0.0, left.__contains__) == (True, None)
+    taken, note = writers.claim("nozzle", b"forger", 1000.0, left.__contains__)
+    assert not taken and note is not None and "another writer refused" in note
+    assert writers.claim("nozzle", b"em", 1000.5, left.__contains__)[0]
+    left.add(b"em")
+    taken, note = writers.claim("nozzle", b"restarted", 1001.0, left.__contains__)
+    assert taken and note is not None and "its writer left" in note
+    writers.release("nozzle")
+    assert writers.claim("nozzle", b"other", 1002.0, left.__contains__) == (True, None)
+    assert writers.bound("nozzle") == b"other" and writers.refused == 1
