@@ -302,3 +302,68 @@ def test_a_forged_state_complete_never_ends_resetting_the_ems_own_does(
     em.complete(resetting)
     unit.wait_state("IDLE")
     em.stop_heartbeats()
+
+
+COORDINATOR_REQUESTS = 1000
+
+
+def test_hostile_cell_requests_at_the_coordinator_change_nothing(ros: Any, tmp_path: Any) -> None:
+    """The coordinator's services under the same attack (commands, modes, Trigger shortcuts):
+    sources outside the grammar, long or controlling text, numbers out of range, and valid cell
+    commands while the units' remote lock holds: each answered, refused with a reason, and no
+    unit changes."""
+    from std_srvs.srv import Trigger
+
+    from test.ros.test_coordinator import Cell
+
+    cell = Cell(ros, tmp_path, {"filler": {}, "capper": {}}, {"start_order": ["filler", "capper"]})
+    before = {n: c.status.last for n, c in cell.units.items()}
+    marks = {n: (len(c.status), len(c.transitions)) for n, c in cell.units.items()}
+    base = f"/{cell.name}/coordinator"
+    rng = random.Random(SEED)
+    locked = {R.REMOTE_DISABLED, R.COMMAND_NOT_ALLOWED}  # (or busy with another request)
+    modes = {R.REMOTE_DISABLED, R.COMMAND_NOT_ALLOWED, R.MODE_UNKNOWN, R.MODE_CHANGE_NOT_ALLOWED}
+    requests: list[tuple[Any, str, dict[str, Any], set[int]]] = []
+    for _ in range(COORDINATOR_REQUESTS):
+        # not STOP, ABORT (never refused) or CLEAR (the units are Stopped already: nothing to do)
+        cmd = rng.choice([1, 2, 4, 5, 6, 7, 10])
+        requests.append(rng.choice([
+            (Command, "command", {"command": cmd, "source": rng.choice(REMOTE + LOCAL)}, locked),
+            (Command, "command", {"command": rng.choice([0, 11, -7, 2**31 - 1])}, {R.UNKNOWN_COMMAND}),
+            (Command, "command", {"command": cmd, "source": rng.choice(BAD_SOURCES)}, {R.INVALID_ARGUMENT}),
+            (SetMode, "set_mode", {"mode": rng.choice([0, 2, 3, 99, -1])}, modes),
+            (SetMode, "set_mode", {"mode_name": long_text(rng)}, {R.INVALID_ARGUMENT}),
+            (Trigger, rng.choice(["reset", "start", "hold", "unsuspend"]), {}, locked),
+        ]))  # fmt: skip
+    clients: dict[tuple[Any, str], Any] = {}
+    counts: dict[int, int] = {}
+    for start in range(0, len(requests), 50):
+        futures = []
+        for srv, name, fields, expected in requests[start : start + 50]:
+            client = clients.get((srv, name))
+            if client is None:
+                client = ros.node.create_client(srv, f"{base}/{name}", qos_profile=qos.SERVICES)
+                assert client.wait_for_service(timeout_sec=10), name
+                clients[(srv, name)] = client
+            futures.append((client.call_async(srv.Request(**fields)), name, fields, expected))
+        unanswered = answers([f for f, *_ in futures], 30)
+        assert not unanswered, f"{unanswered} of {len(futures)} requests never answered"
+        for future, name, fields, expected in futures:
+            resp = future.result()
+            what = f"{name}({ {k: str(v)[:60] for k, v in fields.items()} })"
+            if isinstance(resp, Trigger.Response):
+                assert not resp.success and 10 < len(resp.message) < 2000, f"{what}: {resp.message}"
+                continue
+            assert not resp.accepted and resp.result in expected, (
+                f"{what}: {resp.result} {resp.message}"
+            )
+            assert 10 < len(resp.message) < 2000 and resp.message.isprintable(), (
+                f"{what}: {resp.message!r}"
+            )
+            counts[resp.result] = counts.get(resp.result, 0) + 1
+    for name, client in cell.units.items():
+        assert (len(client.status), len(client.transitions)) == marks[name], name
+        now = client.status.last
+        assert (now.state_current, now.unit_mode_current) == (
+            before[name].state_current, before[name].unit_mode_current)  # fmt: skip
+    assert {R.REMOTE_DISABLED, R.INVALID_ARGUMENT, R.UNKNOWN_COMMAND} <= set(counts)
