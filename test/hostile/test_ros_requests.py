@@ -20,7 +20,7 @@ from typing import Any
 
 import pytest
 import rclpy
-from packml_interfaces.msg import Descriptor, EmReport, Product, Result
+from packml_interfaces.msg import Descriptor, EmReport, Product, Result, UnitInput
 from packml_interfaces.srv import (
     AckAlarms,
     Command,
@@ -38,6 +38,7 @@ from packml_interfaces.srv import (
 )
 
 from packml_ros2 import qos
+from packml_ros2.core.limits import MAX_REQUEST_TEXT
 from test.ros.test_unit_services import FakeEm, make_unit, wait_until
 
 __all__ = ["make_unit"]  # the fixture
@@ -192,6 +193,8 @@ def test_thousands_of_hostile_service_requests_and_reports_change_nothing(
     before = unit.client.status.last
     statuses, transitions = len(unit.client.status), len(unit.client.transitions)
     alarms = len(unit.client.alarms)
+    inputs = ros.subscribe(UnitInput, f"{unit.base}/input_log", qos.INPUT_LOG)
+    first_input = unit.node._input_index
     capfd.readouterr()
 
     clients: dict[tuple[Any, str], Any] = {}
@@ -256,6 +259,8 @@ def test_thousands_of_hostile_service_requests_and_reports_change_nothing(
     wait_until(lambda: unit.node.refused_reports >= refused + REPORTS * 3 // 4, 10, "reports")
     elapsed = time.monotonic() - started
 
+    last_input = unit.node._input_index
+    inputs.wait_for(lambda m: m.index >= last_input, 10, "the input log flushed")
     log = capfd.readouterr()
     em.stop_heartbeats()
     after = unit.client.status.last
@@ -272,6 +277,14 @@ def test_thousands_of_hostile_service_requests_and_reports_change_nothing(
     assert size < MAX_LOG_BYTES, f"{size} bytes of log"
     assert "[ERROR] forged" not in log.err.replace("\\n[ERROR] forged", "")
     assert sum(counts.values()) >= COUNT and {R.REMOTE_DISABLED, R.INVALID_ARGUMENT} <= set(counts)
+    # item 4: what the boundary refused never reached the engine's input log; no record is large
+    recorded = [m for m in inputs.messages if first_input < m.index <= last_input]
+    reached_engine = sum(n for r, n in counts.items() if r != R.INVALID_ARGUMENT) + REPORTS // 4
+    print(
+        f"input log: {last_input - first_input} records, {reached_engine} requests reached the engine"
+    )
+    assert last_input - first_input <= reached_engine, (last_input - first_input, reached_engine)
+    assert max(len(m.args_json) for m in recorded) < 4 * MAX_REQUEST_TEXT
     print(f"{sent} requests + {REPORTS} reports in {elapsed:.1f} s; RSS {growth:+.1f} MB; "
           f"log {size} bytes; {counts}")  # fmt: skip
 
