@@ -302,6 +302,70 @@ def test_a_unit_that_is_gone_is_lost_within_its_lease_and_comes_back(make_cell, 
     assert back["unit"] == UNIT and cell.bridge.snapshot()["units"][UNIT]["online"]
 
 
+def test_why_a_command_is_disabled_is_what_the_running_unit_answers(make_cell) -> None:
+    # Issue 17, HMI item 4: the reason each disabled command or mode button shows (event ``why``)
+    # comes from the running unit's rule book: sent anyway, the unit node refuses it with that
+    # reason code and that sentence, in each situation: stopped, executing, stopped by an alarm
+    cell = make_cell()
+
+    def shown_in(state: str, test: Callable[[dict[str, Any]], bool] = lambda w: True
+                 ) -> dict[str, Any]:  # fmt: skip
+        """The reasons the bridge shows once the unit is in ``state`` and they pass ``test``."""
+        deadline = time.monotonic() + 10
+        while True:
+            unit = cell.bridge.snapshot()["units"][UNIT]
+            if unit["status"]["state_name"] == state and test(unit["why"]):
+                return unit["why"]  # type: ignore[no-any-return]
+            assert time.monotonic() < deadline, unit["why"]
+            time.sleep(0.02)
+
+    def sent_anyway(shown: dict[str, Any]) -> None:
+        valid = cell.bridge.snapshot()["units"][UNIT]["status"]["commands_valid_names"]
+        assert set(shown["commands"]) | set(valid) == {
+            c["name"] for c in cell.bridge.snapshot()["config"]["commands"]
+        }
+        for name, reason in shown["commands"].items():
+            answer = cell.bridge.act_sync(UNIT, "command", {"command": name})
+            assert not answer["accepted"], (name, answer)
+            assert (answer["result_name"], answer["message"]) == (reason["reason"], reason["text"])
+        for number, text in shown["modes"].items():
+            answer = cell.bridge.act_sync(UNIT, "set_mode", {"mode": int(number)})
+            if "is the current mode" in text:  # no change: the unit says so
+                assert answer["message"].startswith("already in"), (number, answer)
+                continue
+            assert not answer["accepted"] and answer["message"] == text, (number, answer)
+
+    stopped = shown_in("STOPPED")
+    assert stopped["commands"]["START"] == {
+        "reason": "COMMAND_NOT_ALLOWED",
+        "text": "START not allowed in STOPPED in PRODUCTION mode (valid now: RESET, ABORT)",
+    }
+    assert set(stopped["modes"]) == {"1"}  # STOPPED allows every mode change
+    sent_anyway(stopped)
+
+    mark = len(cell.events)
+    assert cell.bridge.act_sync(UNIT, "command", {"command": "reset"})["accepted"]
+    cell.wait_status(lambda s: s["state_name"] == "IDLE", "IDLE", mark)
+    assert cell.bridge.act_sync(UNIT, "command", {"command": "start"})["accepted"]
+    executing = shown_in("EXECUTE", lambda w: "in EXECUTE" in w["commands"]["START"]["text"])
+    assert set(executing["modes"]) == {"1", "2", "3"}
+    assert "allows mode changes only in" in executing["modes"]["2"]
+    sent_anyway(executing)
+
+    raised = cell.client.call(SetAlarm, "set_alarm", id=201, value=0, active=True, category=-1,
+                              source="test")  # fmt: skip
+    assert raised.accepted, raised.message_out
+    alarmed = shown_in("STOPPED", lambda w: "RESET" in w["commands"])
+    assert alarmed["commands"]["RESET"]["reason"] == "ALARM_ACTIVE"
+    assert 'alarm 201/0 "Nozzle clogged"' in alarmed["commands"]["RESET"]["text"]
+    sent_anyway(alarmed)
+    cell.client.call(
+        SetAlarm, "set_alarm", id=201, value=0, active=False, category=-1, source="test"
+    )
+    assert "RESET" not in shown_in("STOPPED", lambda w: "RESET" not in w["commands"])["commands"]
+    assert cell.bridge.act_sync(UNIT, "command", {"command": "reset"})["accepted"]
+
+
 # -- access control -------------------------------------------------------------------------------------
 def test_a_token_guards_every_action_and_nothing_reaches_the_unit_without_it(make_cell) -> None:
     cell = make_cell(token=TOKEN)
