@@ -84,7 +84,10 @@ def hmi(args: argparse.Namespace) -> int:
         print(f"packml hmi: port {settings.port} is outside 0..65535", file=sys.stderr)
         return EXIT_USAGE
     if args.check:
-        print(f"{args.cell_file}: hmi valid ({settings.host}:{settings.port})")
+        n = len(settings.users)
+        access = (f", {n} user login{'s' if n > 1 else ''}" if n
+                  else ", an access token" if settings.token else "")  # fmt: skip
+        print(f"{args.cell_file}: hmi valid ({settings.host}:{settings.port}{access})")
         return EXIT_OK
     return serve(cell, settings)
 
