@@ -79,8 +79,8 @@ CURRENT = re.compile(r"\bcurrent\b")
 # -- the cell --------------------------------------------------------------------------------------------
 def demo_like_cell(tmp: Path) -> tuple[Path, str]:
     """config/demo_cell.yaml in a namespace of its own, faster, with persistence under ``tmp``,
-    case_packer on the 2015 model, and an HMI on a free port with user logins (a users file of
-    password hashes)."""
+    case_packer on the 2015 model with a complete_from of its own, and an HMI on a free port with
+    user logins (a users file of password hashes)."""
     doc = yaml.safe_load((ROOT / "config" / "demo_cell.yaml").read_text())
     cell = f"hmi{os.getpid()}"
     doc["cell"] = cell
@@ -96,6 +96,7 @@ def demo_like_cell(tmp: Path) -> tuple[Path, str]:
         for key in ("mach_speed", "mach_design_speed"):  # OEE performance as in the real demo
             unit[key] = round(unit[key] / SPEEDUP, 3)
     doc["units"]["case_packer"]["model"] = "2015"
+    doc["units"]["case_packer"]["complete_from"] = ["Execute", "Held"]  # its own: 2015 + Held
     users = {name: {"level": level, "password": hash_password(pw, iterations=1000)}
              for name, (level, pw) in USERS.items()}  # fmt: skip
     (tmp / "hmi-users.yaml").write_text(yaml.safe_dump({"users": users}))
@@ -499,6 +500,9 @@ def test_the_diagram_is_drawn_from_the_units_own_rules(env: Env, size: dict[str,
         shown = edges_shown(page)
         assert shown == rules, (unit, sorted(shown ^ rules))  # exactly the rules' transitions
         assert (extra_2022 <= shown) is (model == "2022"), unit
+        # case_packer's own complete_from adds Held -> Completing to its 2015 model
+        assert ("HELD", "COMPLETE", "COMPLETING") in shown, unit
+        assert (("SUSPENDED", "COMPLETE", "COMPLETING") in shown) is (model == "2022"), unit
         # in EXECUTE (PRODUCTION) the edges the unit can take now are lit: its valid commands
         # and State Complete (EXECUTE completes the run)
         expect(page.locator("#st-EXECUTE")).to_have_class(CURRENT)
