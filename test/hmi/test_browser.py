@@ -527,21 +527,26 @@ def test_the_diagram_is_drawn_from_the_units_own_rules(env: Env, size: dict[str,
 
 
 def test_mode_buttons_say_why_a_change_is_not_allowed(env: Env) -> None:
-    page = env.page(user="ben", hash_="unit/robot_cell")
-    expect(page.locator("#banner-state")).to_contain_text("EXECUTE")
-    expect(page.locator("#lamp-mode-refused")).to_have_attribute("data-on", "false")
-    maintenance = page.locator("#u-modes button[data-mode='2']")
-    reason = why(maintenance)  # the unit's own rule (Rules.mode_change_refusal), not sent
-    assert "not allowed in EXECUTE: PRODUCTION allows mode changes only in" in reason, reason
-    assert "STOPPED" in reason and "IDLE" in reason
-    assert "is the current mode" in why(page.locator("#u-modes button[data-mode='1']"))
     seq = env.status["robot_cell"].last.sequence
-    maintenance.click(force=True)  # a tap on a grey button shows why, and sends nothing
-    feedback = page.locator("#u-feedback")
-    expect(feedback).to_have_attribute("data-state", "local")
-    expect(feedback).to_contain_text("NOT SENT")
-    expect(feedback).to_contain_text("not allowed in EXECUTE")
-    expect(page.locator("#u-mode-why")).to_contain_text("allows mode changes only in")
+    for size in (PANEL, BIG):  # (BIG last: it goes on below)
+        page = env.page(user="ben", hash_="unit/robot_cell", size=size)
+        expect(page.locator("#banner-state")).to_contain_text("EXECUTE")
+        expect(page.locator("#lamp-mode-refused")).to_have_attribute("data-on", "false")
+        maintenance = page.locator("#u-modes button[data-mode='2']")
+        reason = why(maintenance)  # the unit's own rule (Rules.mode_change_refusal), not sent
+        assert "not allowed in EXECUTE: PRODUCTION allows mode changes only in" in reason, reason
+        assert "STOPPED" in reason and "IDLE" in reason
+        assert "is the current mode" in why(page.locator("#u-modes button[data-mode='1']"))
+        maintenance.click(force=True)  # a tap on a grey button shows why, and sends nothing
+        feedback = page.locator("#u-feedback")
+        expect(feedback).to_have_attribute("data-state", "local")
+        expect(feedback).to_contain_text("NOT SENT")
+        expect(feedback).to_contain_text("not allowed in EXECUTE")
+        expect(page.locator("#u-mode-why")).to_contain_text("allows mode changes only in")
+        in_view(page, "#u-feedback, #u-mode-why", size)
+        if size is PANEL:
+            no_problems(page)
+            page.close()
     # the server refuses it too, with the same reason, and the unit lights its lamp for 3 s
     answer = page.evaluate("""async () => {
         const r = await fetch('/api/units/robot_cell/set_mode', {method: 'POST', headers: {
@@ -584,6 +589,16 @@ def test_alarms_warnings_and_disabled_commands_say_why(env: Env) -> None:
     assert "START not allowed in STOPPED" in why(page.locator("#u-cmds button[data-cmd=START]"))
     expect(page.locator("#u-cmds button[data-cmd=ABORT]")).to_be_enabled()
     env.shot(page, "hmi-unit-alarm", full_page=False)
+    # the same on an operator panel, on screen without scrolling
+    panel = env.page(hash_="unit/robot_cell", size=PANEL)
+    expect(panel.locator("#banner-alarm")).to_contain_text("Gripper vacuum lost")
+    expect(panel.locator("#u-cmds button[data-cmd=RESET]")).to_have_attribute(
+        "data-why", re.compile(r'RESET refused in STOPPED.*alarm 201/0 "Gripper vacuum lost"')
+    )
+    expect(panel.locator("#u-why")).to_contain_text("Gripper vacuum lost")
+    in_view(panel, "#banner-alarm, #u-why, #u-cmds button", PANEL)
+    no_problems(panel)
+    panel.close()
 
     page.click("#nav a[data-screen=alarms]")
     row = page.locator("[data-alarm-unit=robot_cell] tr[data-alarm='201/0']")
