@@ -68,17 +68,16 @@ def default_environment() -> None:
 
 def make_executor(nodes: int, threads: int = 0) -> Executor:
     """``threads`` > 1: a multi-threaded executor (one node's long callback does not hold up the
-    others). One node: rclpy's C++ EventsExecutor, which halves the latency of a hop compared with
-    the Python executors (bench/ros_latency.py measures it) and costs nothing while idle. Several
-    nodes whose callbacks never block (units, EMs in one process): one SingleThreadedExecutor for
-    all (an idle node costs it nothing either; the multi-threaded executor rebuilt its wait set of
-    every entity on each of its threads at each wake-up: a cell in one process idled at 15-27 % of
-    a core so). rclpy 9's EventsExecutor is not used for several nodes: with the EMs and their unit
-    on it, the EMs' registration reports never arrived (the cell never came up).
-    ``PACKML_EXECUTOR=single`` selects the SingleThreadedExecutor for one node too."""
+    others). Otherwise rclpy's C++ EventsExecutor, for one node or several whose callbacks never
+    block (units, EMs in one process): it halves the latency of a hop compared with the Python
+    executors (bench/ros_latency.py measures it), and an idle node costs it nothing, where the
+    Python executors rebuild their wait set of every entity at each wake-up (the demo cell in one
+    process idled at 27 % of a core on a multi-threaded executor, 7-9 % on one single-threaded,
+    3-4 % on this one: bench/scale.py). ``PACKML_EXECUTOR=single`` selects the
+    SingleThreadedExecutor."""
     if threads > 1:
         return MultiThreadedExecutor(num_threads=threads)
-    if nodes == 1 and os.environ.get("PACKML_EXECUTOR", "events") == "events":
+    if os.environ.get("PACKML_EXECUTOR", "events") == "events":
         from rclpy.experimental import EventsExecutor
 
         return EventsExecutor()
