@@ -377,14 +377,14 @@ def test_why_a_command_is_disabled_is_what_the_running_unit_answers(make_cell) -
     sent_anyway(executing)
 
     raised = cell.client.call(SetAlarm, "set_alarm", id=201, value=0, active=True, category=-1,
-                              source="test")  # fmt: skip
+                              source="operator:test")  # fmt: skip
     assert raised.accepted, raised.message_out
     alarmed = shown_in("STOPPED", lambda w: "RESET" in w["commands"])
     assert alarmed["commands"]["RESET"]["reason"] == "ALARM_ACTIVE"
     assert 'alarm 201/0 "Nozzle clogged"' in alarmed["commands"]["RESET"]["text"]
     sent_anyway(alarmed)
     cell.client.call(
-        SetAlarm, "set_alarm", id=201, value=0, active=False, category=-1, source="test"
+        SetAlarm, "set_alarm", id=201, value=0, active=False, category=-1, source="operator:test"
     )
     assert "RESET" not in shown_in("STOPPED", lambda w: "RESET" not in w["commands"])["commands"]
     assert cell.bridge.act_sync(UNIT, "command", {"command": "reset"})["accepted"]
