@@ -16,9 +16,10 @@ from .. import qos
 
 #: The unit's outputs, compared by replay (in the order a report looks at them).
 OUTPUT_TOPICS = ("transitions", "status", "alarms", "admin")
-#: What the unit was given: the engine's input log (replayed offline), EM reports (replayed live)
-#: and the configuration the unit was started with.
-INPUT_TOPICS = ("input_log", "em_reports", "config")
+#: What the unit was given: the engine's input log (replayed offline), EM reports (replayed live),
+#: the configuration the unit was started with, and the engine state when the recorder joined
+#: (replay starts from it when the input log does not reach back to the unit's start).
+INPUT_TOPICS = ("input_log", "em_reports", "config", "snapshot")
 #: Topic (relative to ``/<cell>/<unit>``) -> ROS type name.
 UNIT_TOPICS: dict[str, str] = {
     "input_log": "packml_interfaces/msg/UnitInput",
@@ -28,6 +29,7 @@ UNIT_TOPICS: dict[str, str] = {
     "admin": "packml_interfaces/msg/Admin",
     "alarms": "packml_interfaces/msg/AlarmList",
     "em_reports": "packml_interfaces/msg/EmReport",
+    "snapshot": "packml_interfaces/msg/UnitSnapshot",
 }
 CELL_STATUS_TYPE = "packml_interfaces/msg/CellStatus"
 #: Publisher QoS of each unit topic (packml_ros2.qos), stored in the bag's metadata.
@@ -39,6 +41,7 @@ PUBLISHER_QOS: dict[str, QoSProfile] = {
     "admin": qos.ADMIN,
     "alarms": qos.ALARMS,
     "em_reports": qos.EM_REPORTS,
+    "snapshot": qos.SNAPSHOT,
     "coordinator": qos.CELL_STATUS,
 }
 #: Key of the recorder's notes in the bag's ``custom_data`` (metadata.yaml).
