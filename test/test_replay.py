@@ -153,6 +153,28 @@ def test_bags_carry_metadata_qos_and_type_definitions() -> None:
             }
 
 
+def test_bags_written_here_name_the_ros_distribution(tmp_path: Path) -> None:
+    """metadata.yaml (and the storage file's copy of it) says ``ros_distro: kilted``, as
+    rosbag2 writes its distribution, not ``rosbags``; mcap chunks are zstd-compressed."""
+    from mcap.reader import make_reader
+
+    _, dst = update(BAGS / "normal_production", tmp_path / "mcap")
+    _, db = update(BAGS / "alarm_stop", tmp_path / "db")
+    for bag in (dst, db):
+        meta = (bag / "metadata.yaml").read_text()
+        assert "ros_distro: kilted" in meta and "rosbags" not in meta.split("ros_distro:")[1]
+    with (dst / "mcap.mcap").open("rb") as f:
+        reader = make_reader(f)
+        (stored,) = [m.metadata["serialized_metadata"] for m in reader.iter_metadata()]
+        assert "ros_distro: kilted" in stored
+        assert {c.compression for c in reader.get_summary().chunk_indexes} == {"zstd"}
+    import sqlite3
+
+    with sqlite3.connect(db / "db.db3") as conn:
+        (stored,) = conn.execute("SELECT metadata FROM metadata").fetchone()
+    assert "ros_distro: kilted" in stored
+
+
 def test_alignment_by_content_when_the_bag_has_no_recorder_notes() -> None:
     rec = load(BAGS / "hold_unhold")
     for unit in rec.units.values():

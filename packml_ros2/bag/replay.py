@@ -59,7 +59,6 @@ import itertools
 import json
 import math
 import shutil
-import struct
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -81,9 +80,9 @@ from ..core import (
 )
 from ..core.config import ConfigError
 from ..core.unit import Trigger
-from ..driver import FrozenClock, UnitDriver
+from ..driver import SNAPSHOT_SCHEMA, FrozenClock, UnitDriver
 from . import cdr
-from .cdr import canonical, same_bytes
+from .cdr import canonical, raw_stamp, same_bytes
 from .recording import (
     FOREIGN_MARGIN,
     Input,
@@ -93,7 +92,15 @@ from .recording import (
     UnitRecording,
     load,
 )
-from .topics import CUSTOM_KEY, OUTPUT_TOPICS, UNIT_TOPICS, msg_class, typestore
+from .topics import (
+    CUSTOM_KEY,
+    OUTPUT_TOPICS,
+    UNIT_TOPICS,
+    close_writer,
+    msg_class,
+    open_writer,
+    typestore,
+)
 
 OUTPUT_CLASSES = {t: msg_class(UNIT_TOPICS[t]) for t in OUTPUT_TOPICS}
 #: Serializers for the comparison: ours for the messages full of shared alarms (4x faster than
@@ -124,13 +131,6 @@ class MemoryStore:
 def stamp_of(msg: Any) -> float:
     s = msg.stamp
     return float(s.sec + s.nanosec * 1e-9)
-
-
-def raw_stamp(raw: bytes) -> float:
-    """The leading ``builtin_interfaces/Time stamp`` of a serialized output message."""
-    little = len(raw) > 1 and raw[1] & 1
-    sec, nanosec = struct.unpack_from("<iI" if little else ">iI", raw, 4)
-    return float(sec + nanosec * 1e-9)
 
 
 def _is_msg(x: Any) -> bool:
@@ -432,10 +432,6 @@ class Origin:
     published: dict[str, int] = field(default_factory=dict)
 
 
-#: The snapshot message's own schema (its JSON object around the engine state).
-SNAPSHOT_MESSAGE_SCHEMA = 1
-
-
 def _refuse_plc(rec: UnitRecording, bag: Path) -> None:
     if plc_unit(rec):
         raise RecordingError(
@@ -524,9 +520,9 @@ def _snapshot_origin(snap: Snapshot, rec: UnitRecording, bag: Path) -> Origin:
     if not isinstance(state, dict) or not isinstance(state.get("engine"), dict):
         raise RecordingError(f"{where} holds no engine state")
     schema = state.get("schema")
-    if schema != SNAPSHOT_MESSAGE_SCHEMA:
+    if schema != SNAPSHOT_SCHEMA:
         raise RecordingError(
-            f"{where} has schema {schema!r}; this version reads {SNAPSHOT_MESSAGE_SCHEMA}: replay "
+            f"{where} has schema {schema!r}; this version reads {SNAPSHOT_SCHEMA}: replay "
             "it with the version that recorded it"
         )
     published = state.get("published")
@@ -690,7 +686,9 @@ def replay_unit(rec: UnitRecording, bag: Path, config_file: str | Path | None = 
             math.nextafter(last_input, math.inf),
         )
     r = UnitReplay(config, origin)
-    r.run(inputs if origin.start is None else inputs[1:], max(stop, origin.time))
+    # (up to the last recorded output too: every recorded message must be produced)
+    last = max((raw_stamp(msgs[-1]) for msgs in rec.outputs.values() if msgs), default=-math.inf)
+    r.run(inputs if origin.start is None else inputs[1:], max(stop, origin.time, last))
     name = config.name
     result = UnitResult(
         name, rec.prefix, r.start_time, inputs, r.outputs, r.causes, {}, {}, {}, stop, origin
@@ -757,8 +755,6 @@ def update(path: str | Path, out: str | Path | None = None, config: str | Path |
            storage: str | None = None) -> tuple[ReplayResult, Path]:  # fmt: skip
     """Rewrite the recorded outputs with the replayed ones (into ``out``, or in place for a bag
     directory). Inputs, configuration and other topics are copied unchanged."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-
     src = Path(path)
     rec = load(src, keep_raw=True)
     result = replay(src, config, recording=rec)
@@ -772,11 +768,9 @@ def update(path: str | Path, out: str | Path | None = None, config: str | Path |
     if dst.exists() or (in_place and staging.exists()):
         raise RecordingError(f"{staging if in_place else dst} exists already")
     kind = storage or rec.storage
-    plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
     if in_place:
         staging.mkdir()
-    writer = Writer(dst, version=9, storage_plugin=plugin)
-    writer.open()
+    writer = open_writer(dst, kind)
     try:
         _write_update(writer, rec, result)
     except BaseException:
@@ -846,4 +840,4 @@ def _write_update(writer: Any, rec: Recording, result: ReplayResult) -> None:
     if stops and "stopped_at_ns" not in notes:  # (another recorder's bag: where it was compared)
         notes["stopped_at_ns"] = round(min(stops) * 1e9)
     writer.set_custom_data(CUSTOM_KEY, json.dumps(notes, separators=(",", ":")))
-    writer.close()
+    close_writer(writer)
