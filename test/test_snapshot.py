@@ -158,6 +158,8 @@ def random_inputs(
                 "set_interlock",
                 (rng.random() < 0.5, rng.choice(("starved", "blocked")), "remote:line"),
             )
+        elif r < 0.965:
+            step = ("shutdown", ("SIGINT",))  # (recorded; the engine goes on in a test)
         else:
             step = ("wait", ())
         steps.append((dt, step[0], step[1]))
