@@ -3,8 +3,8 @@
 Node ``/<cell>/coordinator``. Services: ``command`` (packml_interfaces/Command), ``set_mode``
 (SetMode) and the Trigger shortcuts ``reset`` ... ``complete``, all fanned out to the units through
 their remote path (source ``remote:coordinator``: a unit accepts it only while its parameter
-``remote_commands_enabled`` is true). Topic: ``status`` (CellStatus, latched), published on every
-change.
+``remote_commands_enabled`` is true). Topic: ``status`` (CellStatus, latched, DDS liveliness
+with lease ``unit_lease`` like the units' status), published on every change.
 
 Sequencing: start-like commands (RESET, START, UNHOLD, UNSUSPEND, CLEAR) go to the units in
 ``start_order``, stop-like ones (STOP, HOLD, SUSPEND, COMPLETE) in ``stop_order``; units that are
@@ -183,7 +183,11 @@ class CoordinatorNode(Node):
         self._last_msg: CellStatus | None = None
         self._closed = False
 
-        self.pub_status = self.create_publisher(CellStatus, "~/status", qos.CELL_STATUS)
+        # with the units' liveliness lease: faces see a coordinator that is gone within it
+        # (packml_ros2.presence); subscribers with the default QoS are unaffected
+        self.pub_status = self.create_publisher(
+            CellStatus, "~/status", qos.with_lease(qos.CELL_STATUS, self.config.unit_lease)
+        )
         self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics,
                                  qos.DIAGNOSTICS, callback_group=self._group)  # fmt: skip
         serve = partial(responses.create_service, self, callback_group=self._group)

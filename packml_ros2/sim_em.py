@@ -8,7 +8,9 @@ interlock (``blocked`` / ``starved``: the unit suspends), or ``repeat_complete``
 delivers every State Complete report of the EM a second time, :data:`REPEAT_AFTER` seconds later
 (by then usually stale: the unit ignores and counts it).
 
-Run: ``em_node <cell.yaml> <unit> <em>``; ``packml launch`` starts these for every configured EM.
+Run: ``em_node <cell.yaml> <unit> <em> [<em> ...]``; ``packml launch`` starts these for every
+configured EM. Several EMs named: they run composed in one process on one executor (one thread),
+as an integrator runs all EMs of one controller (``run.spin([em1, em2, ...])``).
 """
 
 from __future__ import annotations
@@ -212,15 +214,25 @@ def create(cell_file: str, unit: str, em: str, **node_kwargs: Any) -> SimulatedE
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = run.init(argv)
-    if len(args) != 3:
+    if len(args) < 3:
         print(__doc__)
         return 2
+    cell_file, unit, *names = args
+    nodes: list[SimulatedEm] = []
     try:
-        node = create(*args)
+        for name in names:
+            nodes.append(create(cell_file, unit, name))
     except (ConfigError, OSError) as exc:
+        for node in nodes:
+            node.destroy_node()
         print(f"em_node: {exc}", file=sys.stderr)
         return 2
-    return run.spin([node], on_shutdown=node.close)
+
+    def close() -> None:
+        for node in nodes:
+            node.close()
+
+    return run.spin(nodes, on_shutdown=close)
 
 
 if __name__ == "__main__":
