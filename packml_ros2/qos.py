@@ -36,6 +36,9 @@ EM_REPORTS = _profile(200, latched=False)
 #: ``<unit>/input_log``: every input the unit's engine applied, for record/replay; latched deep
 #: so a recorder that starts late still gets the inputs since the unit started.
 INPUT_LOG = _profile(5000, latched=True)
+#: ``<unit>/snapshot``: the engine state, published when a subscriber (a recorder) joins; the last
+#: one reaches late subscribers at once.
+SNAPSHOT = LATCHED
 #: ``/diagnostics`` (diagnostic_msgs), as the standard aggregator expects.
 DIAGNOSTICS = _profile(10, latched=False)
 

@@ -207,6 +207,8 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     )
     resetting = [x for x in wrapper.transitions.messages if x.command == Cmd.RESET]
     assert resetting and resetting[-1].source == "remote:coordinator"
+    # a cell command is answered when the units took it: the robot may still be resetting
+    line.wait(lambda m: states(m) == {"robot": "IDLE", "wrapper": "IDLE"}, "the line idle")
     start = line.command(Cmd.START)
     assert start.accepted, start.message
     line.wait(lambda m: states(m) == {"robot": "EXECUTE", "wrapper": "EXECUTE"}, "the line running")
