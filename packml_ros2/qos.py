@@ -40,6 +40,9 @@ INPUT_LOG = _profile(5000, latched=True)
 #: enough for every client a cell has (operators, the coordinator, the HMI, OPC UA, scripts)
 #: pipelining requests; with the ROS default (10) a burst of 50 lost 40 of them.
 SERVICES = _profile(256, latched=False)
+#: ``<unit>/snapshot``: the engine state, published when a subscriber (a recorder) joins; the last
+#: one reaches late subscribers at once.
+SNAPSHOT = LATCHED
 #: ``/diagnostics`` (diagnostic_msgs), as the standard aggregator expects.
 DIAGNOSTICS = _profile(10, latched=False)
 

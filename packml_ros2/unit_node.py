@@ -23,7 +23,15 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from diagnostic_msgs.msg import DiagnosticArray
-from packml_interfaces.msg import Admin, AlarmList, EmReport, Status, TransitionEvent, UnitInput
+from packml_interfaces.msg import (
+    Admin,
+    AlarmList,
+    EmReport,
+    Status,
+    TransitionEvent,
+    UnitInput,
+    UnitSnapshot,
+)
 from packml_interfaces.srv import (
     AckAlarms,
     Command,
@@ -40,6 +48,7 @@ from packml_interfaces.srv import (
     SetUnitParameters,
 )
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.event_handler import PublisherEventCallbacks, QoSPublisherMatchedInfo
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.subscription import MessageInfo
@@ -132,6 +141,13 @@ class UnitNode(Node):
             "admin": self.pub_admin,
             "alarms": self.pub_alarms,
         }
+        #: messages published per output topic: a snapshot says where a replay from it aligns
+        self._published = dict.fromkeys(self._outputs, 0)
+        # a recorder that joins gets the engine state: a replay starts from it (bag/replay.py)
+        self.pub_snapshot = self.create_publisher(
+            UnitSnapshot, "~/snapshot", qos.SNAPSHOT,
+            event_callbacks=PublisherEventCallbacks(matched=self._on_snapshot_matched),
+        ) if self._record else None  # fmt: skip
         self._reports = self.create_subscription(
             EmReport, "~/em_reports", with_info(self._on_report), qos.EM_REPORTS
         )
@@ -451,6 +467,7 @@ class UnitNode(Node):
         if not self.context.ok():
             return  # Ctrl-C arrived while a callback ran: the publishers are gone
         self._outputs[topic].publish(msg)
+        self._published[topic] += 1
         if topic == "alarms":
             self._publish_diagnostics()
         if len(self._inputs) >= 200:
@@ -472,7 +489,21 @@ class UnitNode(Node):
                      "persistence": self.store is not None, "schema": inputlog.SCHEMA}  # fmt: skip
             self._on_input(self.unit.now, inputlog.START, start)
         self.driver.flush()
-        self.pub_admin.publish(self.driver.admin_message())
+        self._emit("admin", self.driver.admin_message())
+
+    def _on_snapshot_matched(self, info: QoSPublisherMatchedInfo) -> None:
+        if info.current_count_change > 0 and not self._closed:
+            self.publish_snapshot()
+
+    def publish_snapshot(self) -> None:
+        """The engine state now (between inputs: the node's callbacks are mutually exclusive),
+        after input ``index``, with what replay needs besides it."""
+        if self.pub_snapshot is None or not self.context.ok():
+            return
+        msg = self.driver.snapshot_message(
+            self._input_index, self._published, self.store is not None
+        )
+        self.pub_snapshot.publish(msg)
 
     def _log(self, level: str, text: str) -> None:
         """A log line of the engine or the node: callers' text escaped (no forged lines), repeated
