@@ -206,7 +206,10 @@ class UnitProxy:
     def client(self, service: str) -> Any:
         if service not in self._clients:
             self._clients[service] = self.node.create_client(
-                SERVICES[service], f"{self.path}/{service}", callback_group=self._group
+                SERVICES[service],
+                f"{self.path}/{service}",
+                qos_profile=qos.SERVICES,  # requests pipelined by a face are never dropped
+                callback_group=self._group,
             )
         return self._clients[service]
 

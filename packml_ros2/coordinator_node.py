@@ -179,6 +179,7 @@ class CoordinatorNode(Node):
         self._runs: dict[int, str] = {}  # running sequences: id -> what they wait for
         self._cancelled: dict[int, str] = {}  # id -> by which command
         self._aborts: set[int] = set()  # ids of ABORT runs
+        self._stops: set[int] = set()  # ids of STOP runs (another STOP joins them)
         self._last_result = ""
         self._last_msg: CellStatus | None = None
         self._closed = False
@@ -385,8 +386,13 @@ class CoordinatorNode(Node):
             unit.interlock_pending = False
             what = f"interlock on {unit.name} ({reason})" if want else f"clearing the interlock on {unit.name}"  # fmt: skip
             exc = future.exception()
-            if exc is not None or not future.result().accepted:
-                why = str(exc) if exc is not None else future.result().message
+            answer = None if exc is not None else future.result()
+            # (a clear of what the unit does not hold from us: nothing to do is done)
+            done = answer is not None and (
+                answer.accepted or (not want and answer.result == Result.NOTHING_TO_DO)
+            )
+            if not done:
+                why = str(exc) if answer is None else answer.message
                 unit.interlock_retry_at = time.monotonic() + INTERLOCK_RETRY
                 if why != unit.interlock_error:  # once per distinct problem, not every retry
                     unit.interlock_error = why
@@ -563,13 +569,16 @@ class CoordinatorNode(Node):
             self._runs.pop(run_id, None)
             self._cancelled.pop(run_id, None)
             self._aborts.discard(run_id)
+            self._stops.discard(run_id)
             self._publish()
 
     def _cancel_all(self, by: str) -> None:
-        """End running sequences and mode fan-outs (an ABORT in progress is never cancelled)."""
+        """End running sequences and mode fan-outs (an ABORT in progress is never cancelled, a
+        STOP not by another STOP: that one joins it)."""
         with self._cond:
+            spared = self._aborts | (self._stops if by == "STOP" else set())  # (joined instead)
             for run_id in self._runs:
-                if run_id not in self._aborts:
+                if run_id not in spared:
                     self._cancelled.setdefault(run_id, by)
             self._cond.notify_all()
 
@@ -584,6 +593,10 @@ class CoordinatorNode(Node):
             give_up = time.monotonic() + self.config.step_timeout + 5.0
             acquired = False
             while not acquired and time.monotonic() < give_up:
+                with self._cond:  # a STOP runs already: this one joins it (no thread waits)
+                    running = [self._runs[r] for r in self._stops if r in self._runs]
+                if running:
+                    return True, Result.ACCEPTED, f"STOP joined the STOP in progress ({running[0]})"
                 self._cancel_all("STOP")
                 acquired = self._seq_lock.acquire(timeout=0.1)
         else:
@@ -601,6 +614,9 @@ class CoordinatorNode(Node):
                 listed = "; ".join(text for _, text in refusals)
                 return False, refusals[0][0], f"{name} refused, no unit commanded: {listed}"
         run_id = self._register(f"{name}: starting")
+        if cmd is Cmd.STOP:
+            with self._cond:
+                self._stops.add(run_id)
         done: list[str] = []
         skipped: list[str] = []
         failed: list[tuple[int, str]] = []

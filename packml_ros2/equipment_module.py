@@ -38,6 +38,7 @@ import concurrent.futures
 import contextlib
 import inspect
 import threading
+import time
 import traceback
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
@@ -124,6 +125,7 @@ class EquipmentModule(Node):
         self._pending: Status | None = None  # newest status that arrived while it was
         self._task: asyncio.Task[None] | None = None
         self._ctx: StateContext | None = None
+        self._reported: tuple[int, int, float] | None = None  # last SC: (state, sequence, when)
         self._heartbeat()
 
     # -- what integrators call -------------------------------------------------------------------------
@@ -178,11 +180,10 @@ class EquipmentModule(Node):
 
     def report_complete(self, state: int | None = None, sequence: int | None = None) -> None:
         """State Complete for (state, sequence); the base class does this when a hook returns."""
-        self._send(
-            EmReport.KIND_STATE_COMPLETE,
-            state=int(self.state if state is None else state),
-            sequence=self.sequence if sequence is None else sequence,
-        )
+        key = (int(self.state if state is None else state),
+               self.sequence if sequence is None else sequence)  # fmt: skip
+        self._reported = (*key, time.monotonic())
+        self._send(EmReport.KIND_STATE_COMPLETE, state=key[0], sequence=key[1])
 
     # -- plumbing ------------------------------------------------------------------------------------------
     def _send(self, kind: int, **fields: Any) -> None:
@@ -194,7 +195,23 @@ class EquipmentModule(Node):
         return self.get_clock().now().to_msg()
 
     def _heartbeat(self) -> None:
+        """Alive; and State Complete again when the unit still waits for the one sent (a report
+        it did not take: lost, or refused while it checked who speaks for this EM after a
+        restart, core.reports.Writers)."""
         self._send(EmReport.KIND_HEARTBEAT)
+        reported, status = self._reported, self.unit_status
+        if reported is None or status is None:
+            return
+        state, sequence, when = reported
+        if (status.state_current, status.sequence) != (state, sequence):
+            return
+        mine = next((e for e in status.equipment_modules if e.name == self.em_name), None)
+        if (
+            mine is not None
+            and not mine.state_complete
+            and time.monotonic() - when >= self.lease / 4
+        ):
+            self.report_complete(state, sequence)
 
     def hook_for(self, state: State) -> Callable[[StateContext], Any] | None:
         """The hook for an acting state (None: nothing to do, complete at once). Override to

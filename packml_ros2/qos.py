@@ -36,6 +36,10 @@ EM_REPORTS = _profile(200, latched=False)
 #: ``<unit>/input_log``: every input the unit's engine applied, for record/replay; latched deep
 #: so a recorder that starts late still gets the inputs since the unit started.
 INPUT_LOG = _profile(5000, latched=True)
+#: Services of units, bridges and the coordinator, and this package's clients of them: deep
+#: enough for every client a cell has (operators, the coordinator, the HMI, OPC UA, scripts)
+#: pipelining requests; with the ROS default (10) a burst of 50 lost 40 of them.
+SERVICES = _profile(256, latched=False)
 #: ``<unit>/snapshot``: the engine state, published when a subscriber (a recorder) joins; the last
 #: one reaches late subscribers at once.
 SNAPSHOT = LATCHED

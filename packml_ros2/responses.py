@@ -31,6 +31,8 @@ from typing import Any
 
 from rclpy.node import Node
 
+from . import boundary, qos
+
 LOST_MESSAGE = "failed to send response (timeout)"
 RESEND_PERIOD_S = 0.05
 _RESEND_ENV = "PACKML_RESPONSE_RESEND_S"
@@ -157,10 +159,15 @@ def resender() -> Resender:
 
 
 def create_service(node: Node, srv_type: Any, name: str, callback: Any, **kwargs: Any) -> Any:
-    """``node.create_service(...)`` whose responses dropped for a client discovered late are sent
-    again (see the module docstring). Both rclpy executors send through ``send_response``."""
+    """``node.create_service(...)`` behind the request boundary (:func:`.boundary.guard`), with
+    queues for the clients a cell has (:data:`.qos.SERVICES`), whose responses dropped for a
+    client discovered late are sent again (see the module docstring). Both rclpy executors send
+    through ``send_response``."""
     retries = resender()  # reads PACKML_RESPONSE_RESEND_S now: a bad value fails at start-up
-    service = node.create_service(srv_type, name, callback, **kwargs)
+    kwargs.setdefault("qos_profile", qos.SERVICES)
+    path = f"{node.get_fully_qualified_name()}/{name[2:]}" if name.startswith("~/") else name
+    guarded = boundary.guard(callback, path, node.get_logger())
+    service = node.create_service(srv_type, name, guarded, **kwargs)
     send = service.send_response
     log = node.get_logger()
 

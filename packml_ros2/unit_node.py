@@ -3,7 +3,8 @@
 Services (relative to the node, e.g. ``/demo_cell/robot_cell/command``): ``command``, ``set_mode``,
 the Trigger shortcuts ``reset`` ... ``complete``, ``reset_times``, ``reset_counters``,
 ``ack_alarms``, ``reset_alarms``, ``query_alarms``, ``set_alarm``, ``set_mach_speed``,
-``set_unit_parameters``, ``set_product``, ``set_em_active``, ``set_interlock``.
+``set_unit_parameters``, ``set_product``, ``set_em_active``, ``set_interlock``,
+``set_remote_commands`` (the remote lock: from a local source only).
 Topics: ``status``, ``transitions``, ``admin``, ``alarms``, ``input_log``, ``/diagnostics``;
 EMs report on ``em_reports``.
 
@@ -12,6 +13,7 @@ Run: ``unit_node <cell.yaml> [unit] [--ros-args -p remote_commands_enabled:=true
 
 from __future__ import annotations
 
+import inspect
 import json
 import math
 import sys
@@ -49,6 +51,7 @@ from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.event_handler import PublisherEventCallbacks, QoSPublisherMatchedInfo
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.subscription import MessageInfo
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
@@ -66,9 +69,12 @@ from .core import (
     state_name,
 )
 from .core.config import CoordinatorConfig
+from .core.limits import LogLimiter, printable
 from .core.liveliness import Liveliness
+from .core.reports import LEAVE, Writers, report_problem
 from .core.secrets import redacted_yaml
 from .driver import FrozenClock, UnitDriver
+from .remote_lock import RemoteLock
 
 T = TypeVar("T")
 SORTS = {QueryAlarms.Request.SORT_TIME: "time", QueryAlarms.Request.SORT_CATEGORY_TIME: "category",
@@ -103,6 +109,10 @@ class UnitNode(Node):
         self.unit = Unit(config, clock=self.clock, store=self.store)
         self.driver = UnitDriver(self.unit, self.clock, self._emit)
         self.liveliness = Liveliness(config.em_lease)
+        #: which writer speaks for each EM (core.reports): a forger's reports are refused
+        self.writers = Writers()
+        self.refused_reports = 0
+        self._log_limiter = LogLimiter()
         self._leaving: dict[str, tuple[float, EmReport]] = {}  # EM -> (when it is lost, goodbye)
         self._inputs: list[UnitInput] = []
         self._input_index = 0
@@ -138,7 +148,9 @@ class UnitNode(Node):
             UnitSnapshot, "~/snapshot", qos.SNAPSHOT,
             event_callbacks=PublisherEventCallbacks(matched=self._on_snapshot_matched),
         ) if self._record else None  # fmt: skip
-        self.create_subscription(EmReport, "~/em_reports", self._on_report, qos.EM_REPORTS)
+        self._reports = self.create_subscription(
+            EmReport, "~/em_reports", with_info(self._on_report), qos.EM_REPORTS
+        )
         self._create_services()
         # No polling: one timer, armed for the engine's next deadline, the next lease that can
         # expire, a goodbye's grace or the input log's batch (_arm after every callback).
@@ -150,8 +162,11 @@ class UnitNode(Node):
             self.create_timer(DIAGNOSTICS_PERIOD, self._publish_diagnostics),
         ]
         self._closed = False
-        self.add_post_set_parameters_callback(self._on_parameters_set)
         self.add_on_set_parameters_callback(self._validate_parameters)
+        self.remote_lock = RemoteLock(
+            self, config.name, config.remote_commands_enabled,
+            lambda enabled: self._run(self.unit.set_remote_enabled, enabled),
+        )  # fmt: skip
         self._publish_start()
         self._arm(self._now())
         self.get_logger().info(
@@ -162,11 +177,6 @@ class UnitNode(Node):
 
     # -- parameters ----------------------------------------------------------------------------------
     def _declare_parameters(self, config: UnitConfig, store_path: str | None) -> None:
-        self.declare_parameter(
-            "remote_commands_enabled",
-            config.remote_commands_enabled,
-            ParameterDescriptor(description="accept commands whose source starts with 'remote'"),
-        )
         self.declare_parameter(
             "persistence_path",
             store_path if store_path is not None else (config.persistence_path or ""),
@@ -192,10 +202,6 @@ class UnitNode(Node):
 
     def _validate_parameters(self, params: list[Parameter]) -> SetParametersResult:
         for p in params:
-            if p.name == "remote_commands_enabled" and p.type_ != Parameter.Type.BOOL:
-                return SetParametersResult(
-                    successful=False, reason="remote_commands_enabled must be a bool"
-                )
             if p.name == "em_leave_grace" and not (
                 p.type_ in (Parameter.Type.DOUBLE, Parameter.Type.INTEGER) and 0 <= p.value <= 60
             ):
@@ -203,11 +209,6 @@ class UnitNode(Node):
                     successful=False, reason="em_leave_grace must be 0 to 60 seconds"
                 )
         return SetParametersResult(successful=True)
-
-    def _on_parameters_set(self, params: list[Parameter]) -> None:
-        for p in params:
-            if p.name == "remote_commands_enabled":
-                self._run(self.unit.set_remote_enabled, bool(p.value))
 
     # -- clock ----------------------------------------------------------------------------------------
     def _now(self) -> float:
@@ -359,12 +360,30 @@ class UnitNode(Node):
     def _srv_set_interlock(
         self, req: SetInterlock.Request, resp: SetInterlock.Response
     ) -> SetInterlock.Response:
-        answer = self._run(self.unit.set_interlock, req.active, req.reason, req.source or "remote")
+        answer = self._run(self.unit.set_interlock, req.active, req.reason, req.source)
         return self._answer(resp, answer)
 
     # -- equipment modules ---------------------------------------------------------------------------
-    def _on_report(self, msg: EmReport) -> None:
+    def _on_report(self, msg: EmReport, info: MessageInfo) -> None:
+        """An EM report: checked field by field, and taken only from the writer that speaks for
+        its EM (core.reports); then applied (driver.report), a goodbye after a grace."""
         now = self._now()
+        problem = report_problem(msg, self.unit.sequence)
+        if problem is not None:
+            self.refused_reports += 1
+            self.unit.stats.bad_reports += 1
+            self._log("warn", f"EM report refused: {problem}")
+            return
+        gid = info.get("publisher_gid")
+        writer = bytes(gid["data"]) if gid else b""
+        taken, note = self.writers.claim(msg.em, writer, now, self._writer_gone)
+        if note is not None:
+            self._log("warn" if not taken else "info", note)
+        if not taken:
+            self.refused_reports += 1
+            return
+        if msg.kind == LEAVE or msg.em not in self.unit.equipment.modules:
+            self.writers.release(msg.em)  # left, or not an EM of the unit: keep nothing
         if msg.kind == EmReport.KIND_LEAVE:
             self._leave(msg, now)
         else:
@@ -388,6 +407,14 @@ class UnitNode(Node):
                 del self._leaving[name]
                 self.driver.report(now, msg, self.liveliness)
 
+    def _writer_gone(self, writer: bytes) -> bool:
+        """Whether ``writer`` no longer publishes EM reports here (its node or process ended)."""
+        topic = self._reports.topic_name
+        return all(
+            bytes(bytearray(e.endpoint_gid))[: len(writer)] != writer
+            for e in self.get_publishers_info_by_topic(topic)
+        )
+
     def _on_wake(self) -> None:
         self._wake_at = math.inf  # fired: _arm sets it again
         self._wake.cancel()
@@ -396,8 +423,12 @@ class UnitNode(Node):
         now = self._now()
         self._apply_leaves(now)
         for name, lease in self.liveliness.expired(now):
+            self.writers.release(name)
             self._leaving.pop(name, None)
             self.driver.call(now, self.unit.em_lost, name, f"no report for {lease:g} s")
+        summary = self._log_limiter.due(now)
+        if summary is not None:
+            self.get_logger().warning(summary)
         self.driver.catch_up(now)
         self._flush_inputs()
         self._arm(now)
@@ -475,6 +506,14 @@ class UnitNode(Node):
         self.pub_snapshot.publish(msg)
 
     def _log(self, level: str, text: str) -> None:
+        """A log line of the engine or the node: callers' text escaped (no forged lines), repeated
+        lines rate-limited (core.limits)."""
+        write, summary = self._log_limiter.admit(text, self._now())
+        if summary is not None:
+            self.get_logger().warning(summary)
+        if not write:
+            return
+        text = printable(text, 1000)
         # rclpy ties a severity to each call site: one call per level.
         if level == "warn":
             self.get_logger().warning(text)
@@ -528,6 +567,21 @@ class UnitNode(Node):
     def destroy_node(self) -> None:
         self.close()
         super().destroy_node()
+
+
+def with_info(callback: Callable[[Any, MessageInfo], None]) -> Callable[..., None]:
+    """``callback(msg, info)`` as a subscription callback every executor calls right: rclpy's
+    Python executors pass (msg, info), its EventsExecutor (rclpy 9.1) one (msg, info) tuple."""
+
+    def call(*args: Any) -> None:
+        msg, info = args if len(args) == 2 else args[0]
+        callback(msg, info)
+
+    two = inspect.Parameter.POSITIONAL_ONLY
+    call.__signature__ = inspect.Signature(  # type: ignore[attr-defined]  # what rclpy inspects
+        [inspect.Parameter("msg", two), inspect.Parameter("info", two)]
+    )
+    return call
 
 
 def pick_unit(cell: CellConfig, cell_file: str, unit: str | None) -> UnitConfig:

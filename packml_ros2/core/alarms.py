@@ -167,6 +167,12 @@ class AlarmManager:
         self.changed: dict[int, AlarmEvent] | None = None
 
     # -- raising and clearing ------------------------------------------------------------------------
+    def full(self) -> bool:
+        """Whether the list holds as many alarms and warnings as it takes unconfigured ones in:
+        twice what Admin.Alarm[] and Warning[] show (beyond that, only configured alarms are
+        raised: a flood of made-up ones must not grow memory)."""
+        return len(self.current) >= 2 * (self.alarm_capacity + self.warning_capacity)
+
     def definition(self, alarm_id: int, value: int) -> AlarmDef | None:
         return self.defs.get((alarm_id, value))
 

@@ -131,6 +131,8 @@ class UnitConfig:
     counters: Mapping[str, tuple[CounterDef, ...]] = field(default_factory=dict)
     mach_speed: float = 0.0
     mach_design_speed: float = 0.0  # units per minute
+    #: the highest MachSpeed the unit takes (None: mach_design_speed when set, else unbounded)
+    max_mach_speed: float | None = None
     parameters: tuple[Descriptor, ...] = ()
     admin_parameters: tuple[Descriptor, ...] = ()
     products: tuple[Product, ...] = ()
@@ -376,7 +378,7 @@ _UNIT_KEYS = {
     "description", "initial_mode", "model", "hold_from", "complete_from", "remote_commands_enabled",
     "modes", "equipment_modules", "allow_registration", "em_lease", "em_lost_reaction", "timeouts",
     "min_dwell", "mode_change_timeout", "alarms", "reactions", "interlock_reaction", "sizes",
-    "counters", "mach_speed", "mach_design_speed", "parameters", "admin_parameters", "products",
+    "counters", "mach_speed", "mach_design_speed", "max_mach_speed", "parameters", "admin_parameters", "products",
     "remote_interfaces", "persistence", "admin_period", "system_alarms", "planned_stop_ids", "plc",
 }  # fmt: skip
 
@@ -515,6 +517,15 @@ def _unit(name: str, n: Node, cell: str, base_dir: Path) -> UnitConfig:
     min_dwell: dict[State, float] = n.get(
         "min_dwell", lambda x: _state_seconds(x, ACTING - {State.EXECUTE}), {}
     )
+    design_speed = n.get("mach_design_speed", sc.number(lo=0), 0.0)
+    max_speed = n.get("max_mach_speed", sc.number(lo=0), None)
+    speed = n.get("mach_speed", sc.number(lo=0), 0.0)
+    limit = max_speed if max_speed is not None else (design_speed or None)
+    if limit is not None and speed > limit:
+        where = "max_mach_speed" if max_speed is not None else "mach_design_speed"
+        n.child("mach_speed", None).error(
+            f"{speed:g} is above the highest speed the unit takes, {limit:g} ({where})"
+        )
     return UnitConfig(
         name=name,
         cell=cell,
@@ -524,7 +535,8 @@ def _unit(name: str, n: Node, cell: str, base_dir: Path) -> UnitConfig:
         table=build_table(model, hold_from, complete_from),
         remote_commands_enabled=n.get("remote_commands_enabled", sc.boolean, False),
         equipment_modules=ems,
-        allow_registration=n.get("allow_registration", sc.boolean, True),
+        # an EM list is closed unless said otherwise; a unit without one learns its EMs
+        allow_registration=n.get("allow_registration", sc.boolean, not ems),
         em_lease=n.get("em_lease", sc.number(positive=True), d.em_lease),
         em_lost_reaction=n.get("em_lost_reaction", _LOST_REACTION, int(Cmd.ABORT)),
         timeouts=n.get("timeouts", lambda x: _state_seconds(x, ACTING), {}),
@@ -537,8 +549,9 @@ def _unit(name: str, n: Node, cell: str, base_dir: Path) -> UnitConfig:
         interlock_reaction=interlock_reaction,
         sizes=sizes,
         counters=n.get("counters", lambda x: _counters(x, sizes.counters), {}),
-        mach_speed=n.get("mach_speed", sc.number(lo=0), 0.0),
-        mach_design_speed=n.get("mach_design_speed", sc.number(lo=0), 0.0),
+        mach_speed=speed,
+        mach_design_speed=design_speed,
+        max_mach_speed=max_speed,
         parameters=n.get("parameters", lambda x: _descriptors(x, sizes.parameters), ()),
         admin_parameters=n.get(
             "admin_parameters", lambda x: _descriptors(x, sizes.admin_parameters), ()

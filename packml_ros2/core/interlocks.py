@@ -10,12 +10,40 @@ the unit's :class:`~.rules.Alert`.
 
 from __future__ import annotations
 
+from collections.abc import Collection
+
 from .numbers import Cmd, State
+from .reasons import Answer, Reason
 from .rules import INTERLOCK_RESUME, INTERLOCK_SUSPEND, Alert, Watch
 
 #: OMAC stop-reason IDs (Beckhoff E_AlarmID ranges) of interlock stops.
 STOP_ID_BLOCKED = 3002  # downstream: discharge blocked
 STOP_ID_STARVED = 2499  # upstream: undefined upstream reason
+#: Interlocks set from outside (``set_interlock``) a unit holds at most: one per source.
+MAX_EXTERNAL = 16
+
+
+def external_refusal(held: Collection[str], active: bool, source: str,
+                     unit: str) -> Answer | None:  # fmt: skip
+    """Why ``set_interlock`` from ``source`` is refused, ``held``: the sources whose interlocks
+    the unit holds (None: it is taken). Each source holds one interlock and clears only its own;
+    a unit holds at most :data:`MAX_EXTERNAL`."""
+    if active:
+        if source not in held and len(held) >= MAX_EXTERNAL:
+            return Answer.no(
+                Reason.INVALID_ARGUMENT,
+                f"interlock from {source} refused: {unit} holds {MAX_EXTERNAL} interlocks from "
+                "outside already (one per source)",
+            )
+        return None
+    if source not in held:
+        still = f" (held by {', '.join(sorted(held))})" if held else ""
+        return Answer.no(
+            Reason.NOTHING_TO_DO,
+            f"nothing cleared: {unit} holds no interlock from {source}{still}; each source clears "
+            "only its own",
+        )
+    return None
 
 
 class Interlocks:

@@ -9,6 +9,8 @@ import difflib
 from collections.abc import Iterable
 from enum import IntEnum
 
+from .limits import printable
+
 
 class State(IntEnum):
     """``Status.StateCurrent`` values."""
@@ -115,27 +117,59 @@ def command_name(cmd: int) -> str:
 
 def parse_state(text: str | int) -> State:
     """A state from its number or name (case-insensitive, ``Completed`` accepted)."""
-    if isinstance(text, int) or (isinstance(text, str) and text.strip().isdigit()):
-        return State(int(text))
-    key = _norm(text)
+    number = _number(text, "state", State)
+    if number is not None:
+        return State(number)
+    key = _norm(str(text))
     if key in State.__members__:
         return State[key]
     if key in _STATE_ALIASES:
         return _STATE_ALIASES[key]
-    raise ValueError(f"{text!r} is not a PackML state{_did_you_mean(key, State.__members__)}")
+    raise ValueError(
+        f"{_quoted(text)} is not a PackML state{_did_you_mean(key, State.__members__)}"
+    )
 
 
 def parse_command(text: str | int) -> Cmd:
     """A command from its number or name (case-insensitive)."""
-    if isinstance(text, int) or (isinstance(text, str) and text.strip().isdigit()):
-        return Cmd(int(text))
-    key = _norm(text)
+    number = _number(text, "command", Cmd)
+    if number is not None:
+        return Cmd(number)
+    key = _norm(str(text))
     if key in Cmd.__members__:
         return Cmd[key]
-    raise ValueError(f"{text!r} is not a PackML command{_did_you_mean(key, Cmd.__members__)}")
+    raise ValueError(
+        f"{_quoted(text)} is not a PackML command{_did_you_mean(key, Cmd.__members__)}"
+    )
+
+
+#: Characters of a caller's text a parse error quotes (and compares with the names).
+MAX_QUOTED = 40
+
+
+def _quoted(text: str | int) -> str:
+    """A caller's text as an error quotes it: control characters escaped, cut to
+    :data:`MAX_QUOTED` (an error message never grows with what was sent)."""
+    return f"'{printable(str(text), MAX_QUOTED)}'"
+
+
+def _number(text: str | int, what: str, numbers: Iterable[int]) -> int | None:
+    """``text`` as a number when it is one (ASCII digits), checked against ``numbers``."""
+    if isinstance(text, str):
+        digits = text.strip()
+        if not (digits.isascii() and digits.isdigit()):
+            return None
+        if len(digits) > 3:
+            raise ValueError(f"{_quoted(text)} is not a PackML {what} number")
+        text = int(digits)
+    if text not in {int(n) for n in numbers}:
+        raise ValueError(f"{_quoted(text)} is not a PackML {what} number")
+    return text
 
 
 def _did_you_mean(key: str, names: Iterable[str]) -> str:
+    if len(key) > MAX_QUOTED:  # difflib is quadratic in the text's length
+        return ""
     close = difflib.get_close_matches(key, list(names), n=1)
     return f" (did you mean {close[0]}?)" if close else ""
 

@@ -9,7 +9,8 @@ AvailableStates/AvailableTransitions, the coordinator's targets) read these decl
 2. **Modes** (PACKML.md 3): disabled-state implications, skip-through of disabled acting states,
    the mode-change matrix.
 3. **Priority** of requests in one evaluation step.
-4. **Sources**: which commands are remote (the remote lock).
+4. **Sources**: the kinds of source a request names, which are remote, and the remote lock
+   over every input that changes the unit (and who may change the lock).
 5. **Guards**: situations that refuse a command the table allows (mode change in process,
    remote commands disabled, a missing EM, a reacting alarm, an interlock), each with its reason
    code and the sentence an operator reads.
@@ -220,24 +221,117 @@ def command_priority(cmd: int) -> int:
 
 
 # ==================================================================================================
-# 4. Sources
+# 4. Sources: who asks, and the remote lock
 # ==================================================================================================
-OPERATOR = "operator"  #: the source of commands that name none
-REMOTE_PREFIX = (
-    "remote"  #: sources starting with it are remote (the coordinator, a line controller)
-)
+OPERATOR = "operator"  #: the source of requests that name none (an empty source)
+
+
+@dataclass(frozen=True)
+class SourceKind:
+    """A kind of source: the part of ``kind:name`` before the colon."""
+
+    kind: str
+    remote: bool  #: subject to the remote lock (``remote_commands_enabled``)
+    caller: bool  #: a service caller may name it (the others are the unit's own inputs)
+    what: str
+
+
+#: Every kind of source. A request's ``source`` is ``<kind>`` or ``<kind>:<name>`` (the name: 1..64
+#: of ``A-Z a-z 0-9 _ . @ -``); an empty source is the local operator. Faces label themselves:
+#: the HMI ``hmi:<user>``, OPC UA ``opcua:<user>``, the coordinator ``remote:coordinator`` (its
+#: commands) and ``coordinator`` (its interlocks).
+SOURCE_KINDS: Mapping[str, SourceKind] = {
+    k.kind: k
+    for k in (
+        SourceKind("operator", False, True, "a person at the machine (ros2 service call, packml)"),
+        SourceKind("hmi", True, True, "the browser HMI, hmi:<user>"),
+        SourceKind("opcua", True, True, "the OPC UA server, opcua:<user>"),
+        SourceKind("coordinator", True, True, "the cell coordinator's interlocks"),
+        SourceKind("remote", True, True, "a line controller, MES or script, remote:<who>"),
+        SourceKind("em", False, False, "an EM's command request or alarm, em:<name>"),
+        SourceKind("unit", False, False, "the unit itself (State Complete, timeouts)"),
+        SourceKind("alarm", False, False, "an alarm's reaction, alarm:<id>"),
+        SourceKind("interlock", False, False, "a line interlock's Suspend or Unsuspend"),
+        SourceKind("plc", False, False, "a PLC unit's own transitions"),
+    )
+}
+#: Kinds the remote lock lets through; "" is an empty source (the operator). Anything else is
+#: remote, including what no kind names: the lock fails closed (``REMOTE:x``, `` remote``).
+LOCAL_KINDS: frozenset[str] = frozenset({"", *(k for k, d in SOURCE_KINDS.items() if not d.remote)})
+#: Kinds a caller may name, in the order a refusal lists them.
+CALLER_KINDS: tuple[str, ...] = tuple(k for k, d in SOURCE_KINDS.items() if d.caller)
+MAX_SOURCE_NAME = 64
+_NAME_CHARS = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_.@-")
 
 
 def is_remote(source: str) -> bool:
-    """Whether a command from ``source`` is remote: accepted only while the unit's
-    ``remote_commands_enabled`` is true (the remote lock)."""
-    return source.startswith(REMOTE_PREFIX)
+    """Whether an input from ``source`` is remote: accepted only while the unit's
+    ``remote_commands_enabled`` is true (the remote lock). Fails closed: a source of no local
+    kind is remote."""
+    return source.partition(":")[0] not in LOCAL_KINDS
 
 
 def remote_locked(source: str, remote_enabled: bool) -> bool:
     """The remote lock: an input from a remote source while remote commands are disabled (judged
-    for commands by the ``remote`` guard, for mode changes by the unit's mode check)."""
+    for commands by the ``remote`` guard, for every other input that changes the unit by
+    :func:`locked_refusal`)."""
     return not remote_enabled and is_remote(source)
+
+
+def source_refusal(source: str) -> str | None:
+    """Why a caller may not send ``source`` (None: it may): the grammar above, exactly (no case,
+    no spaces, no kind a caller may not name)."""
+    if not source:
+        return None
+    kind, colon, name = source.partition(":")
+    if kind not in SOURCE_KINDS or not SOURCE_KINDS[kind].caller:
+        shown = source if len(source) <= 40 and source.isprintable() else f"{source[:40]!r}..."
+        return (f"source {shown!r} is not one of {', '.join(CALLER_KINDS)} (as kind or "
+                "kind:name, lower case; empty = operator)")  # fmt: skip
+    if colon and not (0 < len(name) <= MAX_SOURCE_NAME and _NAME_CHARS.issuperset(name)):
+        return (f"the name in source {kind}:... must be 1..{MAX_SOURCE_NAME} of A-Z a-z 0-9 _ . "
+                "@ -")  # fmt: skip
+    return None
+
+
+def source_of(kind: str, name: str = "") -> str:
+    """The source a face sends for ``name`` (a user): ``kind:name``, the name's characters outside
+    the grammar replaced by ``_`` and cut to its length; ``kind`` alone without a name."""
+    if kind not in SOURCE_KINDS:
+        raise ValueError(f"no source kind {kind!r}")
+    clean = "".join(c if c in _NAME_CHARS else "_" for c in name[:MAX_SOURCE_NAME])
+    return f"{kind}:{clean}" if clean else kind
+
+
+#: Which inputs the remote lock guards: every input that changes the unit (commands by the
+#: ``remote`` guard below, the rest by :func:`locked_refusal`). Reading (query_alarms) is free.
+LOCKED_INPUTS: tuple[str, ...] = (
+    "command", "mode", "alarm", "alarm.ack", "alarm.reset", "times.reset", "counters.reset",
+    "speed", "parameters", "products", "em.active", "interlock",
+)  # fmt: skip
+#: The sentence of an input refused by the lock (``what``: the input as people say it).
+LOCKED_SENTENCE = (
+    "{what} from {source} refused: remote commands are disabled on {unit} (parameter "
+    "remote_commands_enabled; only a local source switches it)"
+)
+
+
+def locked_refusal(what: str, source: str, remote_enabled: bool, unit: str) -> Answer | None:
+    """The refusal of an input that changes the unit, from ``source``, while the lock holds
+    (None: it passes the lock)."""
+    if not remote_locked(source, remote_enabled):
+        return None
+    return Answer(False, Reason.REMOTE_DISABLED,
+                  LOCKED_SENTENCE.format(what=what, source=source, unit=unit))  # fmt: skip
+
+
+def lock_change_refusal(source: str, unit: str) -> Answer | None:
+    """The lock itself (``remote_commands_enabled``) is changed only from a local source."""
+    if not is_remote(source):
+        return None
+    return Answer(False, Reason.UNAUTHORIZED,
+                  f"remote_commands_enabled of {unit} is switched only from a local source "
+                  f"(the operator at the machine), not from {source}")  # fmt: skip
 
 
 # ==================================================================================================
@@ -400,6 +494,38 @@ DEFAULT_REACTIONS: Mapping[int, int] = {
     4: C.STOP,
     **dict.fromkeys(range(5, NUM_CATEGORIES), 0),
 }
+
+
+class AlarmLike(Protocol):
+    """What the alarm rules read of a configured alarm (``alarms.AlarmDef``)."""
+
+    @property
+    def category(self) -> int: ...
+    @property
+    def message(self) -> str: ...
+    @property
+    def warning(self) -> bool: ...
+
+
+def override_refusal(d: AlarmLike, category: int, message: str,
+                     warning: bool | None) -> str | None:  # fmt: skip
+    """A configured alarm keeps its category (so its reaction), its kind and its text, whoever
+    raises it: why a raise that asks for others is refused (None: it asks for none, or for the
+    configured ones; -1, '' and None mean "as configured")."""
+    asked = []
+    if category >= 0 and category != d.category:
+        asked.append(f"category {category}")
+    if message and message != d.message:
+        asked.append("another message")
+    if warning is not None and warning != d.warning:
+        asked.append("a warning" if warning else "an alarm")
+    if not asked:
+        return None
+    kind = "warning" if d.warning else "alarm"
+    return (f"it is a configured {kind} (category {d.category}): its category, reaction, kind and "
+            f"text are the configuration's, not {' and '.join(asked)}")  # fmt: skip
+
+
 #: A line interlock (an EM's Blocked/Starved, or one set from outside) asks for SUSPEND while the
 #: unit is in EXECUTE, and, once every interlock is cleared, for UNSUSPEND while the unit is in
 #: SUSPENDED because of one (``interlock_reaction: suspend``; ``none`` switches it off).
@@ -455,13 +581,19 @@ ACTIVATED_EM_JOINS_CURRENT_STATE = True
 #: stray report (a typo, another cell's EM) would make the unit wait for it, and abort when it goes
 #: silent; the EM registers with its next report once the unit rests.
 REGISTRATION_AT_REST: frozenset[State] = frozenset({S.STOPPED, S.IDLE, S.ABORTED, S.COMPLETE})
+#: A unit takes at most this many EMs (configured and registered): a flood of made-up names
+#: registers no more.
+MAX_EMS = 64
 
 
 def registration_refusal(mode: int, state: State, allow_registration: bool,
-                         by_report: bool) -> str | None:  # fmt: skip
-    """Why an unknown EM cannot register now (``by_report``: its own report asks), or None."""
+                         by_report: bool, count: int = 0) -> str | None:  # fmt: skip
+    """Why an unknown EM cannot register now (``by_report``: its own report asks; ``count``: the
+    EMs the unit has), or None."""
     if not allow_registration:
         return "does not accept registrations (allow_registration: false)"
+    if count >= MAX_EMS:
+        return f"has {count} EMs, as many as a unit takes ({MAX_EMS})"
     if by_report and mode == Mode.PRODUCTION and state not in REGISTRATION_AT_REST:
         rest = ", ".join(s.name for s in sorted(REGISTRATION_AT_REST))
         return f"registers EMs by their reports in PRODUCTION only at rest ({rest}), not in {state.name}"
@@ -545,7 +677,7 @@ class Rules:
 
     Questions for faces: :meth:`edges`, :meth:`available_states`, :meth:`available_transitions`,
     :meth:`valid_commands`, :meth:`target`, :meth:`settles_in`, :meth:`command_target`,
-    :meth:`mode_change_refusal`."""
+    :meth:`mode_change_refusal`, :meth:`chain`, :meth:`reach`."""
 
     def __init__(self, table: TransitionTable, modes: Mapping[int, Any],
                  interlock_reaction: int = C.SUSPEND) -> None:  # fmt: skip
@@ -665,6 +797,21 @@ class Rules:
         entry = self.accepted[mode][state].get(cmd) if 1 <= cmd <= 10 else None
         return None if entry is None else (entry.final, entry.skipped)
 
+    def chain(self, first: State) -> tuple[State, ...]:
+        """``first``, then on by State Complete up to the wait state (or Execute) it settles in:
+        the states a command into ``first`` passes through (the model's; no mode)."""
+        out = [first]
+        sc = self.table.state_complete
+        while out[-1] in sc and out[-1] is not S.EXECUTE:
+            out.append(sc[out[-1]])
+        return tuple(out)
+
+    def reach(self, state: State, cmd: int) -> tuple[State, ...]:
+        """Where ``cmd`` leads from ``state`` in the model: :meth:`chain` of its first state; ()
+        when the table has no such transition."""
+        first = self.table.commands.get((state, Cmd(cmd))) if 1 <= cmd <= 10 else None
+        return () if first is None else self.chain(first)
+
     @staticmethod
     def settles_in(state: State) -> State:
         """The wait state (or Execute) the unit settles in from ``state`` when nothing
@@ -748,6 +895,7 @@ __all__ = [
     "AGGREGATING",
     "AT_ONCE_WITHOUT_EMS",
     "BLOCKED_BY_REACTION",
+    "CALLER_KINDS",
     "COMMANDS_2022",
     "DEFAULT_REACTIONS",
     "ENTRY",
@@ -755,11 +903,15 @@ __all__ = [
     "FAULT_COMMANDS",
     "GUARDS",
     "IMPLIED_DISABLED",
+    "LOCAL_KINDS",
+    "LOCKED_INPUTS",
+    "MAX_EMS",
     "MOTION",
     "ONLY_WITH_ACTIVE_EMS",
     "PRIORITY",
     "REACTIONS",
     "SETTLE",
+    "SOURCE_KINDS",
     "STATE_COMPLETE",
     "STOP_EXCEPT",
     "Accepted",
@@ -769,15 +921,21 @@ __all__ = [
     "Guard",
     "Rules",
     "ScStep",
+    "SourceKind",
     "TransitionTable",
     "Trigger",
     "Verdict",
     "Watch",
     "build_table",
     "is_remote",
+    "lock_change_refusal",
+    "locked_refusal",
     "mode_change_refusal",
+    "override_refusal",
     "registration_refusal",
     "remote_locked",
     "resolve",
     "rules_of",
+    "source_of",
+    "source_refusal",
 ]

@@ -34,7 +34,8 @@ from .counters import Counters
 from .deadlines import Deadlines
 from .durable import Durable, document
 from .equipment import Equipment, EquipmentModule
-from .interlocks import STOP_ID_BLOCKED, STOP_ID_STARVED, Interlocks
+from .interlocks import STOP_ID_BLOCKED, STOP_ID_STARVED, Interlocks, external_refusal
+from .limits import speed_refusal
 from .modes import ModeDef
 from .numbers import Cmd, Mode, State, command_name, state_name
 from .packtags import AdminView, StatusView, build_admin, build_status
@@ -48,6 +49,7 @@ from .rules import (
     EXCUSE_OFFLINE,
     MODE_CHANGE_NOT_ALLOWED_SECONDS,
     MODE_REQUESTS,
+    NUM_CATEGORIES,
     OPERATOR,
     SETTLE,
     STATE_COMPLETE_REPORTS,
@@ -59,9 +61,10 @@ from .rules import (
     Watch,
     command_priority,
     is_remote,
+    locked_refusal,
     mode_change_refusal,
+    override_refusal,
     registration_refusal,
-    remote_locked,
     rules_of,
 )
 from .stopreason import StopReasons
@@ -414,7 +417,7 @@ class Unit:
         em = self.equipment.get(name)
         if em is None:
             why = registration_refusal(
-                self.mode, self.state, self.config.allow_registration, report
+                self.mode, self.state, self.config.allow_registration, report, len(self.equipment)
             )
             if why is not None:
                 if name not in self._strays and len(self._strays) < MAX_STRAYS_LOGGED:
@@ -518,8 +521,11 @@ class Unit:
     def set_em_active(self, name: str, active: bool, source: str = OPERATOR) -> Answer:
         """Switch ModuleActive; only outside Production, and always logged."""
         self._enter()
+        source = source or OPERATOR
         self._record(inputlog.EM_ACTIVE, name, active, source)
-        answer = self._set_em_active(name, bool(active), source)
+        answer = self._locked(f"switching EM {name}", source) or self._set_em_active(
+            name, bool(active), source
+        )
         self._leave()
         return answer
 
@@ -568,9 +574,10 @@ class Unit:
         """Raise or clear alarm (``alarm_id``, ``value``). Unconfigured alarms need a category and
         a message; ``warning``/``category``/``message`` override the configuration when given."""
         self._enter()
+        source = source or OPERATOR
         self._record(inputlog.ALARM, alarm_id, value, active, source, em, warning, category,
                      message)  # fmt: skip
-        answer = self._set_alarm(
+        answer = self._locked(f"alarm {alarm_id}/{value}", source) or self._set_alarm(
             int(alarm_id), int(value), bool(active), source, em, warning, int(category), message
         )
         self._leave()
@@ -578,32 +585,36 @@ class Unit:
 
     def _set_alarm(self, alarm_id: int, value: int, active: bool, source: str, em: str,
                    warning: bool | None, category: int, message: str) -> Answer:  # fmt: skip
+        name = self.config.name
         if not active:
             ev = self.alarms.clear(alarm_id, value, self._t)
             if ev is None:
                 return Answer.no(Reason.NOTHING_TO_DO, f"alarm {alarm_id}/{value} is not active")
             return Answer.ok(f"alarm {ev.label()} cleared (latched until reset)")
+        if not -1 <= category < NUM_CATEGORIES:
+            return Answer.no(
+                Reason.INVALID_ARGUMENT,
+                f"category {category} is neither -1 (as configured) nor 0..{NUM_CATEGORIES - 1}",
+            )
         d = self.alarms.definition(alarm_id, value)
         if d is None:
             if category < 0 or not message:
                 return Answer.no(
                     Reason.ALARM_UNKNOWN,
-                    f"alarm {alarm_id}/{value} is not configured on {self.config.name}; "
+                    f"alarm {alarm_id}/{value} is not configured on {name}; "
                     "give its category (0..9) and a message",
                 )
+            if (alarm_id, value) not in self.alarms.current and self.alarms.full():
+                return Answer.no(
+                    Reason.INVALID_ARGUMENT,
+                    f"alarm {alarm_id}/{value} refused: {name} lists {len(self.alarms.current)} "
+                    "alarms and warnings already; configure the alarms it should take",
+                )
             d = AlarmDef(alarm_id, value, message, category, bool(warning), None, em)
-        elif category >= 0 or message or warning is not None:
-            d = AlarmDef(
-                d.id,
-                d.value,
-                message or d.message,
-                category if category >= 0 else d.category,
-                d.warning if warning is None else warning,
-                d.reaction,
-                d.em or em,
-            )
-        if not 0 <= d.category <= 9:
-            return Answer.no(Reason.INVALID_ARGUMENT, f"category {d.category} is outside 0..9")
+        else:
+            changed = override_refusal(d, category, message, warning)
+            if changed is not None:
+                return Answer.no(Reason.INVALID_ARGUMENT, changed)
         what = "warning" if d.warning else "alarm"
         if not self._raise(d, source=source, em=em, trigger=Trigger.ALARM):
             return Answer.no(Reason.NOTHING_TO_DO, f"{what} {alarm_id}/{value} is already active")
@@ -621,7 +632,15 @@ class Unit:
         category: int = -1,
         message: str = "",
     ) -> Answer:
-        """An alarm raised or cleared by EM ``name``."""
+        """An alarm raised or cleared by EM ``name``. A configured alarm is raised as configured:
+        the EM's own category, kind or text for it are ignored (and logged), never refused (the
+        condition it reports is real)."""
+        d = self.alarms.definition(int(alarm_id), int(value))
+        if d is not None and active:
+            changed = override_refusal(d, int(category), message, warning or None)
+            if changed is not None:
+                self._log("warn", f"EM {name}: {changed}; raised as configured")
+                warning, category, message = False, -1, ""
         return self.set_alarm(
             alarm_id, value, active, f"em:{name}", name, warning or None, category, message
         )
@@ -631,7 +650,12 @@ class Unit:
     ) -> Answer:
         """Acknowledge one alarm, or all with ``alarm_id=None``; AckDateTime is stamped once."""
         self._enter()
+        source = source or OPERATOR
         self._record(inputlog.ALARM_ACK, alarm_id, value, source)
+        refused = self._locked("acknowledging alarms", source)
+        if refused is not None:
+            self._leave()
+            return refused
         key = None if alarm_id is None else (int(alarm_id), int(value))
         if key is not None and key not in self.alarms.current:
             self._leave()
@@ -648,7 +672,12 @@ class Unit:
     def reset_alarms(self, clear_first_out: bool = False, source: str = OPERATOR) -> Answer:
         """Clear latched alarms that are no longer active (and optionally the first-outs)."""
         self._enter()
+        source = source or OPERATOR
         self._record(inputlog.ALARM_RESET, clear_first_out, source)
+        refused = self._locked("resetting alarms", source)
+        if refused is not None:
+            self._leave()
+            return refused
         n = self.alarms.reset()
         if clear_first_out:
             self.alarms.clear_first_out()
@@ -661,7 +690,12 @@ class Unit:
     def reset_times(self, all_times: bool = False, source: str = OPERATOR) -> Answer:
         """Reset the current mode's times (and its states'), or every time with ``all_times``."""
         self._enter()
+        source = source or OPERATOR
         self._record(inputlog.TIMES_RESET, all_times, source)
+        refused = self._locked("resetting times", source)
+        if refused is not None:
+            self._leave()
+            return refused
         if all_times:
             self.times.reset_all(self._t)
             msg = "all times reset"
@@ -675,7 +709,12 @@ class Unit:
     def reset_counters(self, source: str = OPERATOR) -> Answer:
         """``Count`` of every counter to 0; ``AccCount`` is never reset."""
         self._enter()
+        source = source or OPERATOR
         self._record(inputlog.COUNTERS_RESET, source)
+        refused = self._locked("resetting counters", source)
+        if refused is not None:
+            self._leave()
+            return refused
         self.counters.reset()
         self.alarms.log_event(f"counters reset by {source}", self._t, source=source)
         self._leave()
@@ -683,12 +722,16 @@ class Unit:
 
     def set_mach_speed(self, speed: float, source: str = OPERATOR) -> Answer:
         self._enter()
+        source = source or OPERATOR
         self._record(inputlog.SPEED, speed, source)
-        if not math.isfinite(speed) or speed < 0:
+        refused = self._locked(f"MachSpeed {speed:g}", source)
+        if refused is not None:
             self._leave()
-            return Answer.no(
-                Reason.INVALID_ARGUMENT, f"machine speed must be a finite number >= 0, not {speed}"
-            )
+            return refused
+        why = speed_refusal(speed, self.config)
+        if why is not None:
+            self._leave()
+            return Answer.no(Reason.INVALID_ARGUMENT, why)
         self.mach_speed = float(speed)
         self._rev += 1
         self._leave()
@@ -698,10 +741,11 @@ class Unit:
         """Set ``Command.Parameter[#]`` entries, matched by ID (a new ID takes a free slot)."""
         params = list(parameters)
         self._enter()
+        source = source or OPERATOR
         if self.on_input is not None:
             self._record(inputlog.PARAMETERS, [inputlog.descriptor_to_dict(p) for p in params],
                          source)  # fmt: skip
-        answer = self._merge(
+        answer = self._locked("setting parameters", source) or self._merge(
             self.parameters, params, lambda p: p.id, self.config.sizes.parameters, "parameter"
         )
         self._leave()
@@ -711,8 +755,13 @@ class Unit:
         """Set ``Command.Product[#]`` entries, matched by ProductID."""
         items = list(products)
         self._enter()
+        source = source or OPERATOR
         if self.on_input is not None:
             self._record(inputlog.PRODUCTS, [inputlog.product_to_dict(p) for p in items], source)
+        refused = self._locked("setting products", source)
+        if refused is not None:
+            self._leave()
+            return refused
         sizes = self.config.sizes
         for p in items:
             too_many = (
@@ -750,6 +799,12 @@ class Unit:
         self._rev += 1
         return Answer.ok(f"{len(items)} {what}(s) set")
 
+    def _locked(self, what: str, source: str) -> Answer | None:
+        """The remote lock's refusal of an input that changes the unit (rules, section 4)."""
+        if self.remote_enabled:
+            return None
+        return locked_refusal(what, source, False, self.config.name)
+
     def set_remote_enabled(self, enabled: bool) -> None:
         """Whether commands with a remote source are accepted (the remote lock, rules section 4)."""
         self._enter()
@@ -776,20 +831,33 @@ class Unit:
         self._leave()
         return Answer.ok(message)
 
-    def set_interlock(self, active: bool, reason: str = "", source: str = "remote") -> Answer:
+    def set_interlock(self, active: bool, reason: str = "", source: str = OPERATOR) -> Answer:
         """A line interlock from outside (the coordinator): suspend while set, unsuspend when
-        cleared (``interlock_reaction: suspend``)."""
+        cleared (``interlock_reaction: suspend``). Each source holds its own interlock, and clears
+        only its own."""
         self._enter()
+        source = source or OPERATOR
         self._record(inputlog.INTERLOCK, active, reason, source)
+        answer = self._locked("interlock", source) or self._set_interlock(
+            bool(active), reason, source
+        )
+        self._leave()
+        return answer
+
+    def _set_interlock(self, active: bool, reason: str, source: str) -> Answer:
         key = f"ext:{source}"
+        name = self.config.name
+        held = [k[4:] for k in self.interlocks.active if k.startswith("ext:")]
+        refused = external_refusal(held, active, source, name)
+        if refused is not None:
+            return refused
         if active:
             stop_id = STOP_ID_STARVED if "starv" in reason.lower() else STOP_ID_BLOCKED
             self.interlocks.set(key, reason or f"interlock from {source}", stop_id)
         else:
             self.interlocks.clear(key)
         self._rev += 1
-        self._leave()
-        return Answer.ok(f"interlock {'set' if active else 'cleared'}")
+        return Answer.ok(f"interlock from {source} {'set' if active else 'cleared'} on {name}")
 
     def advance(self) -> None:
         """Fire every deadline due by the clock's time (call periodically, or at
@@ -1207,12 +1275,9 @@ class Unit:
                 f"mode {r.mode!r} is not configured on {self.config.name} (now {state_name(self.state)} "
                 f"in {self.mode_def.name} mode; configured: {configured})",
             )
-        if remote_locked(r.source, self.remote_enabled):
-            return Answer.no(
-                Reason.REMOTE_DISABLED,
-                f"mode change to {target.name} from {r.source} refused: remote commands are "
-                f"disabled on {self.config.name}",
-            )
+        refused = self._locked(f"mode change to {target.name}", r.source)
+        if refused is not None:
+            return refused
         if self.mode_change_in_process:
             return Answer.no(
                 Reason.MODE_CHANGE_IN_PROCESS,

@@ -297,6 +297,13 @@ class Access:
     def required(self) -> bool:
         return self.kind != "none"
 
+    @property
+    def viewer(self) -> Principal:
+        """Whom the screens every browser shares (the reasons of disabled controls) speak for:
+        the principal of every action without logins (``anyone``, ``token``); with logins,
+        each user (named ``<user>``: the remote lock refuses every ``hmi:<user>`` alike)."""
+        return Principal({"users": "<user>", "token": "token"}.get(self.kind, "anyone"))
+
     def verify(self, credential: str | None) -> Principal | Refusal:
         if self.users:
             if not credential:

@@ -379,6 +379,8 @@ class Bridge:
         self.cell = cell
         self.access = Access(token or None, users=users, logout_after=logout_after)
         self.config = config_dict(cell, title, self.access)
+        #: the source the reasons of disabled controls are judged for: the one of the actions
+        self._why_source = command_source(self.access.viewer)
         self.lease = cell.coordinator.unit_lease if lease is None else lease
         self._modes = {name: sorted(m for m in u.modes if m < 32) for name, u in cell.units.items()}
         self._own_context = context is None
@@ -402,7 +404,7 @@ class Bridge:
                 "transitions": [],
                 "online": False,
                 "presence": presence_dict(started),
-                "why": why.reasons(cell.units[name], None, None),
+                "why": why.reasons(cell.units[name], None, None, self._why_source),
             }
             for name in cell.units
         }
@@ -553,7 +555,9 @@ class Bridge:
             unit[topic] = data
             self._emit({"topic": topic, "unit": name, "data": data, "received": received})
             if topic in ("status", "alarms"):
-                reasons = why.reasons(self.cell.units[name], unit["status"], unit["alarms"])
+                reasons = why.reasons(
+                    self.cell.units[name], unit["status"], unit["alarms"], self._why_source
+                )
                 if reasons != unit["why"]:
                     unit["why"] = reasons
                     self._emit({"topic": "why", "unit": name, "data": reasons,

@@ -5,8 +5,11 @@ not. The HMI asks the unit's rule book (:func:`packml_ros2.core.rules.rules_of` 
 configuration: the same compiled table, guards and sentences the unit judges with) about the
 situation the unit's status and alarm list show: its state and mode, a mode change in process,
 its equipment modules online or not, the active alarms and their reactions, a line interlock.
-A command the rule book would accept but the unit does not list (the unit knows more than it
-publishes) gets a plain sentence saying so.
+The rule book judges the command as the unit will when the HMI sends it: from the source the
+HMI's actions carry (:func:`.access.command_source` of who acts: ``hmi:<user>``, a remote source,
+so the remote lock is judged too, and its sentence names that source). A command the rule book
+would accept but the unit does not list (the unit knows more than it publishes) gets a plain
+sentence saying so.
 
 Everything here reads what a unit published, which may be anything: an unknown state or mode is
 answered with a sentence, never an exception.
@@ -20,9 +23,7 @@ from typing import Any
 from ..core.config import UnitConfig
 from ..core.numbers import Cmd, State, command_name, names_of
 from ..core.reasons import Reason
-from ..core.rules import COMMANDS, Rules, rules_of
-
-SOURCE = "hmi"  #: not remote: the remote lock never refuses the HMI
+from ..core.rules import COMMANDS, Rules, locked_refusal, remote_locked, rules_of
 
 
 class StatusSituation:
@@ -97,15 +98,18 @@ def _known(rules: Rules, status: Mapping[str, Any]) -> tuple[State, int] | str:
 
 
 def command_reasons(config: UnitConfig, status: Mapping[str, Any],
-                    alarms: Mapping[str, Any] | None) -> dict[str, dict[str, str]]:  # fmt: skip
+                    alarms: Mapping[str, Any] | None, source: str) -> dict[str, dict[str, str]]:  # fmt: skip
     """``{command name: {reason, text}}`` for every command the unit does not list as valid now:
-    its reason code and sentence."""
+    its reason code and the sentence the unit answers a command from ``source`` with."""
     rules = rules_of(config)
     valid: Sequence[int] = [c for c in status.get("commands_valid", ()) if isinstance(c, int)]
     known = _known(rules, status)
     out: dict[str, dict[str, str]] = {}
+    situation = StatusSituation(config, status, alarms)
+    # the unit lists what its rules allow now, whoever asks: the lock refuses those too
+    locked = remote_locked(source, situation.remote_enabled)
     for cmd in COMMANDS:
-        if cmd in valid:
+        if cmd in valid and not locked:
             continue
         if isinstance(known, str):
             out[cmd.name] = {"reason": Reason.COMMAND_NOT_ALLOWED.name, "text": known}
@@ -113,27 +117,33 @@ def command_reasons(config: UnitConfig, status: Mapping[str, Any],
         state, mode = known
         mode_name = rules.modes[mode].name
         where = f"{state.name} in {mode_name} mode"
-        verdict = rules.check(StatusSituation(config, status, alarms), state, mode, cmd, SOURCE)
+        verdict = rules.check(situation, state, mode, cmd, source)
         if verdict.reason is Reason.ACCEPTED:
             text = (
                 f"{cmd.name} is not valid now in {where} (valid now: {names_of(valid) or 'none'})"
             )
             out[cmd.name] = {"reason": Reason.COMMAND_NOT_ALLOWED.name, "text": text}
             continue
-        text = rules.refusal_text(verdict, cmd, SOURCE, where, config.name, mode_name, valid)
+        text = rules.refusal_text(verdict, cmd, source, where, config.name, mode_name, valid)
         out[cmd.name] = {"reason": verdict.reason.name, "text": text}
     return out
 
 
-def mode_reasons(config: UnitConfig, status: Mapping[str, Any]) -> dict[str, str]:
-    """``{mode number: sentence}`` for every configured mode the unit cannot change to now (the
-    current one included: it is where the unit is)."""
+def mode_reasons(config: UnitConfig, status: Mapping[str, Any], source: str) -> dict[str, str]:
+    """``{mode number: sentence}`` for every configured mode the unit cannot change to now from
+    ``source`` (the current one included: it is where the unit is)."""
     rules = rules_of(config)
     known = _known(rules, status)
+    remote_enabled = StatusSituation(config, status, None).remote_enabled
     out: dict[str, str] = {}
     for number, target in sorted(rules.modes.items()):
         if isinstance(known, str):
             out[str(number)] = known
+            continue
+        what = f"mode change to {target.name}"
+        locked = locked_refusal(what, source, remote_enabled, config.name)
+        if locked is not None:  # judged first, as the unit does
+            out[str(number)] = locked.message
             continue
         state, mode = known
         current = rules.modes[mode]
@@ -155,12 +165,12 @@ def mode_reasons(config: UnitConfig, status: Mapping[str, Any]) -> dict[str, str
 
 
 def reasons(config: UnitConfig, status: Mapping[str, Any] | None,
-            alarms: Mapping[str, Any] | None) -> dict[str, Any]:  # fmt: skip
-    """``{commands: ..., modes: ...}`` (:func:`command_reasons`, :func:`mode_reasons`); empty
-    without a status."""
+            alarms: Mapping[str, Any] | None, source: str) -> dict[str, Any]:  # fmt: skip
+    """``{commands: ..., modes: ...}`` (:func:`command_reasons` for ``source``,
+    :func:`mode_reasons` from ``source``); empty without a status."""
     if status is None:
         return {"commands": {}, "modes": {}}
     return {
-        "commands": command_reasons(config, status, alarms),
-        "modes": mode_reasons(config, status),
+        "commands": command_reasons(config, status, alarms, source),
+        "modes": mode_reasons(config, status, source),
     }

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import math
 import threading
 import time
 from collections.abc import Awaitable, Callable, Mapping, Sequence
@@ -31,6 +30,7 @@ from asyncua import ua
 
 from ..client import CellProxy, Unavailable
 from ..core.config import UnitConfig
+from ..core.limits import speed_limit, speed_refusal
 from ..core.numbers import Cmd
 from ..presence import Presence, Seen
 from .config import OpcUaConfig
@@ -232,12 +232,11 @@ def product_msg(p: Any) -> Any:
 
 
 def max_mach_speed(config: OpcUaConfig, unit: UnitConfig) -> float | None:
-    """The highest speed SetMachSpeed accepts for ``unit``: ``opcua.max_mach_speed``, else the
-    unit's MachDesignSpeed (``mach_design_speed``), else none."""
+    """The highest speed SetMachSpeed accepts for ``unit``: ``opcua.max_mach_speed`` (OPC UA may
+    take less than the unit), else the unit's own limit (:func:`packml_ros2.core.limits.speed_limit`:
+    ``max_mach_speed``, else ``mach_design_speed``), else none."""
     limit = config.max_mach_speed.get(unit.name)
-    if limit is None and unit.mach_design_speed > 0:
-        limit = unit.mach_design_speed
-    return limit
+    return speed_limit(unit) if limit is None else limit
 
 
 # -- the methods of one unit ------------------------------------------------------------------------------
@@ -262,7 +261,6 @@ class Methods:
         self.config = config
         self.model = model
         self._ros = ros
-        self.max_speed = max_mach_speed(config, unit)
 
     def callbacks(self) -> dict[str, Callback]:
         handlers: dict[str, Handler] = {}
@@ -362,14 +360,10 @@ class Methods:
 
     def _set_mach_speed(self, values: list[Any]) -> tuple[str, Steps] | ua.CallMethodResult:
         (speed,) = values
-        limit = self.max_speed
-        if not math.isfinite(speed) or speed < 0 or (limit is not None and speed > limit):
-            bound = f"0 .. {limit:g}" if limit is not None else "a finite number >= 0"
-            configured = self.unit in self.config.max_mach_speed
-            origin = "opcua.max_mach_speed" if configured else "MachDesignSpeed"
-            text = f"SetMachSpeed({speed:g}) refused: {self.unit} accepts {bound}" + (
-                f" ({origin})" if limit is not None else ""
-            )
+        face = self.config.max_mach_speed.get(self.unit)  # the unit's rule, with this face's bound
+        why = speed_refusal(speed, self.unit_config, face, "opcua.max_mach_speed")
+        if why is not None:
+            text = f"SetMachSpeed({speed:g}): {why}"
             return refuse(S.BadInvalidArgument, "INVALID_ARGUMENT", text, [S.BadOutOfRange])
         return "SetMachSpeed", [("set_mach_speed", {"mach_speed": float(speed)})]
 

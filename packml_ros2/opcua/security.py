@@ -33,6 +33,7 @@ from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, User,
 from asyncua.server import uaprocessor
 from asyncua.ua.ua_binary import nodeid_from_binary, struct_from_binary, struct_to_binary
 
+from ..core.rules import source_of
 from .config import OpcUaConfig, check_password
 
 _logger = logging.getLogger(__name__)
@@ -127,9 +128,10 @@ def may_call(config: OpcUaConfig) -> tuple[bool, str]:
 
 def command_source(user: str) -> str:
     """The ``source`` of every command and request sent from OPC UA: ``opcua:<user>`` for a user
-    session, ``opcua:anonymous`` for an anonymous one allowed to write. Units record it with every
-    transition; the unit's local/remote lock applies to it here, in one place."""
-    return f"opcua:{user or 'anonymous'}"
+    session, ``opcua:anonymous`` for an anonymous one allowed to write (the rule book's grammar,
+    :func:`packml_ros2.core.rules.source_of`: a remote source). Units record it with every
+    transition, and their remote lock refuses it while ``remote_commands_enabled`` is false."""
+    return source_of("opcua", user or "anonymous")
 
 
 def executable_callbacks(

@@ -17,7 +17,11 @@ Python (:mod:`.link` converts them), keyed by their browse path below the object
   as ``alarm:<id>``), or a command given at the PLC itself (source ``plc``);
 - answers what a unit's status carries: valid commands, StateRequested, disabled states (from the
   unit's configuration: its modes and model describe the PLC's), alarms as
-  :class:`~packml_ros2.core.alarms.AlarmEvent`, the stop reason.
+  :class:`~packml_ros2.core.alarms.AlarmEvent`, the stop reason;
+- judges a request as a unit does, by the unit's rule book (:func:`packml_ros2.core.rules.rules_of`:
+  valid commands, targets, the guards (the remote lock, a mode change in process, an interlock)
+  and the refusal's sentence): nothing of the rules is written here again. A mode the
+  configuration does not know is judged by the rules of the unit's initial mode.
 """
 
 from __future__ import annotations
@@ -29,11 +33,10 @@ from typing import Any
 
 from ..core.alarms import AlarmEvent, Kind
 from ..core.config import UnitConfig
-from ..core.numbers import ACTING, WAIT, Cmd, State, command_name, names_of, state_name
+from ..core.numbers import ACTING, WAIT, Cmd, State, command_name, state_name
 from ..core.reasons import Reason
-from ..core.rules import SETTLE, Trigger
+from ..core.rules import SETTLE, Rules, Trigger, rules_of
 from ..core.unit import Transition
-from ..opcua.available import Graph, unit_graph
 from ..opcua.mapping import COMMAND_METHODS
 from ..opcua.nodeset import MachineDef, PackMLModel
 
@@ -122,6 +125,29 @@ class Expected:
 
 
 @dataclass
+class PlcSituation:
+    """What the rule book's guards read (:class:`packml_ros2.core.rules.Situation`) of a PLC unit:
+    the bridge's remote lock and interlocks, the PLC's mode change; no EMs and no alarm of the
+    bridge's (the PLC judges its own)."""
+
+    remote_enabled: bool
+    mode_change_in_process: bool = False
+    interlocks: tuple[str, ...] = ()
+
+    def missing_names(self) -> list[str]:
+        return []
+
+    def blocking_alarm(self, blocked: Mapping[int, frozenset[Cmd]], cmd: int) -> str | None:
+        return None
+
+    def interlock_reasons(self) -> list[str]:
+        return list(self.interlocks)
+
+    def mode_change_text(self) -> str:
+        return "a mode change is in process at the PLC"
+
+
+@dataclass
 class Mirror:
     """The PLC unit ``config`` as the bridge sees it; ``model``: the OPC 30050 NodeSet."""
 
@@ -138,7 +164,6 @@ class Mirror:
     #: StopReason and the active alarms as they were when the current state was entered
     _baseline: tuple[Any, frozenset[tuple[int, int, float]]] = (None, frozenset())
     _unsettled_since: float | None = None
-    _graphs: dict[int, Graph] = field(default_factory=dict)
 
     # -- the state -------------------------------------------------------------------------------
     def _place(self, machine: MachineDef, path: str) -> str | None:
@@ -181,32 +206,25 @@ class Mirror:
         return None, True
 
     # -- rules of the unit (its configuration describes the PLC's) -------------------------------
-    def graph(self, mode: int | None = None) -> Graph:
-        mode = self.mode if mode is None else mode
-        graph = self._graphs.get(mode)
-        if graph is None:
-            graph = self._graphs[mode] = unit_graph(self.config, mode)
-        return graph
+    @property
+    def rules(self) -> Rules:
+        return rules_of(self.config)
+
+    def rules_mode(self) -> int:
+        """The mode the rules judge in: the PLC's, or the initial one for a mode not configured."""
+        return self.mode if self.mode in self.config.modes else self.config.initial_mode
 
     def valid_commands(self, state: State | None = None) -> tuple[Cmd, ...]:
         state = self.state if state is None else state
-        found: set[Cmd] = set()
-        for (frm, _), causes in self.graph().edges.items():
-            if frm == state:
-                found |= causes
-        return tuple(sorted(found))
+        return self.rules.valid_commands(state, self.rules_mode())
 
     def reach(self, state: State, cmd: Cmd) -> tuple[State, ...]:
         """Where ``cmd`` leads from ``state``: its first state, then on by State Complete up to the
         wait state (or Execute); () when it is not valid there."""
-        first = self.config.table.commands.get((state, cmd))
-        return () if first is None else self._chain(first)
+        return self.rules.reach(state, cmd)
 
     def _chain(self, first: State) -> tuple[State, ...]:
-        out = [first]
-        while out[-1] in ACTING and out[-1] is not S.EXECUTE and len(out) < 8:
-            out.append(self.config.table.state_complete[out[-1]])
-        return tuple(out)
+        return self.rules.chain(first)
 
     def target(self, cmd: Cmd) -> State:
         """The state ``cmd`` settles in from the current state (the current one if invalid)."""
@@ -219,17 +237,24 @@ class Mirror:
             return State(requested)
         return SETTLE.get(self.state, self.state)
 
-    def refusal(self, cmd: int) -> str | None:
-        """Why ``cmd`` is not valid now by the unit's rules, as a unit says it (None: valid)."""
-        if not 1 <= cmd <= 10:
-            return (
-                f"command {cmd} is not a PackML command (1..10: {names_of(range(1, 11))}); "
-                f"now {self.where()}"
-            )
-        if Cmd(cmd) in self.valid_commands():
+    def mode_change_in_process(self) -> bool:
+        return self.values.get("Status/UnitModeChangeInProcess") is True
+
+    def judge(self, cmd: int, source: str, situation: PlcSituation) -> tuple[Reason, str] | None:
+        """Why ``cmd`` from ``source`` is refused now by the unit's rules, as a unit says it
+        (None: valid): the rule book's guards and table, and its sentence."""
+        rules, mode = self.rules, self.rules_mode()
+        verdict = rules.check(situation, self.state, mode, cmd, source)
+        if verdict.reason is Reason.ACCEPTED:
             return None
-        valid = names_of(self.valid_commands()) or "none"
-        return f"{command_name(cmd)} not allowed in {self.where()} (valid now: {valid})"
+        text = rules.refusal_text(verdict, cmd, source, self.where(), self.config.name,
+                                  self.mode_name(mode), self.valid_commands())  # fmt: skip
+        return verdict.reason, text
+
+    def refusal(self, cmd: int) -> str | None:
+        """Why ``cmd`` is not valid now by the unit's table (no guard), as a unit says it."""
+        found = self.judge(cmd, "operator", PlcSituation(remote_enabled=True))
+        return None if found is None else found[1]
 
     def where(self) -> str:
         return f"{state_name(self.state)} in {self.mode_name(self.mode)} mode"

@@ -13,9 +13,10 @@ the OPC UA server and ``packml record`` treat it like any other unit:
   has no method for (``ack_alarms``, ``reset_alarms``, ``set_alarm``, ``reset_times``,
   ``reset_counters``, ``set_em_active``) is refused with NOT_SUPPORTED and a sentence.
 
-A request is checked like a unit checks it (command number, the remote lock of parameter
-``remote_commands_enabled``, the unit's rules in its state and mode, the interlock), then the
-PLC's method is called; the PLC's refusal (a Bad status code and its diagnostics) becomes the
+A request is checked like a unit checks it, by the unit's rule book (command number, the remote
+lock of parameter ``remote_commands_enabled`` over every request that changes the unit, the
+rules of its state and mode, the interlock; :meth:`.mirror.Mirror.judge`), then the PLC's method
+is called; the PLC's refusal (a Bad status code and its diagnostics) becomes the
 unit's reason code and sentence (:func:`.mirror.plc_refusal`). Transitions, with their trigger
 and source, come from :class:`.mirror.Mirror`.
 
@@ -61,10 +62,8 @@ from packml_interfaces.srv import (
     SetProduct,
     SetUnitParameters,
 )
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from std_msgs.msg import Header, String
 from std_srvs.srv import Trigger as TriggerSrv
 
@@ -72,14 +71,17 @@ from .. import convert, qos, responses, run
 from ..core import CellConfig, Cmd, UnitConfig, load_cell, state_name
 from ..core import config as cfg
 from ..core.alarms import AlarmEvent
+from ..core.interlocks import external_refusal
 from ..core.numbers import NUM_STATES, Mode, State, command_name
 from ..core.packtags import EmView, RemoteInterfaceView, StatusView, compute_oee
 from ..core.reasons import Reason
+from ..core.rules import locked_refusal
 from ..core.unit import Transition, Trigger
 from ..opcua.nodeset import load
+from ..remote_lock import RemoteLock
 from .config import PlcConfig, describe, parse_plc
 from .link import Link, NotConnected, Outcome
-from .mirror import Mirror, plc_refusal
+from .mirror import Mirror, PlcSituation, plc_refusal
 
 TICK = 0.1  # s: held-back state changes, the mode-change lamp, admin period
 DIAGNOSTICS_PERIOD = 1.0
@@ -129,13 +131,9 @@ class PlcUnitNode(Node):
         self.lost_since: float | None = time.time()
         self.lost_reason = "not connected yet"
         self.retry_reason = ""
-        self.declare_parameter(
-            "remote_commands_enabled",
-            config.remote_commands_enabled,
-            ParameterDescriptor(description="accept commands whose source starts with 'remote'"),
-        )
+        self.remote_lock = RemoteLock(self, config.name, config.remote_commands_enabled,
+                                      self._on_remote_lock, callback_group=self._group)  # fmt: skip
         self.remote_enabled = config.remote_commands_enabled
-        self.add_on_set_parameters_callback(self._on_parameters)
         self.pub_diagnostics = self.create_publisher(
             DiagnosticArray, "/diagnostics", qos.DIAGNOSTICS
         )
@@ -161,19 +159,10 @@ class PlcUnitNode(Node):
         self.get_logger().info(f"PLC unit {self.get_fully_qualified_name()} up: {details}")
 
     # -- parameters -----------------------------------------------------------------------------------
-    def _on_parameters(self, params: list[Parameter]) -> Any:
-        from rcl_interfaces.msg import SetParametersResult
-
-        for p in params:
-            if p.name == "remote_commands_enabled":
-                if p.type_ != Parameter.Type.BOOL:
-                    return SetParametersResult(
-                        successful=False, reason="remote_commands_enabled must be a bool"
-                    )
-                with self._lock:
-                    self.remote_enabled = bool(p.value)
-                    self._publish_status()
-        return SetParametersResult(successful=True)
+    def _on_remote_lock(self, enabled: bool) -> None:
+        with self._lock:
+            self.remote_enabled = enabled
+            self._publish_status()
 
     # -- the link (its loop thread) -------------------------------------------------------------------
     def _on_connected(self, values: dict[str, Any], methods: frozenset[str], detail: str) -> None:
@@ -494,16 +483,20 @@ class PlcUnitNode(Node):
             )
 
     def _usable(self, what: str, source: str) -> tuple[int, str] | None:
-        """The refusal every request gets when the source is locked out or the PLC is gone."""
-        if source.startswith("remote") and not self.remote_enabled:
-            return Reason.REMOTE_DISABLED, (
-                f"{what} from {source} refused: remote commands are disabled on {self.config.name} "
-                f"(parameter remote_commands_enabled); now {self.mirror.where()}"
-            )
+        """The refusal every request that changes the unit gets when the source is locked out
+        (the rule book's remote lock) or the PLC is gone."""
+        locked = locked_refusal(what, source, self.remote_enabled, self.config.name)
+        if locked is not None:
+            return locked.reason, locked.message
         gone = self.gone()
         if gone:
             return Reason.UNIT_UNAVAILABLE, f"{what} refused: {gone}"
         return None
+
+    def _situation(self, trigger: Trigger) -> PlcSituation:
+        """What the rule book's guards read now (the interlock's own commands pass it)."""
+        held = () if trigger == Trigger.INTERLOCK else tuple(self._interlocks.values())
+        return PlcSituation(self.remote_enabled, self.mirror.mode_change_in_process(), held)
 
     def command(
         self, cmd: int, source: str, trigger: Trigger = Trigger.COMMAND, detail: str = ""
@@ -512,25 +505,12 @@ class PlcUnitNode(Node):
         with self._lock:
             m = self.mirror
             name = command_name(cmd) if 1 <= cmd <= 10 else str(cmd)
-            refused = None
-            if not 1 <= cmd <= 10:
-                refused = Reason.UNKNOWN_COMMAND, m.refusal(cmd) or ""
-            refused = refused or self._usable(name, source)
-            if (
-                refused is None
-                and cmd == Cmd.UNSUSPEND
-                and self._interlocks
-                and trigger != Trigger.INTERLOCK
-            ):
-                held = "; ".join(self._interlocks.values())
-                refused = (
-                    Reason.INTERLOCK_ACTIVE,
-                    (f"{name} refused in {m.where()}: interlock still active ({held})"),
-                )
-            if refused is None:
-                text = m.refusal(cmd)
-                if text is not None:
-                    refused = Reason.COMMAND_NOT_ALLOWED, text
+            gone = self.gone() if 1 <= cmd <= 10 else ""
+            refused = (
+                (Reason.UNIT_UNAVAILABLE, f"{name} refused: {gone}")
+                if gone
+                else m.judge(cmd, source, self._situation(trigger))
+            )
             if refused is not None:
                 return False, int(refused[0]), refused[1], int(m.state), int(m.state_requested())
             command = Cmd(cmd)
@@ -719,8 +699,18 @@ class PlcUnitNode(Node):
     def _srv_set_interlock(
         self, req: SetInterlock.Request, resp: SetInterlock.Response
     ) -> SetInterlock.Response:
-        source = req.source or "remote"
+        source = req.source or "operator"
         with self._lock:
+            refused = locked_refusal(
+                "interlock", source, self.remote_enabled, self.config.name
+            ) or external_refusal(self._interlocks, req.active, source, self.config.name)
+            if refused is not None:
+                resp.accepted, resp.result, resp.message = (
+                    False,
+                    int(refused.reason),
+                    refused.message,
+                )
+                return resp
             if req.active:
                 self._interlocks[source] = req.reason or source
                 resp.message = f"interlock from {source} on {self.config.name}: {req.reason}"

@@ -249,8 +249,9 @@ def test_alarm_reaction_during_mode_change_is_applied() -> None:
 # -- EM aggregation ------------------------------------------------------------------------------------
 def test_em_aggregation_stale_inactive_and_registration() -> None:
     unit, _ = make(
-        {"equipment_modules": {"feeder": {}, "sealer": {}, "labeler": {"active": False}}}
-    )
+        {"equipment_modules": {"feeder": {}, "sealer": {}, "labeler": {"active": False}},
+         "allow_registration": True}  # (a listed EM set is closed by default)
+    )  # fmt: skip
     online(unit, "feeder", "sealer")  # the inactive labeler never shows up
     assert unit.command(C.RESET).accepted
     seq = unit.sequence
@@ -414,9 +415,10 @@ def test_em_missing_refuses_motion_and_diagnosis_switch_recovers() -> None:
     assert unit.set_mode("maintenance").accepted
     complete(unit, "conveyor")
     assert unit.mode == Mode.MAINTENANCE
-    assert unit.set_em_active("robot", False, source="technician").accepted
+    assert unit.set_em_active("robot", False, source="operator:technician").accepted
     assert any(
-        "robot switched inactive by technician" in e.message for e in unit.admin().alarm_history
+        "robot switched inactive by operator:technician" in e.message
+        for e in unit.admin().alarm_history
     )
     assert unit.command(C.CLEAR).accepted
     complete(unit, "conveyor")

@@ -65,6 +65,7 @@ UNIT = {
         "c": {"lost_reaction": "ignore"},
         "d": {"active": False, "lost_reaction": "stop"},
     },
+    "allow_registration": True,  # (a listed EM set is closed by default)
     "alarms": [
         {"id": 101, "message": "e-stop", "category": 0},
         {"id": 102, "message": "guard open", "category": 3},

@@ -17,7 +17,8 @@ from typing import Any
 
 import httpx
 import pytest
-from packml_interfaces.srv import SetAlarm
+from packml_interfaces.msg import Result
+from packml_interfaces.srv import SetAlarm, SetRemoteCommands
 
 from packml_ros2.core import load_cell
 from packml_ros2.core.config import parse_cell
@@ -35,6 +36,7 @@ UNIT = "filler"
 TOKEN = "s3cret-token"
 UNIT_DOC: dict[str, Any] = {
     "description": "Bottle filler",
+    "remote_commands_enabled": True,  # the HMI is a remote source (hmi:<user>)
     "admin_period": 0.2,
     "min_dwell": {"resetting": 0.05, "starting": 0.05},  # each acting state is published
     "counters": {"processed": [{"id": 1, "name": "bottles", "unit": "pcs"}]},
@@ -211,6 +213,27 @@ def test_actions_go_out_with_source_hmi_and_changes_arrive_in_order(make_cell) -
     cell.wait_status(lambda s: s["equipment_modules"][0]["active"], "nozzle active")
 
 
+def test_hmi_actions_follow_the_units_remote_lock(make_cell) -> None:
+    """Issue 15 item 2: HMI actions are remote (hmi:<user>): while the unit's lock holds every
+    action that changes it is refused with REMOTE_DISABLED (they bypassed it before); reading
+    stays free, and the lock cannot be switched from the HMI's source."""
+    cell = make_cell()
+    off = cell.client.call(SetRemoteCommands, "set_remote_commands", enabled=False, source="")
+    assert off.accepted, off.message
+    before = cell.client.status.last
+    for action, args in (("command", {"command": "reset"}), ("set_mach_speed", {"mach_speed": 5}),
+                         ("reset_counters", {}), ("ack_alarms", {}), ("set_mode", {"mode": 3})):  # fmt: skip
+        answer = cell.bridge.act_sync(UNIT, action, args)
+        assert not answer["accepted"] and answer["result_name"] == "REMOTE_DISABLED", answer
+        assert "from hmi:anyone refused: remote commands are disabled" in answer["message"]
+    now = cell.client.status.last
+    assert (now.sequence, now.mach_speed, now.unit_mode_current) == (
+        before.sequence, before.mach_speed, before.unit_mode_current)  # fmt: skip
+    sneaky = cell.client.call(SetRemoteCommands, "set_remote_commands", enabled=True,
+                              source="hmi:anyone")  # fmt: skip
+    assert not sneaky.accepted and sneaky.result == Result.UNAUTHORIZED, sneaky.message
+
+
 def test_arguments_are_checked_before_anything_is_sent(make_cell) -> None:
     cell = make_cell()
     bad = cell.bridge.act_sync(UNIT, "command", {"command": "jump"})
@@ -240,7 +263,7 @@ def test_alarms_are_acknowledged_and_reset_through_the_bridge(make_cell) -> None
     cell.wait_status(lambda s: s["state_name"] == "IDLE", "IDLE")
     mark = len(cell.events)
     raised = cell.client.call(SetAlarm, "set_alarm", id=201, value=0, active=True, category=-1,
-                              source="test")  # fmt: skip
+                              source="operator:test")  # fmt: skip
     assert raised.accepted, raised.message_out
     listed = cell.wait_event(
         lambda e: e["topic"] == "alarms" and len(e["data"]["alarms"]) == 1, "the alarm", mark
@@ -268,7 +291,7 @@ def test_alarms_are_acknowledged_and_reset_through_the_bridge(make_cell) -> None
     assert nothing["result_name"] == "NOTHING_TO_DO", nothing
 
     cell.client.call(
-        SetAlarm, "set_alarm", id=201, value=0, active=False, category=-1, source="test"
+        SetAlarm, "set_alarm", id=201, value=0, active=False, category=-1, source="operator:test"
     )
     mark = len(cell.events)
     reset = cell.bridge.act_sync(UNIT, "reset_alarms")
@@ -354,14 +377,14 @@ def test_why_a_command_is_disabled_is_what_the_running_unit_answers(make_cell) -
     sent_anyway(executing)
 
     raised = cell.client.call(SetAlarm, "set_alarm", id=201, value=0, active=True, category=-1,
-                              source="test")  # fmt: skip
+                              source="operator:test")  # fmt: skip
     assert raised.accepted, raised.message_out
     alarmed = shown_in("STOPPED", lambda w: "RESET" in w["commands"])
     assert alarmed["commands"]["RESET"]["reason"] == "ALARM_ACTIVE"
     assert 'alarm 201/0 "Nozzle clogged"' in alarmed["commands"]["RESET"]["text"]
     sent_anyway(alarmed)
     cell.client.call(
-        SetAlarm, "set_alarm", id=201, value=0, active=False, category=-1, source="test"
+        SetAlarm, "set_alarm", id=201, value=0, active=False, category=-1, source="operator:test"
     )
     assert "RESET" not in shown_in("STOPPED", lambda w: "RESET" not in w["commands"])["commands"]
     assert cell.bridge.act_sync(UNIT, "command", {"command": "reset"})["accepted"]

@@ -569,11 +569,11 @@ def test_alarms_warnings_and_disabled_commands_say_why(env: Env) -> None:
     expect(banner).to_have_class(re.compile(r"\bok\b"))
     # a warning alone: in the banner (it said "No active alarm")
     env.call_unit("robot_cell", SetAlarm, "set_alarm", id=301, active=True, warning=True,
-                  category=-1, source="test")  # fmt: skip
+                  category=-1, source="operator:test")  # fmt: skip
     expect(banner).to_have_class(re.compile(r"\bwarn\b"))
     expect(banner).to_contain_text("WARNING 301/0 Vision lighting degraded")
     raised = env.call_unit("robot_cell", SetAlarm, "set_alarm", id=201, active=True, category=-1,
-                           source="test")  # fmt: skip
+                           source="operator:test")  # fmt: skip
     assert raised.accepted, raised.message_out
     expect(banner).to_have_class(re.compile(r"\bactive\b"))
     expect(banner).to_contain_text("Gripper vacuum lost")
@@ -610,7 +610,7 @@ def test_alarms_warnings_and_disabled_commands_say_why(env: Env) -> None:
     env.shot(page, "hmi-alarms")
 
     env.call_unit("robot_cell", SetAlarm, "set_alarm", id=201, active=False, category=-1,
-                  source="test")  # fmt: skip
+                  source="operator:test")  # fmt: skip
     expect(row).to_have_attribute("data-operator-state", "1")  # inactive, unacknowledged: amber
     amber = background(row)
     # cleared but not acknowledged: the banner says so (it said "No active alarm")
@@ -632,7 +632,7 @@ def test_alarms_warnings_and_disabled_commands_say_why(env: Env) -> None:
     confirm(page, True)
     expect(row).to_have_count(0)
     env.call_unit("robot_cell", SetAlarm, "set_alarm", id=301, active=False, warning=True,
-                  category=-1, source="test")  # fmt: skip
+                  category=-1, source="operator:test")  # fmt: skip
     expect(banner).to_have_class(re.compile(r"\bok\b"))
     expect(banner).to_have_text("No active alarm")
     no_problems(page)

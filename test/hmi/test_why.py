@@ -16,13 +16,17 @@ import pytest
 from packml_ros2 import convert
 from packml_ros2.core import Cmd, Reason, State, Unit
 from packml_ros2.hmi import why
+from packml_ros2.hmi.access import Principal, command_source
 from packml_ros2.hmi.bridge import alarm_list_dict, status_dict
 from test.core.helpers import FakeClock, cell_unit
 
 UNIT_DOC: dict[str, Any] = {
+    "remote_commands_enabled": True,  # the HMI is remote (hmi:<user>): the lock is tested below
     "equipment_modules": {"em1": {}},
     "alarms": [{"id": 201, "message": "Gripper vacuum lost", "category": 2}],
 }
+#: the source the HMI's actions for the user anna carry (and the HMI's reasons are judged for)
+ANNA = command_source(Principal("anna"))
 
 
 def seen_by_the_hmi(unit: Unit) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -57,10 +61,10 @@ def check_commands(unit: Unit, interlock: bool = False) -> dict[str, dict[str, s
     """Every command the HMI shows unavailable is refused by the unit with that reason (and
     sentence); every other one is valid. Returns what the HMI shows."""
     status, alarms = seen_by_the_hmi(unit)
-    shown = why.command_reasons(unit.config, status, alarms)
+    shown = why.command_reasons(unit.config, status, alarms, ANNA)
     assert set(shown) | set(status["commands_valid_names"]) == {c.name for c in Cmd if c}
     for name, reason in shown.items():
-        answer = unit.command(Cmd[name], "hmi:anna")
+        answer = unit.command(Cmd[name], ANNA)
         assert not answer.accepted, (name, answer)
         assert reason["reason"] == answer.reason.name, (name, reason, answer)
         if not (interlock and answer.reason is Reason.INTERLOCK_ACTIVE):
@@ -77,6 +81,22 @@ def test_not_allowed_by_the_state_model() -> None:
     }
     to_execute(unit)
     check_commands(unit)
+
+
+def test_refused_by_the_remote_lock_in_the_words_the_unit_answers_the_user_with() -> None:
+    # the HMI's actions are remote (hmi:<user>): with remote commands disabled the unit refuses
+    # each of them naming that source, and the HMI shows exactly that
+    unit, _ = start({**UNIT_DOC, "remote_commands_enabled": False})
+    shown = check_commands(unit)
+    assert set(shown) == {c.name for c in Cmd if c}  # RESET and ABORT are locked too
+    assert shown["RESET"]["reason"] == "REMOTE_DISABLED"
+    assert shown["RESET"]["text"].startswith("RESET from hmi:anna refused: remote commands")
+    status, _ = seen_by_the_hmi(unit)
+    modes = why.mode_reasons(unit.config, status, ANNA)
+    assert set(modes) == {"1", "2", "3"}
+    for number in (1, 2, 3):
+        answer = unit.set_mode(number, ANNA)
+        assert answer.reason is Reason.REMOTE_DISABLED and modes[str(number)] == answer.message
 
 
 def test_refused_while_an_alarm_with_a_reaction_is_active() -> None:
@@ -110,7 +130,7 @@ def test_refused_while_a_mode_change_is_in_process() -> None:
     assert status["mode_change_in_process"]
     shown = check_commands(unit)
     assert shown["RESET"]["reason"] == "MODE_CHANGE_IN_PROCESS"
-    modes = why.mode_reasons(unit.config, status)
+    modes = why.mode_reasons(unit.config, status, ANNA)
     assert set(modes) == {"1", "2", "3"}  # no other change meanwhile
     answer = unit.set_mode(3)
     assert modes["3"] == answer.message and answer.reason is Reason.MODE_CHANGE_IN_PROCESS
@@ -130,10 +150,10 @@ def test_refused_while_an_interlock_holds_the_unit() -> None:
 def test_mode_buttons_follow_the_units_mode_rules() -> None:
     unit, _ = start()
     status, _ = seen_by_the_hmi(unit)
-    assert why.mode_reasons(unit.config, status) == {"1": "PRODUCTION is the current mode"}
+    assert why.mode_reasons(unit.config, status, ANNA) == {"1": "PRODUCTION is the current mode"}
     to_execute(unit)
     status, _ = seen_by_the_hmi(unit)
-    modes = why.mode_reasons(unit.config, status)
+    modes = why.mode_reasons(unit.config, status, ANNA)
     assert set(modes) == {"1", "2", "3"}
     for number in (2, 3):
         answer = unit.set_mode(number)
@@ -154,7 +174,7 @@ def test_a_status_the_configuration_does_not_know_is_answered_not_raised(
     status: dict[str, Any],
 ) -> None:
     config = cell_unit(UNIT_DOC)
-    reasons = why.reasons(config, status, {"alarms": [{"trigger": True}]})
+    reasons = why.reasons(config, status, {"alarms": [{"trigger": True}]}, ANNA)
     assert set(reasons["commands"]) <= {c.name for c in Cmd if c} and reasons["commands"]
     assert all("does not have" in r["text"] for r in reasons["commands"].values())
     assert all("does not have" in text for text in reasons["modes"].values())

@@ -112,7 +112,8 @@ def test_no_secret_on_topics_in_logs_or_in_a_bag(ros: Any, tmp_path: Path) -> No
         tmp_path,
         {
             "filler": {
-                "equipment_modules": {"nozzle": {"sim": {"durations": FAST, "cycle_time": 0.2}}}
+                "remote_commands_enabled": True,  # the HMI and OPC UA are remote sources
+                "equipment_modules": {"nozzle": {"sim": {"durations": FAST, "cycle_time": 0.2}}},
             }
         },
     )

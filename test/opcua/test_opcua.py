@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import queue
+import random
 import shutil
 import signal
 import socket
@@ -31,7 +32,7 @@ from typing import Any
 
 import pytest
 import yaml
-from packml_interfaces.srv import ResetAlarms, SetAlarm, SetMode
+from packml_interfaces.srv import ResetAlarms, SetAlarm, SetMode, SetRemoteCommands
 
 from packml_ros2.core import Cmd
 from packml_ros2.opcua.config import hash_password
@@ -186,13 +187,18 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cell]:
         tmp,
         {
             "filler": {
+                "remote_commands_enabled": True,  # OPC UA is a remote source
                 "mach_speed": 40,
                 "mach_design_speed": 50,
                 "counters": {"processed": [{"id": 1, "name": "bottles", "unit": "pcs"}]},
                 "alarms": [{"id": 201, "message": "Nozzle clogged", "category": 2, "em": "nozzle"}],
                 "equipment_modules": {"nozzle": {"sim": {"durations": FAST, "cycle_time": 0.1}}},
             },
-            "capper": {"description": "Capper downstream", "model": "2015"},
+            "capper": {
+                "description": "Capper downstream",
+                "model": "2015",
+                "remote_commands_enabled": True,
+            },
         },
         coordinator={"enabled": False},
     )
@@ -233,8 +239,10 @@ def filler(cell: Cell, ros: Any) -> UnitClient:
     """The filler over ROS, brought to Stopped in Production with no alarm first."""
     unit = UnitClient(ros, cell.name, "filler")
     unit.ready()
-    unit.call(SetAlarm, "set_alarm", id=201, value=0, active=False, category=-1, source="test")
-    unit.call(ResetAlarms, "reset_alarms", clear_first_out=True, source="test")
+    unit.call(
+        SetAlarm, "set_alarm", id=201, value=0, active=False, category=-1, source="operator:test"
+    )
+    unit.call(ResetAlarms, "reset_alarms", clear_first_out=True, source="operator:test")
     status = unit.status.last
     if status.state_current_name != "STOPPED":
         if status.state_current_name not in ("ABORTING", "ABORTED"):
@@ -243,7 +251,7 @@ def filler(cell: Cell, ros: Any) -> UnitClient:
         unit.command(Cmd.CLEAR)
         unit.wait_state("STOPPED")
     if unit.status.last.unit_mode_current != 1:
-        unit.call(SetMode, "set_mode", mode=1, source="test")
+        unit.call(SetMode, "set_mode", mode=1, source="operator:test")
     unit.wait_status(
         lambda m: (
             m.state_current_name == "STOPPED" and m.unit_mode_current == 1 and not m.active_alarms
@@ -505,7 +513,7 @@ def test_arguments_are_checked_and_refusals_change_nothing(cell: Cell, filler: U
     assert float_mode["inputArgumentResults"] == ["BadTypeMismatch"]
     assert too_fast["status"] == "BadInvalidArgument"
     assert too_fast["inputArgumentResults"] == ["BadOutOfRange"]
-    assert "filler accepts 0 .. 50 (MachDesignSpeed)" in too_fast["diagnostics"]["localizedText"]
+    assert "filler takes 0 .. 50 (mach_design_speed)" in too_fast["diagnostics"]["localizedText"]
     assert double_speed["status"] == "BadInvalidArgument"  # a Double where a Float is declared
     assert negative["status"] == "BadInvalidArgument"
     assert reset_arg["status"] == "BadTooManyArguments"
@@ -607,7 +615,7 @@ def test_alarms_and_counters(cell: Cell, filler: UnitClient) -> None:
     assert count["Unit"]["DisplayName"]["text"] == "pcs"
 
     raised = filler.call(
-        SetAlarm, "set_alarm", id=201, value=0, active=True, category=-1, source="test"
+        SetAlarm, "set_alarm", id=201, value=0, active=True, category=-1, source="operator:test"
     )
     assert raised.accepted, raised.message_out
     alarm, extent, stop_reason, history, machine = cell.run([
@@ -783,3 +791,82 @@ def test_packml_launch_with_opcua(tmp_path: Path, cell: Cell) -> None:
     # the OPC UA server stopped with the cell: nothing listens on the port any more
     with socket.socket() as s:
         assert s.connect_ex(("127.0.0.1", port)) != 0
+
+
+def test_opcua_commands_follow_the_units_remote_lock(cell: Cell, ros: Any) -> None:
+    """Issue 15 item 2: OPC UA commands are remote (opcua:<user>): while the unit's lock holds
+    they are refused with REMOTE_DISABLED and change nothing (they bypassed it before)."""
+    capper = UnitClient(ros, cell.name, "capper")
+    capper.ready()
+    lock = capper.call(SetRemoteCommands, "set_remote_commands", enabled=False, source="")
+    assert lock.accepted, lock.message
+    try:
+        before = capper.status.last
+        reset, speed, state = cell.operator([
+            {"op": "call", "path": f"{CAPPER}/P:BaseStateMachine/P:MachineState/P:Reset"},
+            {"op": "call", "path": f"{CAPPER}/P:SetMachSpeed", "args": [{"type": "Float", "value": 5}]},
+            {"op": "read", "path": f"{CAPPER}/P:Status/U:StateCurrent"},
+        ])  # fmt: skip
+        for refused in (reset, speed):
+            assert refused["status"] == "BadUserAccessDenied", refused
+            assert refused["diagnostics"]["symbolicId"] == "REMOTE_DISABLED"
+            assert (
+                "from opcua:operator refused: remote commands are disabled on capper"
+                in (refused["diagnostics"]["localizedText"])
+            )
+        assert state["value"] == before.state_current
+        now = capper.status.last
+        assert (now.sequence, now.mach_speed) == (before.sequence, before.mach_speed)
+    finally:
+        capper.call(SetRemoteCommands, "set_remote_commands", enabled=True, source="")
+
+
+HOSTILE_CALLS = 500  # about 15 s over one session (30 ms a call on a loaded machine)
+_NO_ARGS = [f"{MS}/P:Reset", f"{MS}/P:Stop", f"{SM}/P:Abort", f"{SM}/P:Clear", f"{ES}/P:Hold",
+            f"{ES}/P:Unhold", f"{ES}/P:Suspend", f"{ES}/P:Unsuspend", f"{ES}/P:ToComplete"]  # fmt: skip
+
+
+def _hostile_call(rng: random.Random) -> dict[str, Any]:
+    """A method call with at least one argument wrong: too many, a wrong type, out of range."""
+    junk = rng.choice([
+        {"type": "String", "value": "x" * rng.choice([1, 300, 20_000])},
+        {"type": "String", "value": "\u202e\n[ERROR] forged"},
+        {"type": "Int32", "value": rng.choice([0, -1, 2**31 - 1, -(2**31), 99])},
+        {"type": "Double", "value": rng.choice([1e308, -1.0, 5.0])},
+        {"type": "Boolean", "value": True},
+        {"type": "Float", "value": rng.choice([3.0e38, -1.0, 51.0, 1e6])},
+        _parameters(*[{"ID": i, "Name": "x" * rng.choice([1, 5000])} for i in range(rng.choice([1, 200]))]),
+    ])  # fmt: skip
+    kind = rng.randrange(4)
+    if kind == 0:
+        return {"op": "call", "path": rng.choice(_NO_ARGS), "args": [junk]}
+    if kind == 1:
+        return {"op": "call", "path": f"{UNIT}/P:SetMachSpeed", "args": [junk if junk["type"] != "Float" else
+                {"type": "Float", "value": rng.choice([3.0e38, -1.0, 51.0, 1e6])}]}  # fmt: skip
+    if kind == 2:
+        mode = {"type": "Int32", "value": rng.choice([0, -1, 2**31 - 1, 99, 33])}
+        return {"op": "call", "path": f"{UNIT}/P:SetUnitMode", "args": [rng.choice([mode, junk])]}
+    start = {"op": "call", "path": f"{ES}/P:Start", "args": [junk, junk]}
+    return rng.choice([start, {"op": "call", "path": f"{UNIT}/P:SetParameter", "args": [junk, junk]},
+                       {"op": "call", "path": f"{UNIT}/P:SetProduct", "args": [junk, junk]}])  # fmt: skip
+
+
+def test_hostile_method_calls_are_refused_with_a_reason_and_change_nothing(
+    cell: Cell, filler: UnitClient
+) -> None:
+    """Issue 15 campaign: seeded method calls with wrong, extra or out-of-range arguments on every
+    method of a unit: each a Bad status (none lost, no server error), the unit unchanged."""
+    rng = random.Random(1515)
+    before = filler.status.last
+    steps = [_hostile_call(rng) for _ in range(HOSTILE_CALLS)]
+    steps.append({"op": "read", "path": f"{UNIT}/P:Status/U:StateCurrent"})
+    results = cell.operator(steps, timeout=240)
+    assert len(results) == len(steps)
+    for step, result in zip(steps[:-1], results[:-1], strict=True):
+        what = (step["path"].rsplit("/", 1)[1], str(step["args"])[:120])
+        assert result["status"].startswith("Bad"), (what, result)
+        assert result["status"] not in ("BadInternalError", "BadUnexpectedError"), (what, result)
+    assert results[-1]["value"] == before.state_current
+    now = filler.status.last
+    assert (now.sequence, now.unit_mode_current, now.mach_speed) == (
+        before.sequence, before.unit_mode_current, before.mach_speed)  # fmt: skip

@@ -366,7 +366,9 @@ def test_the_bridge_drives_this_projects_own_opcua_face_with_a_secured_user_sess
 ) -> None:
     port = free_port()
     remote_path, remote = write_cell(
-        tmp_path, {"filler": {"alarms": [{"id": 201, "message": "Nozzle clogged", "category": 2}]}},
+        tmp_path,
+        {"filler": {"remote_commands_enabled": True,  # the bridge is an OPC UA (remote) client
+                    "alarms": [{"id": 201, "message": "Nozzle clogged", "category": 2}]}},
         coordinator={"enabled": False, "unit_lease": LEASE},
     )  # fmt: skip
     doc = yaml.safe_load(remote_path.read_text())
@@ -410,7 +412,9 @@ def test_the_bridge_drives_this_projects_own_opcua_face_with_a_secured_user_sess
 
     # an alarm of the remote unit stops it; the bridge names it as the cause
     from_now(bridged)
-    target.call(SetAlarm, "set_alarm", id=201, value=0, active=True, category=-1, source="test")
+    target.call(
+        SetAlarm, "set_alarm", id=201, value=0, active=True, category=-1, source="operator:test"
+    )
     stop = bridged.transitions.wait_for(lambda t: t.to_state_name in ("STOPPING", "STOPPED"), 5,
                                         "the stop", bridged._transitions_since)  # fmt: skip
     assert (stop.trigger, stop.command, stop.source) == (TransitionEvent.TRIGGER_ALARM, Cmd.STOP, "alarm:201")  # fmt: skip
@@ -420,6 +424,8 @@ def test_the_bridge_drives_this_projects_own_opcua_face_with_a_secured_user_sess
     assert not refused.accepted and refused.result == Result.COMMAND_NOT_ALLOWED
     assert refused.message.startswith("RESET refused by the PLC in STOPPED in PRODUCTION mode (BadInvalidState: RESET refused")  # fmt: skip
     assert 'alarm 201/0 "Nozzle clogged" (category 2) with reaction STOP is still active' in refused.message  # fmt: skip
-    target.call(SetAlarm, "set_alarm", id=201, value=0, active=False, category=-1, source="test")
+    target.call(
+        SetAlarm, "set_alarm", id=201, value=0, active=False, category=-1, source="operator:test"
+    )
     assert bridged.command(Cmd.RESET).accepted
     bridged.wait_state("IDLE")

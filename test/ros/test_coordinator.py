@@ -67,7 +67,7 @@ class Cell:
 
     def command(self, cmd: Cmd, timeout: float = 20.0) -> Command.Response:
         return self.ros.call(Command, f"/{self.name}/coordinator/command",
-                             Command.Request(command=int(cmd), source="test"), timeout)  # fmt: skip
+                             Command.Request(command=int(cmd), source="operator:test"), timeout)  # fmt: skip
 
     def marks(self) -> dict[str, int]:
         return {n: len(c.transitions) for n, c in self.units.items()}
@@ -151,7 +151,7 @@ def test_cell_commands_follow_start_and_stop_order(ros, tmp_path: Path) -> None:
 
     # set_mode goes to every unit; the answer lists each unit's result
     answer = ros.call(SetMode, f"/{cell.name}/coordinator/set_mode",
-                      SetMode.Request(mode_name="maintenance", source="test"), 10)  # fmt: skip
+                      SetMode.Request(mode_name="maintenance", source="remote:test"), 10)  # fmt: skip
     assert answer.accepted and answer.mode_current == 2, answer.message
     assert all(f"{u}: accepted" in answer.message for u in start_order)
     cell.wait(lambda m: m.unit_mode_current == 2, "cell in Maintenance")
@@ -186,7 +186,7 @@ def test_a_cell_command_checks_every_unit_first_and_names_the_one_that_refuses(r
 
     # the mode: all or nothing too, and mode_current is the mode the cell still has
     answer = ros.call(SetMode, f"/{cell.name}/coordinator/set_mode",
-                      SetMode.Request(mode=2, source="test"), 10)  # fmt: skip
+                      SetMode.Request(mode=2, source="operator:test"), 10)  # fmt: skip
     assert not answer.accepted and answer.result == Result.REMOTE_DISABLED
     assert answer.mode_current == 1, answer
     assert answer.message.startswith("mode 2 refused, no unit changed: b does not take remote")
@@ -206,7 +206,7 @@ def test_a_cell_mode_change_one_unit_cannot_make_changes_no_unit(ros, tmp_path: 
     b.wait_state("EXECUTE")
     cell.wait(lambda m: cell.summary(m, "b").state_current_name == "EXECUTE", "b in Execute")
     answer = ros.call(SetMode, f"/{cell.name}/coordinator/set_mode",
-                      SetMode.Request(mode_name="maintenance", source="test"), 10)  # fmt: skip
+                      SetMode.Request(mode_name="maintenance", source="remote:test"), 10)  # fmt: skip
     assert not answer.accepted and answer.result == Result.MODE_CHANGE_NOT_ALLOWED, answer
     assert "b in EXECUTE: PRODUCTION allows mode changes only in" in answer.message
     assert answer.mode_current == 1
@@ -237,7 +237,7 @@ def test_a_unit_that_refuses_the_mode_after_the_check_has_the_others_changed_bac
     status.wait_for(lambda m: m.all_online, 10, "both units online")
     a = UnitClient(ros, name, "a")
     answer = ros.call(SetMode, f"/{name}/coordinator/set_mode",
-                      SetMode.Request(mode_name="maintenance", source="test"), 30)  # fmt: skip
+                      SetMode.Request(mode_name="maintenance", source="remote:test"), 30)  # fmt: skip
     assert not answer.accepted and answer.result == Result.MODE_CHANGE_NOT_ALLOWED, answer
     assert "not set: b refused: mode change PRODUCTION -> MAINTENANCE not allowed" in answer.message
     assert answer.message.endswith("changed back: a (back)"), answer.message
@@ -392,3 +392,27 @@ def test_killed_unit_is_reported_lost_and_back_online(ros, processes, tmp_path: 
     assert coordinator.running()
     assert coordinator.stop() == 0, coordinator.output()
     assert "unit b lost" in coordinator.output() and "unit b online again" in coordinator.output()
+
+
+def test_concurrent_cell_stops_all_succeed_once_the_cell_stopped(ros, tmp_path: Path) -> None:
+    """Issue 15 item 8: ten STOPs at once used to cancel each other (9 of 10 answered failure
+    although the cell stopped); a STOP while a STOP runs joins it and says so."""
+    units = {"infeed": _unit(), "filler": _unit()}
+    cell = Cell(ros, tmp_path, units, {"start_order": ["filler", "infeed"]})
+    assert cell.trigger("reset").success
+    cell.wait(lambda m: m.state_current_name == "IDLE" and not m.busy, "cell idle")
+    answers: list[Trigger.Response] = []
+    threads = [threading.Thread(target=lambda: answers.append(cell.trigger("stop", 40)))
+               for _ in range(10)]  # fmt: skip
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert len(answers) == 10
+    failed = [a.message for a in answers if not a.success]
+    assert not failed, failed
+    assert sum(a.message.startswith("STOP done in order") for a in answers) >= 1
+    assert all(
+        a.message.startswith(("STOP done", "STOP joined the STOP in progress")) for a in answers
+    )
+    cell.wait(lambda m: m.state_current_name == "STOPPED" and not m.busy, "cell stopped")

@@ -42,6 +42,7 @@ from packml_interfaces.srv import (
     SetMachSpeed,
     SetMode,
     SetProduct,
+    SetRemoteCommands,
     SetUnitParameters,
 )
 from rcl_interfaces.srv import SetParameters
@@ -303,24 +304,37 @@ def test_command_rejections_unknown_not_allowed_and_state_disabled(make_unit) ->
     assert unit.trigger("suspend").message == resp.message
 
 
-def test_remote_commands_follow_the_ros_parameter(ros, make_unit) -> None:
+def test_remote_commands_follow_the_lock_which_only_a_local_source_switches(ros, make_unit) -> None:
+    """Issue 15 item 2: the lock is switched by <unit>/set_remote_commands from a local source
+    only; the faces' sources and the anonymous parameter service are refused."""
     unit = make_unit()
     assert not unit.status.last.remote_commands_enabled
     resp = unit.command(Cmd.RESET, source="remote:line")
     assert_refused(resp, Result.REMOTE_DISABLED, "RESET from remote:line",
                    "remote_commands_enabled", "STOPPED in PRODUCTION", "valid now: RESET, ABORT")  # fmt: skip
-    assert unit.command(Cmd.START, source="remote_hmi").result == Result.REMOTE_DISABLED
-    refused = set_remote_enabled(ros, unit, "yes")  # the parameter is a bool
-    assert not refused.successful, refused.reason
-    assert set_remote_enabled(ros, unit, True).successful
+    for tricky in ("remote_hmi", "REMOTE:line", " remote:line", "Remote:line", "remote:line\n"):
+        assert_refused(unit.command(Cmd.RESET, source=tricky), Result.INVALID_ARGUMENT, "source")
+    for value in ("yes", True):  # `ros2 param set` names no source: never local
+        refused = set_remote_enabled(ros, unit, value)
+        assert not refused.successful, refused.reason
+    assert "set_remote_commands" in set_remote_enabled(ros, unit, True).reason
+    for face in ("remote:line", "hmi:anyone", "opcua:scada", "coordinator"):
+        resp = unit.call(SetRemoteCommands, "set_remote_commands", enabled=True, source=face)
+        assert_refused(resp, Result.UNAUTHORIZED, "local source", face)
+    assert not unit.status.last.remote_commands_enabled
+    resp = unit.call(SetRemoteCommands, "set_remote_commands", enabled=True, source="")
+    assert resp.accepted and resp.result == Result.ACCEPTED, resp.message
     unit.wait_status(lambda m: m.remote_commands_enabled, what="remote enabled")
     resp = unit.command(Cmd.RESET, source="remote:line")
     assert resp.accepted and resp.result == Result.ACCEPTED, resp.message
     assert resp.state_current == State.IDLE
     event = unit.wait_transition(lambda t: t.command == Cmd.RESET)
     assert event.source == "remote:line"
-    assert set_remote_enabled(ros, unit, False).successful
+    resp = unit.call(SetRemoteCommands, "set_remote_commands", enabled=False,
+                     source="operator:alice")  # fmt: skip
+    assert resp.accepted and "operator:alice" in resp.message
     assert unit.command(Cmd.START, source="remote:line").result == Result.REMOTE_DISABLED
+    assert unit.command(Cmd.START, source="hmi:anyone").result == Result.REMOTE_DISABLED
 
 
 def test_mode_rejections_unknown_and_not_allowed_with_its_lamp(make_unit) -> None:
@@ -365,7 +379,7 @@ def test_mode_unknown_names_the_current_state_and_mode(make_unit) -> None:
 
 
 def test_em_switch_rejections_and_the_log(make_unit) -> None:
-    unit = make_unit({"equipment_modules": {"gripper": {}}})
+    unit = make_unit({"equipment_modules": {"gripper": {}}, "remote_commands_enabled": True})
     resp = unit.call(SetEmActive, "set_em_active", em="nozzle", active=False)
     assert_refused(resp, Result.EM_UNKNOWN, "'nozzle'", "gripper")
     resp = unit.call(SetEmActive, "set_em_active", em="gripper", active=False)
@@ -547,7 +561,8 @@ def test_an_em_heard_before_the_first_tick_is_shown_online(ros, tmp_path: Path) 
     node = UnitNode(unit_config_of(cell_file, UNIT), context=ros.context)
     try:
         reports = next(s for s in node.subscriptions if s.topic_name.endswith("/em_reports"))
-        reports.callback(EmReport(em="gripper", kind=EmReport.KIND_HEARTBEAT))  # as delivered
+        info = {"publisher_gid": {"implementation_identifier": "x", "data": bytes(16)}}
+        reports.callback(EmReport(em="gripper", kind=EmReport.KIND_HEARTBEAT), info)  # as delivered
         ros.add(node)
         client = UnitClient(ros, cell, UNIT)
         client.ready()
@@ -761,7 +776,7 @@ def test_speed_parameters_and_product_show_in_status(make_unit) -> None:
 
 
 def test_an_interlock_suspends_and_unsuspends_the_unit(make_unit) -> None:
-    unit = make_unit()
+    unit = make_unit({"remote_commands_enabled": True})
     unit.drive("reset", "start")
     resp = unit.call(SetInterlock, "set_interlock", active=True, reason="case_packer blocked",
                      source="remote:coordinator")  # fmt: skip
@@ -839,7 +854,7 @@ def test_admin_times_follow_the_simulated_clock_and_reset(ros, make_unit) -> Non
 
 # -- 8. Mode change with an EM ---------------------------------------------------------------------------
 def test_a_mode_change_waits_for_the_em_and_keeps_the_state(ros, make_unit) -> None:
-    unit = make_unit({"equipment_modules": {"gripper": {}}})
+    unit = make_unit({"equipment_modules": {"gripper": {}}, "remote_commands_enabled": True})
     em = FakeEm(ros, unit, "gripper")
     em.start_heartbeats()
     before = unit.wait_status(lambda m: em_of(m, "gripper").online, 5.0, "gripper online")

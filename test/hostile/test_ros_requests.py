@@ -1,0 +1,382 @@
+"""Issue 15: thousands of seeded hostile requests against a running unit node over real DDS: every
+mutating service from remote sources while the remote lock holds, sources outside the grammar,
+strings and arrays past their bounds, control characters, numbers out of range; pipelined 200 at
+a time by one client (none may be lost: services keep 256); and forged EM reports (made-up EMs,
+fields out of range, another writer's State Complete for the configured EM).
+
+Every request is answered, refused with its reason code and a printable sentence; nothing of the
+unit changes (no status message, no transition, the same EMs); the process's memory and its log
+stay bounded (figures below)."""
+
+from __future__ import annotations
+
+import math
+import os
+import random
+import threading
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+import rclpy
+from packml_interfaces.msg import Descriptor, EmReport, Product, Result, UnitInput
+from packml_interfaces.srv import (
+    AckAlarms,
+    Command,
+    ResetAlarms,
+    ResetCounters,
+    ResetTimes,
+    SetAlarm,
+    SetEmActive,
+    SetInterlock,
+    SetMachSpeed,
+    SetMode,
+    SetProduct,
+    SetRemoteCommands,
+    SetUnitParameters,
+)
+
+from packml_ros2 import qos
+from packml_ros2.core.limits import MAX_REQUEST_TEXT
+from test.ros.test_unit_services import FakeEm, make_unit, wait_until
+
+__all__ = ["make_unit"]  # the fixture
+
+pytestmark = pytest.mark.ros
+
+SEED = 1515
+COUNT = 6000  # ~15 s here (2.5 ms a request, answers included)
+BATCH = 200  # pipelined by one client before the first answer is read
+REPORTS = 1000
+WARM_UP = 400
+MAX_RSS_GROWTH_MB = 40
+MAX_LOG_BYTES = 200_000  # every refusal is logged escaped and rate-limited
+R = Result
+
+UNIT_DOC: dict[str, Any] = {
+    "mach_design_speed": 50,
+    "alarms": [{"id": 1, "message": "E-stop", "category": 0}],
+    "equipment_modules": {"nozzle": {}},
+}
+
+LOCAL = ("", "operator", "operator:alice")
+REMOTE = ("hmi:op", "opcua:scada", "remote:mes", "remote", "coordinator", "hmi:anyone")
+BAD_SOURCES = ("REMOTE:x", " remote:x", "Remote:x", "remote_hmi", "em:nozzle", "unit", "hmi:a b",
+               "operator\n[ERROR] forged", "x" * 5000, "hmi:" + "a" * 100, "plc", "\u202eremote")  # fmt: skip
+
+
+def long_text(rng: random.Random) -> str:
+    return rng.choice(
+        [
+            "y" * rng.choice([257, 4096, 100_000]),
+            "bad\nline",
+            "esc\x1b[31m",
+            "bidi\u202eevil",
+            "tab\tx",
+        ]
+    )
+
+
+def mutating(rng: random.Random) -> tuple[Any, str, dict[str, Any]]:
+    """A request of every service that changes the unit, valid but for its source."""
+    return rng.choice(
+        [
+            (Command, "command", {"command": rng.randint(1, 10)}),
+            (SetMode, "set_mode", {"mode": rng.choice([1, 2, 3])}),
+            (SetAlarm, "set_alarm", {"id": 1, "value": 0, "active": True, "category": -1}),
+            (AckAlarms, "ack_alarms", {"all": True}),
+            (ResetAlarms, "reset_alarms", {}),
+            (ResetTimes, "reset_times", {"scope": 1}),
+            (ResetCounters, "reset_counters", {}),
+            (SetMachSpeed, "set_mach_speed", {"mach_speed": 10.0}),
+            (SetUnitParameters, "set_unit_parameters",
+             {"parameter": [Descriptor(id=1, name="fill", unit="ml", value=1.0)]}),
+            (SetProduct, "set_product", {"product": [Product(product_id=7)]}),
+            (SetEmActive, "set_em_active", {"em": "nozzle", "active": False}),
+            (SetInterlock, "set_interlock", {"active": True, "reason": "blocked"}),
+            (SetRemoteCommands, "set_remote_commands", {"enabled": True}),
+        ]
+    )  # fmt: skip
+
+
+def hostile(rng: random.Random) -> Iterator[tuple[Any, str, dict[str, Any], set[int]]]:
+    """(service type, name, fields, the reason codes a refusal may have), forever."""
+    bad = {R.INVALID_ARGUMENT}
+    while True:
+        kind = rng.randrange(6)
+        if kind == 0:  # a remote source while the lock holds (the lock itself: UNAUTHORIZED)
+            srv, name, fields = mutating(rng)
+            expected = {R.UNAUTHORIZED} if srv is SetRemoteCommands else {R.REMOTE_DISABLED}
+            yield srv, name, {**fields, "source": rng.choice(REMOTE)}, expected
+        elif kind == 1:  # a source outside the grammar
+            srv, name, fields = mutating(rng)
+            yield srv, name, {**fields, "source": rng.choice(BAD_SOURCES)}, bad
+        elif kind == 2:  # a string past its bound or with a control character
+            text = long_text(rng)
+            pv = [Descriptor(name=text)]
+            yield rng.choice(
+                [
+                    (SetInterlock, "set_interlock", {"active": True, "reason": text}, bad),
+                    (SetAlarm, "set_alarm", {"id": 1, "active": True, "message": text}, bad),
+                    (SetEmActive, "set_em_active", {"em": text, "active": False}, bad),
+                    (SetMode, "set_mode", {"mode_name": text}, bad),
+                    (SetProduct, "set_product", {"product": [Product(process_variables=pv)]}, bad),
+                    (SetUnitParameters, "set_unit_parameters", {"parameter": pv}, bad),
+                ]
+            )
+        elif kind == 3:  # arrays past their bound
+            many = rng.randint(65, 300)
+            products = [Product(product_id=i) for i in range(many)]
+            parameters = [Descriptor(id=i, value=1.0) for i in range(many)]
+            yield rng.choice(
+                [
+                    (SetProduct, "set_product", {"product": products}, bad),
+                    (SetUnitParameters, "set_unit_parameters", {"parameter": parameters}, bad),
+                ]
+            )
+        elif kind == 4:  # numbers out of range, from a local source
+            srv, name, fields, expected = rng.choice(
+                [
+                    (Command, "command", {"command": rng.choice([0, -1, 11, 2**31 - 1, -(2**31)])},
+                     {R.UNKNOWN_COMMAND}),
+                    (SetMode, "set_mode", {"mode": rng.choice([0, -3, 32, 4, 2**31 - 1])},
+                     {R.MODE_UNKNOWN}),
+                    (SetMachSpeed, "set_mach_speed",
+                     {"mach_speed": rng.choice([999.0, -1.0, math.nan, math.inf, -math.inf, 1e308])},
+                     bad),
+                    (SetAlarm, "set_alarm",
+                     {"id": 1, "active": True, "category": rng.choice([-2, -1000, 10, 2**31 - 1])},
+                     bad),
+                    (SetEmActive, "set_em_active", {"em": "ghost", "active": False}, {R.EM_UNKNOWN}),
+                    (AckAlarms, "ack_alarms", {"id": rng.randint(2, 10**6)},
+                     {R.ALARM_UNKNOWN, R.NOTHING_TO_DO}),
+                    (SetInterlock, "set_interlock", {"active": False}, {R.NOTHING_TO_DO}),
+                ]
+            )  # fmt: skip
+            yield srv, name, {**fields, "source": rng.choice(LOCAL)}, expected
+        else:  # the remote lock switched from a face
+            fields = {"enabled": rng.random() < 0.5, "source": rng.choice(REMOTE)}
+            yield SetRemoteCommands, "set_remote_commands", fields, {R.UNAUTHORIZED}
+
+
+def answers(futures: list[Any], timeout: float) -> int:
+    """Wait for every future; how many were left unanswered after ``timeout``."""
+    done = threading.Event()
+    left = [len(futures)]
+    lock = threading.Lock()
+
+    def one(_: Any) -> None:
+        with lock:
+            left[0] -= 1
+            if not left[0]:
+                done.set()
+
+    for future in futures:
+        future.add_done_callback(one)
+    done.wait(timeout)
+    return left[0]
+
+
+def rss_mb() -> float:
+    with open(f"/proc/{os.getpid()}/status") as f:
+        return int(next(line for line in f if line.startswith("VmRSS")).split()[1]) / 1024
+
+
+def test_thousands_of_hostile_service_requests_and_reports_change_nothing(
+    ros: Any, make_unit: Any, capfd: pytest.CaptureFixture[str]
+) -> None:
+    unit = make_unit(UNIT_DOC)
+    em = FakeEm(ros, unit, "nozzle", lease=2.0, period=0.2)
+    em.start_heartbeats()
+    unit.client.wait_status(lambda m: all(e.online for e in m.equipment_modules), what="EM online")
+    before = unit.client.status.last
+    statuses, transitions = len(unit.client.status), len(unit.client.transitions)
+    alarms = len(unit.client.alarms)
+    inputs = ros.subscribe(UnitInput, f"{unit.base}/input_log", qos.INPUT_LOG)
+    first_input = unit.node._input_index
+    capfd.readouterr()
+
+    clients: dict[tuple[Any, str], Any] = {}
+    rng = random.Random(SEED)
+    requests = hostile(rng)
+    counts: dict[int, int] = {}
+    rss_before = 0.0
+    started = time.monotonic()
+    sent = 0
+    while sent < COUNT:
+        if sent >= WARM_UP and not rss_before:
+            rss_before = rss_mb()
+        batch = [next(requests) for _ in range(BATCH)]
+        futures = []
+        for srv, name, fields, expected in batch:
+            client = clients.get((srv, name))
+            if client is None:
+                client = ros.node.create_client(
+                    srv, f"{unit.base}/{name}", qos_profile=qos.SERVICES
+                )
+                assert client.wait_for_service(timeout_sec=10), name
+                clients[(srv, name)] = client
+            futures.append((client.call_async(srv.Request(**fields)), name, fields, expected))
+        unanswered = answers([f for f, *_ in futures], 30)
+        assert not unanswered, f"{unanswered} of {len(futures)} pipelined requests never answered"
+        for future, name, fields, expected in futures:
+            resp = future.result()
+            text = resp.message_out if hasattr(resp, "message_out") else resp.message
+            what = f"{name}({ {k: str(v)[:60] for k, v in fields.items()} })"
+            assert not resp.accepted, f"{what} accepted: {text}"
+            assert resp.result in expected, f"{what}: result {resp.result}: {text}"
+            assert 10 < len(text) < 600 and text.isprintable(), f"{what}: {text[:300]!r}"
+            counts[resp.result] = counts.get(resp.result, 0) + 1
+        sent += len(futures)
+    rss_after = rss_mb()
+
+    # forged EM reports: made-up EMs, fields out of range, and the configured EM from another writer
+    forger = rclpy.create_node("forger", namespace=f"/{unit.cell}/filler", context=ros.context)
+    pub = forger.create_publisher(EmReport, "em_reports", qos.EM_REPORTS)
+    ros.add(forger)
+    wait_until(lambda: pub.get_subscription_count() >= 1, what="the unit subscribed")
+    refused = unit.node.refused_reports
+    for i in range(REPORTS):
+        kind = i % 4
+        if kind == 0:
+            msg = EmReport(em=f"fake{i}", kind=EmReport.KIND_HEARTBEAT)
+        elif kind == 1:
+            msg = EmReport(em="nozzle", kind=EmReport.KIND_STATE_COMPLETE,
+                           state=before.state_current, sequence=before.sequence)  # fmt: skip
+        elif kind == 2:
+            msg = EmReport(
+                em=rng.choice(["x" * 300, "a\nb", "nozzle"]), kind=rng.choice([7, 99, 255])
+            )
+        else:
+            msg = EmReport(em="nozzle", kind=EmReport.KIND_ALARM, alarm_id=1, alarm_active=True,
+                           category=0, warning=True, message="relabelled")  # fmt: skip
+        pub.publish(msg)
+        if i % 100 == 99:  # the topic keeps 200: let the unit catch up (3 in 4 are refused
+            # here, the made-up EMs by the engine; the reports of one writer arrive in order)
+            seen = refused + (i + 1) * 3 // 4
+            wait_until(lambda n=seen: unit.node.refused_reports >= n, 10, "reports")
+    wait_until(lambda: unit.node.refused_reports >= refused + REPORTS * 3 // 4, 10, "reports")
+    elapsed = time.monotonic() - started
+
+    last_input = unit.node._input_index
+    inputs.wait_for(lambda m: m.index >= last_input, 10, "the input log flushed")
+    log = capfd.readouterr()
+    em.stop_heartbeats()
+    after = unit.client.status.last
+    assert len(unit.client.status) == statuses, "a refused request changed the status"
+    assert len(unit.client.transitions) == transitions
+    assert (after.state_current, after.unit_mode_current, after.mach_speed) == (
+        before.state_current, before.unit_mode_current, before.mach_speed)  # fmt: skip
+    assert [e.name for e in after.equipment_modules] == ["nozzle"]
+    assert not after.remote_commands_enabled
+    assert len(unit.client.alarms) == alarms, "a refused request or report changed the alarms"
+    growth = rss_after - rss_before
+    assert growth < MAX_RSS_GROWTH_MB, f"RSS grew {growth:.1f} MB"
+    size = len(log.out) + len(log.err)
+    assert size < MAX_LOG_BYTES, f"{size} bytes of log"
+    assert "[ERROR] forged" not in log.err.replace("\\n[ERROR] forged", "")
+    assert sum(counts.values()) >= COUNT and {R.REMOTE_DISABLED, R.INVALID_ARGUMENT} <= set(counts)
+    # item 4: what the boundary refused never reached the engine's input log; no record is large
+    recorded = [m for m in inputs.messages if first_input < m.index <= last_input]
+    reached_engine = sum(n for r, n in counts.items() if r != R.INVALID_ARGUMENT) + REPORTS // 4
+    print(
+        f"input log: {last_input - first_input} records, {reached_engine} requests reached the engine"
+    )
+    assert last_input - first_input <= reached_engine, (last_input - first_input, reached_engine)
+    assert max(len(m.args_json) for m in recorded) < 4 * MAX_REQUEST_TEXT
+    print(f"{sent} requests + {REPORTS} reports in {elapsed:.1f} s; RSS {growth:+.1f} MB; "
+          f"log {size} bytes; {counts}")  # fmt: skip
+
+
+def test_a_forged_state_complete_never_ends_resetting_the_ems_own_does(
+    ros: Any, make_unit: Any
+) -> None:
+    """Issue 15 item 3: a second writer's State Complete for a configured EM (right state and
+    sequence) used to end Resetting early; only the writer that speaks for the EM is heard."""
+    unit = make_unit({"equipment_modules": {"nozzle": {}}})
+    em = FakeEm(ros, unit, "nozzle", lease=2.0, period=0.2)
+    em.start_heartbeats()
+    unit.client.wait_status(lambda m: all(e.online for e in m.equipment_modules), what="EM online")
+    forger = rclpy.create_node("forger", namespace=f"/{unit.cell}/filler", context=ros.context)
+    pub = forger.create_publisher(EmReport, "em_reports", qos.EM_REPORTS)
+    ros.add(forger)
+    wait_until(lambda: pub.get_subscription_count() >= 1, what="the unit subscribed")
+    assert unit.command(1).accepted
+    resetting = unit.wait_state("RESETTING")
+    refused = unit.node.refused_reports
+    for _ in range(5):
+        pub.publish(EmReport(em="nozzle", kind=EmReport.KIND_STATE_COMPLETE,
+                             state=resetting.state_current, sequence=resetting.sequence))  # fmt: skip
+    wait_until(lambda: unit.node.refused_reports >= refused + 5, 10, "the forged reports refused")
+    now = unit.client.status.last
+    assert (now.state_current, now.sequence) == (resetting.state_current, resetting.sequence)
+    assert not next(e for e in now.equipment_modules if e.name == "nozzle").state_complete
+    em.complete(resetting)
+    unit.wait_state("IDLE")
+    em.stop_heartbeats()
+
+
+COORDINATOR_REQUESTS = 1000
+
+
+def test_hostile_cell_requests_at_the_coordinator_change_nothing(ros: Any, tmp_path: Any) -> None:
+    """The coordinator's services under the same attack (commands, modes, Trigger shortcuts):
+    sources outside the grammar, long or controlling text, numbers out of range, and valid cell
+    commands while the units' remote lock holds: each answered, refused with a reason, and no
+    unit changes."""
+    from std_srvs.srv import Trigger
+
+    from test.ros.test_coordinator import Cell
+
+    cell = Cell(ros, tmp_path, {"filler": {}, "capper": {}}, {"start_order": ["filler", "capper"]})
+    before = {n: c.status.last for n, c in cell.units.items()}
+    marks = {n: (len(c.status), len(c.transitions)) for n, c in cell.units.items()}
+    base = f"/{cell.name}/coordinator"
+    rng = random.Random(SEED)
+    locked = {R.REMOTE_DISABLED, R.COMMAND_NOT_ALLOWED}  # (or busy with another request)
+    modes = {R.REMOTE_DISABLED, R.COMMAND_NOT_ALLOWED, R.MODE_UNKNOWN, R.MODE_CHANGE_NOT_ALLOWED}
+    requests: list[tuple[Any, str, dict[str, Any], set[int]]] = []
+    for _ in range(COORDINATOR_REQUESTS):
+        # not STOP, ABORT (never refused) or CLEAR (the units are Stopped already: nothing to do)
+        cmd = rng.choice([1, 2, 4, 5, 6, 7, 10])
+        requests.append(rng.choice([
+            (Command, "command", {"command": cmd, "source": rng.choice(REMOTE + LOCAL)}, locked),
+            (Command, "command", {"command": rng.choice([0, 11, -7, 2**31 - 1])}, {R.UNKNOWN_COMMAND}),
+            (Command, "command", {"command": cmd, "source": rng.choice(BAD_SOURCES)}, {R.INVALID_ARGUMENT}),
+            (SetMode, "set_mode", {"mode": rng.choice([0, 2, 3, 99, -1])}, modes),
+            (SetMode, "set_mode", {"mode_name": long_text(rng)}, {R.INVALID_ARGUMENT}),
+            (Trigger, rng.choice(["reset", "start", "hold", "unsuspend"]), {}, locked),
+        ]))  # fmt: skip
+    clients: dict[tuple[Any, str], Any] = {}
+    counts: dict[int, int] = {}
+    for start in range(0, len(requests), 50):
+        futures = []
+        for srv, name, fields, expected in requests[start : start + 50]:
+            client = clients.get((srv, name))
+            if client is None:
+                client = ros.node.create_client(srv, f"{base}/{name}", qos_profile=qos.SERVICES)
+                assert client.wait_for_service(timeout_sec=10), name
+                clients[(srv, name)] = client
+            futures.append((client.call_async(srv.Request(**fields)), name, fields, expected))
+        unanswered = answers([f for f, *_ in futures], 30)
+        assert not unanswered, f"{unanswered} of {len(futures)} requests never answered"
+        for future, name, fields, expected in futures:
+            resp = future.result()
+            what = f"{name}({ {k: str(v)[:60] for k, v in fields.items()} })"
+            if isinstance(resp, Trigger.Response):
+                assert not resp.success and 10 < len(resp.message) < 2000, f"{what}: {resp.message}"
+                continue
+            assert not resp.accepted and resp.result in expected, (
+                f"{what}: {resp.result} {resp.message}"
+            )
+            assert 10 < len(resp.message) < 2000 and resp.message.isprintable(), (
+                f"{what}: {resp.message!r}"
+            )
+            counts[resp.result] = counts.get(resp.result, 0) + 1
+    for name, client in cell.units.items():
+        assert (len(client.status), len(client.transitions)) == marks[name], name
+        now = client.status.last
+        assert (now.state_current, now.unit_mode_current) == (
+            before[name].state_current, before[name].unit_mode_current)  # fmt: skip
+    assert {R.REMOTE_DISABLED, R.INVALID_ARGUMENT, R.UNKNOWN_COMMAND} <= set(counts)
