@@ -176,6 +176,10 @@ def test_a_cell_command_checks_every_unit_first_and_names_the_one_that_refuses(r
     # a unit in a state where the command is not valid: named, with what it could do
     assert cell.units["a"].command(Cmd.RESET).accepted  # a alone (operator): Idle
     cell.units["a"].wait_state("IDLE")
+    # the coordinator judges by the status it has: wait until it has seen a in Idle too
+    cell.wait(
+        lambda m: cell.summary(m, "a").state_current_name == "IDLE", "a in Idle at the coordinator"
+    )
     since = cell.marks()
     answer = cell.command(Cmd.CLEAR)  # b and c are where CLEAR leads (Stopped): not in the way
     assert not answer.accepted and answer.result == Result.COMMAND_NOT_ALLOWED
