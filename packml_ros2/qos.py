@@ -36,6 +36,14 @@ EM_REPORTS = _profile(200, latched=False)
 #: ``<unit>/input_log``: every input the unit's engine applied, for record/replay; latched deep
 #: so a recorder that starts late still gets the inputs since the unit started.
 INPUT_LOG = _profile(5000, latched=True)
+#: ``<cell>/coordinator/line/input_log``: the line's inputs, for record/replay (like INPUT_LOG).
+LINE_INPUT_LOG = INPUT_LOG
+#: ``<cell>/coordinator/line/episodes``: every change of a stop episode; the last 100 reach a
+#: late subscriber.
+LINE_EPISODES = _profile(100, latched=True)
+#: ``<cell>/coordinator/line/losses``: one message per window at each publication; the last set
+#: reaches a late subscriber.
+LINE_LOSSES = _profile(8, latched=True)
 #: ``/diagnostics`` (diagnostic_msgs), as the standard aggregator expects.
 DIAGNOSTICS = _profile(10, latched=False)
 
