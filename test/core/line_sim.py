@@ -56,6 +56,8 @@ class SimLine:
             unit = Unit(cfg, clock=clock)
             self.units[name] = unit
             self.drivers[name] = UnitDriver(unit, clock, self._emitter(name))
+        self.records: list[Any] = []  # the line's input log
+        self.episode_views: list[Any] = []  # every episode change, as published
         self.line = Line(self.cell, lambda: self.t, lambda: round(self.t * NS),
                          LineStore(store, self.cell.cell) if store else None)  # fmt: skip
         self.runs: list[tuple[int, Run, list[Outcome]]] = []
@@ -111,7 +113,7 @@ class SimLine:
                 self._em_schedule(unit, msg)
             _, effects = self.line.on_unit(unit, topic, msg)
             self._effects(effects)
-            self.line.take()
+            self.take()
 
         return emit
 
@@ -180,7 +182,13 @@ class SimLine:
         _, views = self.line.losses_due()
         if views:
             self.published.append(views)
-        self.line.take()
+        self.take()
+
+    def take(self) -> None:
+        """Keep what the line would publish: its input log and the episodes changed."""
+        records, episodes = self.line.take()
+        self.records.extend(records)
+        self.episode_views.extend(episodes)
 
     def cell_command(self, cmd: Cmd, caller: str = "operator") -> list[Outcome]:
         """Begin a cell command; the list receives its outcome when it ends."""
