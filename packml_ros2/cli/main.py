@@ -10,6 +10,7 @@
     packml record / replay                   rosbag2 recordings as regression tests
     packml hmi <cell.yaml>                   the operator HMI in a browser
     packml opcua <cell.yaml>                 the cell as OPC UA (OPC 30050) objects
+    packml report [cell]                     the line's losses, OEE and stop episodes
 
 Exit codes: 0 done, 1 refused by the unit (the reason is printed), 2 usage or configuration
 error, 3 a unit or service did not answer.
@@ -23,7 +24,7 @@ import sys
 from collections.abc import Sequence
 
 #: Modules registering verbs, in help order; each has ``register(subparsers)``.
-VERB_MODULES = ("launch", "status", "control", "alarms", "watch", "bag", "hmi", "opcua")
+VERB_MODULES = ("launch", "status", "control", "alarms", "watch", "bag", "hmi", "opcua", "report")
 
 EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_UNAVAILABLE = 0, 1, 2, 3
 
