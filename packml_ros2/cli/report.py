@@ -170,9 +170,11 @@ def table(cell: str, data: dict[str, Any], episodes: list[dict[str, Any]], total
     head = ("SCOPE", "ELAPSED", "PLANNED", "UNPLANNED", "BLOCKED", "STARVED", "HELD", "RUNNING",
             "SPEED LOSS", "QUALITY LOSS", "PRODUCTIVE", "A", "P", "Q", "OEE")  # fmt: skip
     rows = [head]
+    times = ("elapsed", "planned_stop", "unplanned_stop", "blocked", "starved", "held", "running",
+             "speed_loss", "quality_loss", "productive")  # fmt: skip
     for s in data["scopes"]:
-        rows.append((s["scope"], *(duration(s[k]) for k in ("elapsed", "planned_stop", "unplanned_stop", "blocked", "starved", "held", "running", "speed_loss", "quality_loss", "productive")),  # fmt: skip
-                     percent(s["availability"]), percent(s["performance"]), percent(s["quality"]), percent(s["oee"])))  # fmt: skip
+        shares = [percent(s[k]) for k in ("availability", "performance", "quality", "oee")]
+        rows.append((s["scope"], *(duration(s[k]) for k in times), *shares))
     lines += _grid(rows, set(range(1, len(head))))
     line = data["scopes"][0]
     lines += ["", "LOSSES OF THE LINE (they add up to its elapsed time)"]
