@@ -190,6 +190,49 @@ class SimLine:
         self.records.extend(records)
         self.episode_views.extend(episodes)
 
+    def write_bag(self, path: Any, cell_yaml: str) -> None:
+        """What the coordinator would have published, as ``packml record`` writes it: the
+        line's input log, episodes and losses, and one unit's configuration."""
+        import json
+
+        from rclpy.serialization import serialize_message
+        from rosbags.rosbag2 import Writer
+
+        from packml_ros2 import line_msgs
+        from packml_ros2.bag import line
+        from packml_ros2.bag.topics import PUBLISHER_QOS, msg_class, rosbags_qos, typestore
+
+        self.take()
+        cell = self.cell.cell
+        unit_input = msg_class("packml_interfaces/msg/UnitInput")
+        designs = {s: self.line.perf.design(s) for s in ("", *self.line.perf.order)}
+        items: list[tuple[int, str, bytes]] = []
+        for r in self.records:
+            items.append((r.t, "line/input_log", serialize_message(unit_input(
+                stamp=line_msgs.stamp(r.t), index=r.index, unit=r.unit, name=r.name, args_json=r.args_json))))  # fmt: skip
+        for v in self.episode_views:
+            items.append((v.now, "line/episodes", serialize_message(line_msgs.episode_msg(v, cell))))  # fmt: skip
+        for views in self.published:
+            t = views[0].end
+            for v in views:
+                items.append((t, "line/losses", serialize_message(line_msgs.losses_msg(v, cell, t, designs))))  # fmt: skip
+        writer = Writer(path, version=9)
+        writer.open()
+        store = typestore()
+        conns = {}
+        for topic, kind, type_name in line.topics(cell):
+            conns[topic.split("/coordinator/")[1]] = writer.add_connection(
+                topic, type_name, typestore=store, offered_qos_profiles=[rosbags_qos(PUBLISHER_QOS[kind])])  # fmt: skip
+        config = writer.add_connection(f"/{cell}/filler/config", "std_msgs/msg/String", typestore=store,
+                                       offered_qos_profiles=[rosbags_qos(PUBLISHER_QOS["config"])])  # fmt: skip
+        text = json.dumps({"unit": "filler", "cell_yaml": cell_yaml})
+        writer.write(config, 1, serialize_message(msg_class("std_msgs/msg/String")(data=text)))
+        last = 1
+        for t, name, raw in sorted(items, key=lambda x: x[0]):
+            last = max(t, last + 1)
+            writer.write(conns[name], last, raw)
+        writer.close()
+
     def cell_command(self, cmd: Cmd, caller: str = "operator") -> list[Outcome]:
         """Begin a cell command; the list receives its outcome when it ends."""
         out: list[Outcome] = []

@@ -232,6 +232,42 @@ def test_replaying_the_input_log_reproduces_episodes_and_facts_exactly() -> None
     assert [replayed.root(e).unit for e in replayed.closed] == ["filler"]
 
 
+def test_a_bag_of_the_line_replays_to_the_same_episodes_and_losses(tmp_path: Path) -> None:
+    import yaml
+
+    from packml_ros2.bag import line
+
+    doc = cell_doc(publish_period=5.0)
+    sim = started(doc)
+    sim.at(20.5, lambda: sim.alarm("filler", "infeed", 202, True))
+    sim.at(22, lambda: sim.interlock("packer", "loader", starved=True))
+    sim.at(24, lambda: sim.alarm("filler", "infeed", 202, False))
+    sim.at(25, lambda: sim.command("filler", Cmd.RESET))
+    sim.at(27, lambda: sim.command("filler", Cmd.START))
+    sim.at(29, lambda: sim.interlock("packer", "loader", starved=False))
+    sim.at(35, lambda: sim.interlock("packer", "loader", blocked=True))
+    sim.at(40, lambda: sim.interlock("packer", "loader", blocked=False))
+    sim.run_until(50)
+    bag = tmp_path / "line_bag"
+    sim.write_bag(bag, yaml.safe_dump(doc))
+    [result] = line.check(bag)
+    assert result.ok, result.report()
+    assert result.compared == {
+        "episodes": len(sim.episode_views),
+        "losses": 4 * len(sim.published),
+    }  # no shift calendar
+    assert result.compared["episodes"] >= 4 and len(sim.published) == 10
+    assert [v.root.unit for v in sim.episode_views if v.episode.end] == ["filler", "packer"]
+    # a bag whose recorded episode says another root cause does not match
+    sim.episode_views[-1] = type(sim.episode_views[-1])(
+        sim.episode_views[-1].episode, sim.episode_views[0].root, sim.episode_views[-1].now
+    )
+    sim.write_bag(tmp_path / "mutated", yaml.safe_dump(doc))
+    [mutated] = line.check(tmp_path / "mutated")
+    assert not mutated.ok and "line/episodes: message" in mutated.report()
+    assert "root_unit: recorded 'filler', replayed 'packer'" in mutated.report()
+
+
 CHILD = """
 import sys, json
 sys.path.insert(0, {root!r})

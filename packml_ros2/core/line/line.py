@@ -61,6 +61,43 @@ class InputRecord:
         return json.dumps(self.fields, separators=(",", ":"), sort_keys=True)
 
 
+def episode_view(perf: Performance, e: Episode, t: int) -> EpisodeView:
+    """Episode ``e`` as published after the input at ``t`` changed it."""
+    return EpisodeView(e, perf.root(e), max(t, e.start))
+
+
+def summaries(perf: Performance, totals: Mapping[str, Totals]) -> tuple[Summary, ...]:
+    """The line, then its units in line order."""
+    scopes = [LINE, *perf.order]
+    return tuple(summarize(s, totals.get(s, Totals()), perf.design(s)) for s in scopes)
+
+
+def window_view(perf: Performance, which: str, now: int) -> LossesView:
+    """A running window (``shift:<key>``, ``15min``, ``1h``, ``reset``, ``lifetime``)."""
+    totals = perf.windows(which, now)
+    if which in ROLLING:
+        start, end = now - ROLLING[which], now
+    elif which == "reset":
+        start, end = perf.ledger.reset_at or 0, now
+    elif which.startswith("shift:"):
+        inst = perf.calendar.instance(which[6:])
+        start, end = (inst.start, min(now, inst.end)) if inst else (0, now)
+    else:
+        start, end = 0, now
+    return LossesView(which, start, end, summaries(perf, totals))
+
+
+def published_windows(perf: Performance, now: int) -> list[LossesView]:
+    """What ``line/losses`` carries at ``now``: the current shift, 15 min, 1 h, since reset,
+    lifetime."""
+    names = []
+    inst = perf.calendar.instance_at(now)
+    if inst is not None:
+        names.append(f"shift:{inst.key}")
+    names += [*ROLLING, "reset", "lifetime"]
+    return [window_view(perf, n, now) for n in names]
+
+
 class BoundedHistory(MemoryHistory):
     """The facts of a line without a store, the newest :data:`MEMORY_FACTS`."""
 
@@ -87,7 +124,7 @@ class Line:
         self.last_result = ""
         self.index = 0
         self.inputs: list[InputRecord] = []
-        self.episodes_out: list[Episode] = []
+        self.episodes_out: list[tuple[Episode, int]] = []
         self._digests: dict[tuple[str, str], Any] = {}
         self._online = dict.fromkeys(cell.units, False)
         self._published = 0  # wall ns of the last losses publication
@@ -144,18 +181,11 @@ class Line:
         if now - self._published < self.config.line.publish_period * NS:
             return now, []
         self._published = now
-        self._input(inputs.TICK, "", {}, now)
+        self._input(inputs.TICK, "", {"publish": True}, now)
         return now, self.published_windows(now)
 
     def published_windows(self, now: int) -> list[LossesView]:
-        """What ``line/losses`` carries at ``now``: the current shift, 15 min, 1 h, since reset,
-        lifetime."""
-        names = []
-        inst = self.calendar.instance_at(now)
-        if inst is not None:
-            names.append(f"shift:{inst.key}")
-        names += [*ROLLING, "reset", "lifetime"]
-        return [self.window(n, now) for n in names]
+        return published_windows(self.perf, now)
 
     def _presence(self) -> None:
         for name, unit in self.cell.units.items():
@@ -246,7 +276,7 @@ class Line:
             self.store.commit(facts, [self._row(e) for e in episodes], doc)
         self.index += 1
         self.inputs.append(InputRecord(self.index, t, name, unit, fields))
-        self.episodes_out.extend(episodes)
+        self.episodes_out.extend((e, t) for e in episodes)
 
     def _row(self, e: Episode) -> tuple[Episode, str, str, str]:
         root = self.perf.root(e)
@@ -256,30 +286,17 @@ class Line:
         """Inputs to publish on the input log, episodes changed (for line/episodes)."""
         records, self.inputs = self.inputs, []
         episodes, self.episodes_out = self.episodes_out, []
-        now = self.wall()
-        return records, [EpisodeView(e, self.perf.root(e), max(now, e.start)) for e in episodes]
+        return records, [episode_view(self.perf, e, t) for e, t in episodes]
 
     def window(self, which: str, now: int) -> LossesView:
-        """A running window (``shift:<key>``, ``15min``, ``1h``, ``reset``, ``lifetime``)."""
-        totals = self.perf.windows(which, now)
-        if which in ROLLING:
-            start, end = now - ROLLING[which], now
-        elif which == "reset":
-            start, end = self.perf.ledger.reset_at or 0, now
-        elif which.startswith("shift:"):
-            inst = self.calendar.instance(which[6:])
-            start, end = (inst.start, min(now, inst.end)) if inst else (0, now)
-        else:
-            start, end = 0, now
-        return LossesView(which, start, end, self._summaries(totals))
+        return window_view(self.perf, which, now)
 
     def span(self, a: int, b: int, name: str = "since") -> LossesView:
         totals = self.perf.ledger.span(a, b, self.perf.open_parts(self.wall()))
         return LossesView(name, a, b, self._summaries(totals))
 
     def _summaries(self, totals: Mapping[str, Totals]) -> tuple[Summary, ...]:
-        scopes = [LINE, *self.perf.order]
-        return tuple(summarize(s, totals.get(s, Totals()), self.perf.design(s)) for s in scopes)
+        return summaries(self.perf, totals)
 
     def query_losses(self, window: str, since: int = 0, until: int = 0, step: float = 0.0,
                      count: int = 0) -> tuple[list[LossesView], str]:  # fmt: skip
