@@ -60,17 +60,13 @@ class LineApi:
         if not chosen.accepted:
             raise LookupError(chosen.message)
         w = chosen.windows[0]
+        in_shift = self.QueryEpisodes.Request(since=w.start, until=w.end, limit=EPISODES)
+        open_now = self.QueryEpisodes.Request(open_only=True, limit=1)
         shifts, trend, eps, current = await asyncio.gather(
             self._losses(window="shifts", count=SHIFTS_SHOWN),
             self._losses(window="trend", step=TREND_STEP, count=TREND_COUNT),
-            self._call(
-                self.episodes,
-                self.QueryEpisodes.Request(since=w.start, until=w.end, limit=EPISODES),
-                "query_episodes",
-            ),  # fmt: skip
-            self._call(
-                self.episodes, self.QueryEpisodes.Request(open_only=True, limit=1), "query_episodes"
-            ),  # fmt: skip
+            self._call(self.episodes, in_shift, "query_episodes"),
+            self._call(self.episodes, open_now, "query_episodes"),
         )
         return {
             "cell": self.cell,
