@@ -43,6 +43,7 @@ bench: setup
 	$(BIN)/python bench/engine.py
 	$(BIN)/python bench/ros_latency.py
 	$(BIN)/python bench/replay.py
+	$(BIN)/python bench/cli.py
 
 clean:
 	rm -rf $(VENV) .cache msg_defs/build build *.egg-info .pytest_cache .mypy_cache .ruff_cache

@@ -27,6 +27,7 @@ setup(
         "fastapi>=0.110",  # packml hmi
         "uvicorn>=0.30",
         "asyncua>=1.1",  # packml opcua
+        "cryptography",
     ],
     zip_safe=False,
     entry_points={

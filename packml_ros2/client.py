@@ -108,6 +108,9 @@ class UnitProxy:
     node: Node
     path: str
     on_change: Callable[[str, str, Any], None] | None = None  # (unit path, topic, msg)
+    #: the topics to follow (default all): a short-lived tool that shows the status needs neither
+    #: the transitions' 100-message history nor the alarm list
+    topics: tuple[str, ...] = ("status", "admin", "alarms", "transitions")
     status: Status | None = None
     admin: Admin | None = None
     alarms: AlarmList | None = None
@@ -125,7 +128,7 @@ class UnitProxy:
             "alarms": (AlarmList, self._on("alarms"), qos.ALARMS),
             "transitions": (TransitionEvent, self._on_transition, qos.TRANSITIONS),
         }
-        self._subs = {topic: self._subscribe(topic) for topic in self._topics}
+        self._subs = {topic: self._subscribe(topic) for topic in self.topics}
 
     def _subscribe(self, topic: str) -> Any:
         msg_type, callback, profile = self._topics[topic]
@@ -139,7 +142,7 @@ class UnitProxy:
         Useful when a unit comes back after a network partition: the old subscription would get
         what it missed only by reliable repair, at the writer's next heartbeat (seconds).
         ``transitions`` then delivers its history again (up to 100 already seen ones)."""
-        for topic in topics or tuple(self._topics):
+        for topic in topics or self.topics:
             old = self._subs.get(topic)
             self._subs[topic] = self._subscribe(topic)
             if old is not None:
@@ -187,6 +190,17 @@ class UnitProxy:
                     )
                 self._cond.wait(remaining)
             return self.status
+
+    def wait_admin(self, timeout: float = 10.0) -> Admin:
+        """Block (not in an executor thread) until the unit's admin data has arrived."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while self.admin is None:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise Unavailable(f"{self.path}: no admin data within {timeout:g} s")
+                self._cond.wait(remaining)
+            return self.admin
 
     # -- services ----------------------------------------------------------------------------------------
     def client(self, service: str) -> Any:
@@ -243,10 +257,12 @@ class CellProxy:
         cell: str,
         units: Iterable[str] = (),
         on_change: Callable[[str, str, Any], None] | None = None,
+        topics: tuple[str, ...] = UnitProxy.topics,
     ) -> None:
         self.node = node
         self.cell = cell
         self.on_change = on_change
+        self.topics = topics  # what each unit's proxy follows
         self.units: dict[str, UnitProxy] = {}
         self.cell_status: CellStatus | None = None
         for unit in units:
@@ -264,27 +280,38 @@ class CellProxy:
         path = resolve_unit(unit, self.cell)
         name = path.rsplit("/", 1)[-1]
         if name not in self.units:
-            self.units[name] = UnitProxy(self.node, path, self.on_change)
+            self.units[name] = UnitProxy(self.node, path, self.on_change, self.topics)
         return self.units[name]
 
     def discover(self, timeout: float = 3.0, expect: int = 0) -> list[str]:
-        """Add the units whose status topic appears on the graph within ``timeout`` (stops early
-        once ``expect`` units are known)."""
+        """Add the units of this cell that appear on the graph; returns their names. It stops as
+        soon as the cell is complete: ``expect`` units known, or every unit the coordinator's
+        (latched) cell status lists; without a coordinator, once no new unit has appeared for
+        :data:`DISCOVERY_SETTLE` seconds; at the latest after ``timeout``."""
         deadline = time.monotonic() + timeout
-        prefix = f"/{self.cell}/"
+        coordinator = f"/{self.cell}/coordinator/status"
+        changed = time.monotonic()
         while True:
-            for topic, types in self.node.get_topic_names_and_types():
-                if (
-                    topic.startswith(prefix)
-                    and topic.endswith("/status")
-                    and "packml_interfaces/msg/Status" in types
-                ):
-                    rest = topic[len(prefix) : -len("/status")]
-                    if rest and "/" not in rest:
-                        self.add(rest)
-            if (expect and len(self.units) >= expect) or time.monotonic() >= deadline:
-                return sorted(self.units)
-            time.sleep(0.05)
+            graph = _graph_units(self.node)
+            before = len(self.units)
+            for unit in sorted(graph.get(self.cell, ())):
+                self.add(unit)
+            now = time.monotonic()
+            if len(self.units) != before:
+                changed = now
+            status = self.cell_status
+            if expect and len(self.units) >= expect:
+                break
+            if status is not None and {u.name for u in status.units} <= set(self.units):
+                break
+            settled = self.units and now - changed >= DISCOVERY_SETTLE
+            # a coordinator on the graph lists the cell's units: wait a little for its status
+            if settled and (coordinator not in graph.topics or now - changed >= 1.0):
+                break
+            if now >= deadline:
+                break
+            time.sleep(0.02)
+        return sorted(self.units)
 
     def unit(self, name: str) -> UnitProxy:
         path = resolve_unit(name, self.cell)
@@ -294,18 +321,52 @@ class CellProxy:
         return self.units[key]
 
 
-def discover_cells(node: Node, timeout: float = 3.0) -> dict[str, list[str]]:
-    """Cells and their units visible on the graph: ``{cell: [unit, ...]}``."""
+#: Graph discovery ends this long after the last new unit appeared (when no coordinator lists a
+#: cell's units): the participants of a running cell all answer a newcomer's first announcement,
+#: so their topics arrive together (config/fastdds_localhost.xml announces every 50 ms).
+DISCOVERY_SETTLE = 0.15
+
+
+class _Graph(dict[str, set[str]]):
+    """``{cell: {unit, ...}}`` seen on the graph, and every topic name (``topics``)."""
+
+    topics: set[str]
+
+
+def _graph_units(node: Node) -> _Graph:
+    found = _Graph()
+    found.topics = set()
+    for topic, types in node.get_topic_names_and_types():
+        found.topics.add(topic)
+        parts = topic.strip("/").split("/")
+        if len(parts) == 3 and parts[2] == "status" and "packml_interfaces/msg/Status" in types:
+            found.setdefault(parts[0], set()).add(parts[1])
+    return found
+
+
+def discover_cells(node: Node, timeout: float = 3.0, until: str = "") -> dict[str, list[str]]:
+    """Cells and their units visible on the graph: ``{cell: [unit, ...]}``, once no new unit has
+    appeared for :data:`DISCOVERY_SETTLE` seconds, or at once when every cell found has a
+    coordinator (whose cell status lists its units: :meth:`CellProxy.discover` completes them);
+    with ``until``, once a unit of that name is found (or the graph settled without it); at the
+    latest after ``timeout``."""
     deadline = time.monotonic() + timeout
     found: dict[str, set[str]] = {}
+    changed = time.monotonic()
     while True:
-        for topic, types in node.get_topic_names_and_types():
-            parts = topic.strip("/").split("/")
-            if len(parts) == 3 and parts[2] == "status" and "packml_interfaces/msg/Status" in types:
-                found.setdefault(parts[0], set()).add(parts[1])
-        if found or time.monotonic() >= deadline:
+        graph = _graph_units(node)
+        now = time.monotonic()
+        if graph != found:
+            found, changed = graph, now
+        coordinated = all(f"/{cell}/coordinator/status" in graph.topics for cell in found)
+        settled = bool(found) and now - changed >= DISCOVERY_SETTLE
+        if until:
+            done = settled or any(until in units for units in found.values())
+        else:
+            done = settled or (bool(found) and coordinated)
+        if done or now >= deadline:
             return {cell: sorted(units) for cell, units in sorted(found.items())}
-        time.sleep(0.05)
+        time.sleep(0.02)
 
 
 def command_number(text: str) -> int:

@@ -28,7 +28,7 @@ from packml_interfaces.msg import (
 from .core import config as cfg
 from .core.alarms import AlarmEvent, AlarmManager
 from .core.counters import Counter
-from .core.numbers import state_name
+from .core.numbers import NUM_MODES, NUM_STATES, state_name
 from .core.packtags import AdminView, StatusView, date_time_array
 from .core.unit import Transition
 
@@ -269,7 +269,9 @@ def alarm_list(
     alarm_of = alarm if cache is None else cache
     listed, alarm_over = alarms.listed(warnings=False)
     warnings, warning_over = alarms.listed(warnings=True)
-    by_category = [alarm_of(alarms.first_out_by_category.get(c)) for c in range(10)]
+    # index = category, up to the highest category with a first-out (none: empty, not 10 blanks)
+    top = max(alarms.first_out_by_category, default=-1)
+    by_category = [alarm_of(alarms.first_out_by_category.get(c)) for c in range(top + 1)]
     return AlarmList(
         stamp=stamp(now),
         unit=unit,
@@ -286,6 +288,11 @@ def alarm_list(
 
 
 # -- admin --------------------------------------------------------------------------------------------------
+def mode_slots(config: cfg.UnitConfig) -> int:
+    """Mode slots of the Admin time arrays: index = mode number, up to the highest configured."""
+    return max(config.modes, default=0) + 1
+
+
 def count(c: Counter) -> Count:
     return Count(id=c.id, name=c.name, unit=c.unit, count=c.count, acc_count=c.acc_count)
 
@@ -301,7 +308,10 @@ def _alarm_lists(
             [alarm_of(ev) for ev in v.warning])  # fmt: skip
 
 
-def admin(v: AdminView, cache: MessageCache | None = None) -> Admin:
+def admin(v: AdminView, cache: MessageCache | None = None, modes: int = NUM_MODES) -> Admin:
+    """``modes``: how many mode slots the time arrays carry (the highest configured mode + 1, see
+    :func:`mode_slots`): modes above it have no times, and 32 x 18 zeros made every message
+    hundreds of lines long in ``ros2 topic echo``."""
     alarm_of: Callable[[AlarmEvent | None], Alarm] = alarm if cache is None else cache
     counts_of: Callable[[tuple[Counter, ...]], list[Count]] = (
         _counts if cache is None else cache.counts
@@ -322,10 +332,10 @@ def admin(v: AdminView, cache: MessageCache | None = None) -> Admin:
         stop_reason_extent=1 if v.stop_reason is not None else 0,
         warning=warnings,
         warning_extent=len(warnings),
-        mode_current_time=t.mode_current,  # the int32[] setters take any sequence
-        mode_cumulative_time=t.mode_cumulative,
-        state_current_time=t.state_current,
-        state_cumulative_time=t.state_cumulative,
+        mode_current_time=t.mode_current[:modes],  # the int32[] setters take any sequence
+        mode_cumulative_time=t.mode_cumulative[:modes],
+        state_current_time=t.state_current[: modes * NUM_STATES],
+        state_cumulative_time=t.state_cumulative[: modes * NUM_STATES],
         prod_consumed_count=counts_of(v.prod_consumed_count),
         prod_processed_count=counts_of(v.prod_processed_count),
         prod_defective_count=counts_of(v.prod_defective_count),

@@ -441,17 +441,20 @@ class CoordinatorNode(Node):
 
     # ================================================================================================
     def close(self) -> None:
-        """Stop the timer, end running sequences, close the line's store (idempotent);
-        destroy_node calls it too."""
+        """End running sequences and close the line's store; the timer does nothing from now on
+        (idempotent; destroy_node calls it too). The timer itself goes with the node: destroying it
+        here, while an executor thread may still run it, made that thread fail ("cannot use
+        Destroyable")."""
         with self._cond:
             if self._closed:
                 return
             self._closed = True
             self.line.runs.cancel_all("shutdown")
             self._cond.notify_all()
-        self.destroy_timer(self._timer)
-        with self._cond:
             self.line.close()
+        if self.context.ok():
+            reason = run.shutdown_reason() or "node closed"
+            self.get_logger().info(f"coordinator of {self.cell.cell} shut down ({reason})")
 
     def destroy_node(self) -> None:
         self.close()

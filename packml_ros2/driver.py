@@ -16,6 +16,7 @@ from . import convert
 from .core import Unit
 from .core.counters import KINDS
 from .core.liveliness import Liveliness
+from .core.packtags import AdminView
 from .core.unit import StatusMark, Transition
 
 T = TypeVar("T")
@@ -42,6 +43,7 @@ class UnitDriver:
         self.name = unit.config.name
         #: Alarm and Count messages made once per state: every Admin carries all of them.
         self.cache = convert.MessageCache()
+        self.modes = convert.mode_slots(unit.config)
 
     def catch_up(self, now: float) -> None:
         """Fire the deadlines due by ``now``, publishing after each."""
@@ -103,9 +105,13 @@ class UnitDriver:
                     "alarms", convert.alarm_list(self.name, unit.now, unit.alarms, self.cache)
                 )
             elif kind == "admin":
-                self.emit("admin", convert.admin(item, self.cache))
+                self.emit("admin", self.admin_message(item))
             else:
                 self.emit("log", item)
+
+    def admin_message(self, view: AdminView | None = None) -> Any:
+        """The Admin message of ``view`` (default: the unit's admin data now)."""
+        return convert.admin(self.unit.admin() if view is None else view, self.cache, self.modes)
 
     def status_message(self, mark: Transition | StatusMark) -> Any:
         return convert.status(self.unit.status_at(mark))

@@ -47,7 +47,7 @@ from builtin_interfaces.msg import Time
 from packml_interfaces.msg import EmReport, Status
 from rclpy.node import Node
 
-from . import qos
+from . import qos, run
 from .core.numbers import ACTING, Cmd, State, state_name
 
 T = TypeVar("T")
@@ -303,10 +303,15 @@ class EquipmentModule(Node):
         return asyncio.run_coroutine_threadsafe(coro, self._loop)  # type: ignore[arg-type]
 
     def close(self) -> None:
-        """Say goodbye to the unit (it applies its lost-EM reaction at once) and stop the loop."""
-        with contextlib.suppress(Exception):  # the context may already be shut down
-            self._send(EmReport.KIND_LEAVE)
+        """Stop the hooks, then say goodbye to the unit (it applies its lost-EM reaction after
+        its ``em_leave_grace``, unless it shuts down too) and log it."""
         self._stop_loop()
+        if not self.context.ok():
+            return  # nobody to tell any more
+        with contextlib.suppress(Exception):
+            self._send(EmReport.KIND_LEAVE)
+        reason = run.shutdown_reason() or "node closed"
+        self.get_logger().info(f"EM {self.em_name} left unit {self.unit_name} ({reason})")
 
     def destroy_node(self) -> None:
         """Stop the hooks' event loop too (without a goodbye: use :meth:`close` for that)."""

@@ -21,6 +21,7 @@ from typing import Any
 import rclpy
 from packml_interfaces.msg import Status
 from packml_interfaces.srv import Command
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from . import qos, run
@@ -191,10 +192,20 @@ def launch_in_process(p: Plan, threads: int = 0, ready: Callable[[str], None] = 
     except BaseException:  # StoreError: an admin store cannot be opened
         rclpy.try_shutdown()
         raise
-    probe = Node("packml_launch_probe")
 
     def announce() -> None:
-        missing = wait_ready(probe, p, alive=rclpy.ok)
+        # The probe has its own executor and is gone once the cell is up: the ROS graph shows
+        # the cell's nodes only.
+        probe = Node("packml_launch_probe")
+        executor = SingleThreadedExecutor()
+        executor.add_node(probe)
+        try:
+            missing = wait_ready(
+                probe, p, alive=rclpy.ok, spin=lambda s: executor.spin_once(timeout_sec=s)
+            )
+        finally:
+            executor.shutdown(timeout_sec=1)
+            probe.destroy_node()
         if rclpy.ok():
             ready(
                 summary(p, f"{p.node_count} nodes in one process")
@@ -210,9 +221,7 @@ def launch_in_process(p: Plan, threads: int = 0, ready: Callable[[str], None] = 
             if close is not None:
                 close()
 
-    return run.spin(
-        [*nodes, probe], threads=threads or min(8, 2 + len(nodes) // 2), on_shutdown=shutdown
-    )
+    return run.spin(nodes, threads=threads or min(8, 2 + len(nodes) // 2), on_shutdown=shutdown)
 
 
 # -- one process per node --------------------------------------------------------------------------------
@@ -309,8 +318,9 @@ def launch_processes(
 def _stop_children(
     children: Sequence[tuple[str, subprocess.Popen[bytes]]], timeout: float = 10.0
 ) -> int:
-    """SIGINT to everyone (EMs first, units last), then wait; 0 when every child exited cleanly."""
-    for _, c in reversed(children):
+    """SIGINT to everyone at once, in start order (units first, as ``ros2 launch`` does: a unit
+    that stops with its EMs records no lost EM), then wait; 0 when every child exited cleanly."""
+    for _, c in children:
         if c.poll() is None:
             c.send_signal(signal.SIGINT)
     deadline = time.monotonic() + timeout

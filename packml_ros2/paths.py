@@ -10,11 +10,15 @@ PACKAGE = "packml_ros2"
 
 def share_dir() -> Path:
     """The package's share directory: the repository root in a checkout (editable install),
-    ``<prefix>/share/packml_ros2`` when installed."""
-    source_root = Path(__file__).resolve().parents[1]
+    ``<prefix>/share/packml_ros2`` when installed: first the prefix this module is installed in
+    (``<prefix>/lib/pythonX.Y/site-packages/packml_ros2``, colcon's and pip's layout), then the
+    ament prefixes, then the interpreter's."""
+    here = Path(__file__).resolve()
+    source_root = here.parents[1]
     if (source_root / "package.xml").exists() and (source_root / "config").is_dir():
         return source_root
-    for prefix in (Path(sys.prefix), *(Path(p) for p in _ament_prefixes())):
+    own = [here.parents[4]] if len(here.parents) > 4 else []
+    for prefix in (*own, *(Path(p) for p in _ament_prefixes()), Path(sys.prefix)):
         candidate = prefix / "share" / PACKAGE
         if (candidate / "config").is_dir():
             return candidate

@@ -7,6 +7,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable, Sequence
 
 import rclpy
@@ -21,6 +22,38 @@ from rclpy.node import Node
 from .paths import fastdds_profile
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class _Shutdown:
+    """Process-wide, like signals: whether and why this process's nodes are shutting down."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.reason = ""
+
+    def request(self, reason: str) -> None:
+        if not self.event.is_set():
+            self.reason = reason
+            self.event.set()
+
+    def reset(self) -> None:
+        self.event.clear()
+        self.reason = ""
+
+
+_shutdown = _Shutdown()
+
+
+def shutting_down() -> bool:
+    """Whether this process has been asked to stop (Ctrl-C, SIGTERM) and its nodes are ending:
+    inputs that only mean "the rest of the cell is stopping too" (an EM saying goodbye) need no
+    reaction any more."""
+    return _shutdown.event.is_set()
+
+
+def shutdown_reason() -> str:
+    """What ended :func:`spin`: ``SIGINT``, ``SIGTERM``, ``context shut down``; '' while running."""
+    return _shutdown.reason
 
 
 def default_environment() -> None:
@@ -49,6 +82,8 @@ def spin(
     nodes: Sequence[Node], threads: int = 0, on_shutdown: Callable[[], None] | None = None
 ) -> int:
     """Spin ``nodes`` until Ctrl-C or SIGTERM, then shut down in order; returns the exit code.
+    ``on_shutdown`` runs first, while the nodes can still publish (:func:`shutdown_reason` says
+    why); then the executor and the nodes are destroyed.
 
     ``threads``: 0 = one thread for a single node, a multi-threaded executor (one thread per
     core) for several; 1 = single-threaded; more = a multi-threaded executor with that many
@@ -58,27 +93,51 @@ def spin(
         executor.add_node(node)
     # Ctrl-C and SIGTERM only ask the loop to end: the nodes are shut down below, after the
     # callback that was running has finished. (Shutting the context down from the handler would
-    # destroy the nodes under that callback: a traceback, and a half-done update saved.)
-    stop = threading.Event()
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in STOP_SIGNALS}
+    # destroy the nodes under that callback: a traceback, and a half-done update saved.) A
+    # callback that runs after the signal arrived sees shutting_down() (Python runs the handler
+    # before the callback's first line).
+    _shutdown.reset()
+    previous = {
+        s: signal.signal(s, lambda signum, _: _shutdown.request(signal.Signals(signum).name))
+        for s in STOP_SIGNALS
+    }
     try:
         # spin_once in a loop, not spin(): the EventsExecutor's spin() does not return on
         # shutdown (see the notes); this loop does, for every executor.
-        while rclpy.ok() and not stop.is_set():
+        while rclpy.ok() and not _shutdown.event.is_set():
             executor.spin_once(timeout_sec=0.2)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        _shutdown.request("context shut down")
+    except KeyboardInterrupt:
+        _shutdown.request("SIGINT")
+    except ExternalShutdownException:
+        _shutdown.request("context shut down")
     finally:
-        for s, handler in previous.items():
-            if handler is not None:  # None: installed outside Python, cannot be put back
-                signal.signal(s, handler)
-        if on_shutdown is not None:
-            on_shutdown()
-        executor.shutdown(timeout_sec=2)
-        for node in nodes:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        # A second Ctrl-C (the terminal's and ros2 launch's arrive together) or a SIGTERM while
+        # the nodes shut down changes nothing: the handler stays until they are gone.
+        try:
+            if on_shutdown is not None:
+                on_shutdown()
+            _drain(executor, timeout=2.0)
+            executor.shutdown(timeout_sec=2)
+            for node in nodes:
+                node.destroy_node()
+            rclpy.try_shutdown()
+        finally:
+            for s, handler in previous.items():
+                if handler is not None:  # None: installed outside Python, cannot be put back
+                    signal.signal(s, handler)
     return 0
+
+
+def _drain(executor: Executor, timeout: float) -> None:
+    """Let the callbacks a MultiThreadedExecutor already handed to its threads finish. rclpy 9.1's
+    ``Executor.shutdown`` destroys its guard condition without waiting for them (ros2/rclpy#968),
+    and such a callback then fails: "The following exception was never retrieved: cannot use
+    Destroyable because destruction was requested" on the terminal at every Ctrl-C."""
+    pending = getattr(executor, "_futures", None)  # the tasks handed out (rclpy's own list)
+    deadline = time.monotonic() + timeout
+    while pending and not all(f.done() for f in list(pending)) and time.monotonic() < deadline:
+        time.sleep(0.01)
 
 
 def init(argv: Sequence[str] | None = None) -> list[str]:

@@ -65,6 +65,9 @@ SORTS = {QueryAlarms.Request.SORT_TIME: "time", QueryAlarms.Request.SORT_CATEGOR
          QueryAlarms.Request.SORT_TIME_NEWEST: "newest"}  # fmt: skip
 ADVANCE_PERIOD = 0.05  # s: deadlines (timeouts, dwell, admin) and EM leases are checked this often
 DIAGNOSTICS_PERIOD = 1.0
+#: s: an EM that leaves (shuts down in order) is lost this long after its goodbye, unless the
+#: unit shuts down meanwhile: a cell stopped with Ctrl-C, every process at once, records no fault.
+EM_LEAVE_GRACE = 1.0
 
 
 class UnitNode(Node):
@@ -87,6 +90,7 @@ class UnitNode(Node):
         self.unit = Unit(config, clock=self.clock, store=self.store)
         self.driver = UnitDriver(self.unit, self.clock, self._emit)
         self.liveliness = Liveliness(config.em_lease)
+        self._leaving: dict[str, tuple[float, EmReport]] = {}  # EM -> (when it is lost, goodbye)
         self._inputs: list[UnitInput] = []
         self._input_index = 0
         self._record = bool(self.get_parameter("record_inputs").value)
@@ -145,6 +149,14 @@ class UnitNode(Node):
             ),
         )
         self.declare_parameter(
+            "em_leave_grace",
+            EM_LEAVE_GRACE,
+            ParameterDescriptor(
+                description="seconds between an EM's goodbye and its loss (no loss when the unit "
+                "shuts down meanwhile, as when a whole cell is stopped)"
+            ),
+        )
+        self.declare_parameter(
             "record_inputs",
             True,
             ParameterDescriptor(
@@ -157,6 +169,12 @@ class UnitNode(Node):
             if p.name == "remote_commands_enabled" and p.type_ != Parameter.Type.BOOL:
                 return SetParametersResult(
                     successful=False, reason="remote_commands_enabled must be a bool"
+                )
+            if p.name == "em_leave_grace" and not (
+                p.type_ in (Parameter.Type.DOUBLE, Parameter.Type.INTEGER) and 0 <= p.value <= 60
+            ):
+                return SetParametersResult(
+                    successful=False, reason="em_leave_grace must be 0 to 60 seconds"
                 )
         return SetParametersResult(successful=True)
 
@@ -320,11 +338,33 @@ class UnitNode(Node):
 
     # -- equipment modules ---------------------------------------------------------------------------
     def _on_report(self, msg: EmReport) -> None:
-        self.driver.report(self._now(), msg, self.liveliness)
+        now = self._now()
+        if msg.kind == EmReport.KIND_LEAVE:
+            # An EM's goodbye counts after a grace: when a whole cell is stopped (Ctrl-C under
+            # ros2 launch: every process gets SIGINT at once), its EMs' goodbyes can arrive before
+            # this process notices its own signal; its shutdown then drops them (no false fault).
+            if not run.shutting_down():
+                grace = float(self.get_parameter("em_leave_grace").value)
+                self._leaving[msg.em] = (now + grace, msg)
+                if grace <= 0:
+                    self._apply_leaves(now)
+            return
+        self._leaving.pop(msg.em, None)  # anything else from it: it is back (or never left)
+        self.driver.report(now, msg, self.liveliness)
+
+    def _apply_leaves(self, now: float) -> None:
+        for name, (due, msg) in list(self._leaving.items()):
+            if due <= now:
+                del self._leaving[name]
+                self.driver.report(now, msg, self.liveliness)
 
     def _on_tick(self) -> None:
+        if run.shutting_down():
+            return  # this process is stopping: EMs going silent now are no news
         now = self._now()
+        self._apply_leaves(now)
         for name, lease in self.liveliness.expired(now):
+            self._leaving.pop(name, None)
             self.driver.call(now, self.unit.em_lost, name, f"no report for {lease:g} s")
         self.driver.catch_up(now)
         self._flush_inputs()
@@ -362,7 +402,7 @@ class UnitNode(Node):
                      "persistence": self.store is not None, "schema": inputlog.SCHEMA}  # fmt: skip
             self._on_input(self.unit.now, inputlog.START, start)
         self.driver.flush()
-        self.pub_admin.publish(convert.admin(self.unit.admin()))
+        self.pub_admin.publish(self.driver.admin_message())
 
     def _log(self, level: str, text: str) -> None:
         # rclpy ties a severity to each call site: one call per level.
@@ -395,15 +435,25 @@ class UnitNode(Node):
             self.pub_inputs.publish(msg)
 
     def close(self) -> None:
-        """Stop the timers and save a last time (idempotent); destroy_node calls it too."""
+        """Record the unit's shutdown (an event; the StopReason when it was producing), publish
+        it, stop the timers and save a last time (idempotent); destroy_node calls it too."""
         if self._closed:
             return
         self._closed = True
         for timer in self._timers:
             self.destroy_timer(timer)
+        self._leaving.clear()  # goodbyes of EMs that stop with this unit: no loss
+        reason = run.shutdown_reason() or "node closed"
+        self._run(self.unit.shutdown, reason)  # publishes only while the context is up
         self._flush_inputs()
         self.unit.close()
         self.unit.store = None  # a callback still running after this must not touch the file
+        if self.context.ok():
+            saved = f"; admin data saved to {self.store.path}" if self.store else ""
+            self.get_logger().info(
+                f"PackML unit {self.get_fully_qualified_name()} shut down ({reason}) in "
+                f"{state_name(self.unit.state)}{saved}"
+            )
 
     def destroy_node(self) -> None:
         self.close()

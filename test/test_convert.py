@@ -52,3 +52,45 @@ def test_fast_construction_equals_the_checked_one(
         assert hasattr(fast, name), f"{type(fast).__name__}.{name} is not set by convert"
     data = serialize_message(fast)
     assert deserialize_message(data, type(fast)) == checked
+
+
+def test_admin_and_alarms_carry_the_configured_entries_not_padding() -> None:
+    """What `ros2 topic echo .../admin` and `.../alarms` print: the time arrays reach the highest
+    configured mode (index = mode, 18 states per mode), the first-out per category the highest
+    category with a first-out (none: empty); before, 32 and 32 x 18 entries and 10 blank alarms
+    made each message hundreds of lines long."""
+    from packml_ros2.driver import FrozenClock, UnitDriver
+
+    unit = _views()
+    sent: list[tuple[str, object]] = []
+    driver = UnitDriver(unit, FrozenClock(lambda: unit.now), lambda t, m: sent.append((t, m)))
+    admin = driver.admin_message()
+    modes = max(unit.config.modes) + 1
+    assert modes == 4  # the three default modes: production 1, maintenance 2, manual 3
+    assert len(admin.mode_current_time) == len(admin.mode_cumulative_time) == modes
+    assert len(admin.state_current_time) == len(admin.state_cumulative_time) == modes * 18
+    assert admin.mode_cumulative_time[unit.mode] > 0  # the times themselves are all there
+    empty = convert.alarm_list("filler", unit.now, Unit(unit.config, clock=lambda: unit.now).alarms)
+    assert list(empty.first_out_by_category) == []
+    with_first_out = convert.alarm_list("filler", unit.now, unit.alarms)  # category 2 raised
+    assert [a.id for a in with_first_out.first_out_by_category] == [0, 0, 65]
+
+
+def test_admin_goes_out_on_change_and_as_a_slow_heartbeat() -> None:
+    """Admin is published when something in it changes (a transition, a count, an alarm) and
+    otherwise every admin_period, 5 s by default (it was every second: a flood in a terminal)."""
+    t = [1_700_000_000.0]
+    unit = Unit(unit_config("filler"), clock=lambda: t[0])
+    for _ in range(3):  # the start-up's changes go out (coalesced)
+        t[0] += 1.0
+        unit.advance()
+    unit.drain()
+    for _ in range(20):  # 20 s with nothing happening
+        t[0] += 1.0
+        unit.advance()
+    assert [kind for kind, _ in unit.drain()].count("admin") == 4  # at 5, 10, 15 and 20 s
+    unit.command(Cmd.RESET)  # at 23 s: its admin goes out within a second, before the heartbeat
+    for _ in range(4):
+        t[0] += 0.25
+        unit.advance()
+    assert [kind for kind, _ in unit.drain()].count("admin") == 1

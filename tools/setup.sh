@@ -3,9 +3,13 @@
 #   1. apt prerequisites, only if missing (cmake, g++, ninja, Python headers and venv, iproute2);
 #   2. .venv with the pinned ROS 2 Kilted wheels, the interface build tools and the dev tools;
 #   3. the packml_interfaces wheel, built from msg_defs/ once and kept in .cache/wheels/;
-#   4. packml_ros2 itself, editable;
+#   4. packml_ros2 itself, editable, and the venv made an ament prefix (tools/ament_prefix.py:
+#      lib/packml_ros2/<executable>, share/packml_ros2/...), so `ros2 run` / `ros2 launch` find it;
 #   5. with --test: what only the tests need (Debian's chromium for the HMI browser tests, the npm
-#      packages of the independent OPC UA client in test/opcua_client/).
+#      packages of the independent OPC UA client in test/opcua_client/);
+#   6. with --test, when ../shared/vendor/ros2-tools exists: the real ROS 2 command line (ros2),
+#      launch and launch_ros built from its sources (composition_interfaces like msg_defs/), and
+#      colcon from PyPI (requirements/ros-tools.txt); the wheels are kept in .cache/wheels/.
 # Each step is skipped when its inputs did not change, so a second run takes seconds.
 set -euo pipefail
 for_tests=0
@@ -52,7 +56,7 @@ if [ ! -x "$VENV/bin/python" ]; then
   "$PYTHON" -m venv "$VENV"
 fi
 pip=("$VENV/bin/python" -m pip --disable-pip-version-check -q)
-deps_key=$(digest requirements/*.txt setup.py package.xml)
+deps_key=$(digest requirements/ros.txt requirements/build.txt requirements/dev.txt setup.py package.xml)
 if [ "$(cat "$VENV/.packml-deps" 2>/dev/null)" != "$deps_key" ]; then
   say "installing the pinned ROS 2 wheels and tools into $VENV"
   "${pip[@]}" install --upgrade pip
@@ -63,7 +67,7 @@ fi
 
 # --- 3. packml_interfaces -----------------------------------------------------------------------
 msg_key=$(digest $(find msg_defs -path msg_defs/build -prune -o -type f \( -name '*.msg' -o -name '*.srv' \
-  -o -name CMakeLists.txt -o -name package.xml -o -name pyproject.toml \) -print | LC_ALL=C sort) \
+  -o -name CMakeLists.txt -o -name '*.cmake' -o -name package.xml -o -name pyproject.toml \) -print | LC_ALL=C sort) \
   requirements/ros.txt requirements/build.txt)
 if [ "$(cat "$VENV/.packml-interfaces" 2>/dev/null)" != "$msg_key" ]; then
   wheel_dir="$CACHE/packml_interfaces-$msg_key"
@@ -85,6 +89,11 @@ if [ "$(cat "$VENV/.packml-self" 2>/dev/null)" != "$deps_key" ]; then
   "${pip[@]}" install --no-build-isolation -e .
   echo "$deps_key" > "$VENV/.packml-self"
 fi
+prefix_key=$(digest setup.py setup.cfg tools/ament_prefix.py <(ls launch config))
+if [ "$(cat "$VENV/.packml-prefix" 2>/dev/null)" != "$prefix_key" ]; then
+  "$VENV/bin/python" tools/ament_prefix.py "$VENV" >/dev/null
+  echo "$prefix_key" > "$VENV/.packml-prefix"
+fi
 # --- 5. test-only pieces ------------------------------------------------------------------------------
 if ((for_tests)) && [ -f test/opcua_client/package-lock.json ]; then
   npm_key=$(digest test/opcua_client/package.json test/opcua_client/package-lock.json)
@@ -93,5 +102,40 @@ if ((for_tests)) && [ -f test/opcua_client/package-lock.json ]; then
     (cd test/opcua_client && npm ci --no-audit --no-fund --loglevel=error)
     echo "$npm_key" > test/opcua_client/node_modules/.packml-npm
   fi
+fi
+# --- 6. the real ros2 CLI, launch, launch_ros and colcon (tests only) --------------------------------
+vendor=../shared/vendor/ros2-tools
+if ((for_tests)) && [ -d "$vendor" ]; then
+  tools_key=$(digest "$vendor"/*.tar.gz requirements/ros-tools.txt requirements/ros.txt requirements/build.txt \
+    tools/ros2-tools/* msg_defs/cmake/ros_wheels.cmake)
+  if [ "$(cat "$VENV/.packml-ros2-tools" 2>/dev/null)" != "$tools_key" ]; then
+    say "installing the ROS 2 command line, launch and colcon (requirements/ros-tools.txt, $vendor)"
+    "${pip[@]}" install -r requirements/ros-tools.txt
+    wheel_dir="$CACHE/ros2-tools-$tools_key"
+    if ! ls "$wheel_dir"/*.whl >/dev/null 2>&1; then
+      say "building ros2cli, launch, launch_ros, rosidl_runtime_py and composition_interfaces (once)"
+      src=.cache/ros2-tools-src
+      rm -rf "$src" "$wheel_dir.tmp"
+      mkdir -p "$src"
+      for tarball in "$vendor"/*.tar.gz; do tar -xzf "$tarball" -C "$src"; done
+      interfaces="$src/rcl_interfaces/composition_interfaces"
+      cp tools/ros2-tools/composition_interfaces.pyproject.toml "$interfaces/pyproject.toml"
+      log=.cache/ros2-tools-build.log
+      # Pure Python packages: their install_requires name ROS packages (ament_index_python) that
+      # exist here only as ros-* wheels, hence --no-deps (the real dependencies are above).
+      mapfile -t python_packages < <(find "$src" -name setup.py -printf '%h\n' | LC_ALL=C sort)
+      { "${pip[@]}" wheel --no-deps --no-build-isolation -w "$wheel_dir.tmp" \
+          -C cmake.define.CMAKE_PROJECT_INCLUDE="$PWD/msg_defs/cmake/ros_wheels.cmake" \
+          -C cmake.define.BUILD_TESTING=OFF "$interfaces" &&
+        "${pip[@]}" wheel --no-deps --no-build-isolation -w "$wheel_dir.tmp" "${python_packages[@]}"
+      } >"$log" 2>&1 || { cat "$log"; exit 1; }
+      rm -rf "$src" "$log"
+      mv "$wheel_dir.tmp" "$wheel_dir"
+    fi
+    "${pip[@]}" install --no-deps --force-reinstall "$wheel_dir"/*.whl
+    echo "$tools_key" > "$VENV/.packml-ros2-tools"
+  fi
+elif ((for_tests)); then
+  say "no $vendor here: the tests of ros2, ros2 launch and colcon will be skipped"
 fi
 say "ready: $VENV ($("$VENV/bin/python" -c 'import rclpy, packml_interfaces, packml_ros2; print("rclpy, packml_interfaces, packml_ros2 import")'))"

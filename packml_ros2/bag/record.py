@@ -35,6 +35,7 @@ from . import line
 from .topics import (
     CELL_STATUS_TYPE,
     CUSTOM_KEY,
+    LATCHED_OUTPUTS,
     OUTPUT_TOPICS,
     PUBLISHER_QOS,
     UNIT_TOPICS,
@@ -152,9 +153,16 @@ class Recorder:
     def received(self, topic: str) -> int:
         return self.counts.get(topic, 0)
 
+    def unit_ready(self, unit: str) -> bool:
+        """The unit's latched outputs (status, admin, alarms: a unit publishes each at its start)
+        have arrived: the recorder is matched on every one of them, not only on the first. A
+        recording that began earlier could miss the admin data or alarm list published before
+        it, and a replay would then see them as outputs the unit did not publish."""
+        return all(self.received(f"{unit}/{topic}") > 0 for topic in LATCHED_OUTPUTS)
+
     def ready(self) -> bool:
-        """Every recorded unit's latched status has arrived (the recorder is matched)."""
-        return all(self.received(f"{u}/status") > 0 for u in self.units)
+        """Every recorded unit's latched outputs have arrived (the recorder is matched)."""
+        return all(self.unit_ready(u) for u in self.units)
 
     def lost(self) -> dict[str, int]:
         """Output messages the recorder missed (gaps in the publication sequence numbers)."""
@@ -253,13 +261,13 @@ def run_recorder(
     announce: Callable[[str], None] | None = None,
 ) -> None:
     """Spin until ``should_stop()`` or ``duration`` seconds, then drain the input log and close.
-    ``announce(unit)`` is called when a unit's first status arrives."""
+    ``announce(unit)`` is called once the unit's latched outputs have arrived."""
     deadline = None if duration is None else time.monotonic() + duration
     waiting = list(recorder.units)
     while not should_stop() and (deadline is None or time.monotonic() < deadline):
         executor.spin_once(timeout_sec=0.05)
         if waiting and announce is not None:
-            for unit in [u for u in waiting if recorder.received(f"{u}/status")]:
+            for unit in [u for u in waiting if recorder.unit_ready(u)]:
                 waiting.remove(unit)
                 announce(unit)
     recorder.stop()

@@ -60,7 +60,6 @@ from typing import Any
 
 from rclpy.serialization import deserialize_message, serialize_message
 
-from .. import convert
 from ..core import CellConfig, Unit, UnitConfig, inputlog, load_cell, parse_cell, state_name
 from ..core.config import ConfigError
 from ..driver import FrozenClock, UnitDriver
@@ -443,7 +442,7 @@ class UnitReplay:
         self.driver = UnitDriver(self.unit, self.clock, self._emit)
         # what UnitNode._publish_start publishes: the start-up outputs, then the admin data
         self.driver.flush()
-        self._emit("admin", convert.admin(self.unit.admin()))
+        self._emit("admin", self.driver.admin_message())
 
     def _emit(self, topic: str, msg: Any) -> None:
         out = self.outputs.get(topic)

@@ -62,7 +62,7 @@ class SyntheticUnit:
         }
         self._on_input(self.unit.now, inputlog.START, start_args)
         self.driver.flush()
-        self._emit("admin", convert.admin(self.unit.admin()))
+        self._emit("admin", self.driver.admin_message())
 
     def _emit(self, topic: str, msg: Any) -> None:
         if topic in OUTPUT_TOPICS:

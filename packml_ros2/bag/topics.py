@@ -16,6 +16,9 @@ from .. import qos
 
 #: The unit's outputs, compared by replay (in the order a report looks at them).
 OUTPUT_TOPICS = ("transitions", "status", "alarms", "admin")
+#: Outputs a unit publishes at its start and keeps latched (depth 1): a recorder matched on them
+#: has their newest message.
+LATCHED_OUTPUTS = ("status", "admin", "alarms")
 #: What the unit was given: the engine's input log (replayed offline), EM reports (replayed live)
 #: and the configuration the unit was started with.
 INPUT_TOPICS = ("input_log", "em_reports", "config")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+from concurrent.futures import ThreadPoolExecutor
 
 from packml_interfaces.msg import Alarm
 from packml_interfaces.srv import QueryAlarms
@@ -47,7 +48,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 
 def alarms(args: argparse.Namespace) -> int:
-    with session(args) as s:
+    with session(args, topics=("status",)) as s:
         try:
             units: list[UnitProxy] = (
                 [s.unit(args.unit)] if args.unit else list(s.cell().units.values())
@@ -55,7 +56,12 @@ def alarms(args: argparse.Namespace) -> int:
             if not units:
                 return fail("no unit found", EXIT_UNAVAILABLE)
             handler = {"list": _list, "ack": _ack, "reset": _reset}[args.action]
-            return max(handler(u, args, s.timeout) for u in units)
+            # every unit at once (one service round trip, not one per unit), printed in order
+            with ThreadPoolExecutor(max_workers=len(units)) as pool:
+                answers = list(pool.map(lambda u: handler(u, args, s.timeout), units))
+            for text, _ in answers:
+                print(text)
+            return max(code for _, code in answers)
         except LookupError as exc:
             return fail(str(exc), EXIT_USAGE)
         except Unavailable as exc:
@@ -70,16 +76,15 @@ def _when(a: Alarm) -> str:
     )
 
 
-def _list(u: UnitProxy, args: argparse.Namespace, timeout: float) -> int:
+def _list(u: UnitProxy, args: argparse.Namespace, timeout: float) -> tuple[str, int]:
     resp = u.call_sync(
         "query_alarms", timeout, active_only=args.active, filter_category=args.category is not None,
         category=args.category or 0, include_warnings=True, history=args.history,
         sort=SORTS["newest" if args.history and args.sort == "time" else args.sort],
     )  # fmt: skip
     if not resp.alarms:
-        print(f"{u.name}: no {'history' if args.history else 'alarms'}")
-        return EXIT_OK
-    print(f"{u.name}:")
+        return f"{u.name}: no {'history' if args.history else 'alarms'}", EXIT_OK
+    lines = [f"{u.name}:"]
     for a in resp.alarms:
         kind = {
             Alarm.KIND_WARNING: "warning",
@@ -92,13 +97,13 @@ def _list(u: UnitProxy, args: argparse.Namespace, timeout: float) -> int:
             if a.kind in (Alarm.KIND_ALARM, Alarm.KIND_WARNING)
             else ""
         )
-        print(
+        lines.append(
             f"  {_when(a)}  {a.id:>5}/{a.value:<3} cat {a.category}  {kind:<7} {state:<7} {a.message}{where}"
         )
-    return EXIT_OK
+    return "\n".join(lines), EXIT_OK
 
 
-def _ack(u: UnitProxy, args: argparse.Namespace, timeout: float) -> int:
+def _ack(u: UnitProxy, args: argparse.Namespace, timeout: float) -> tuple[str, int]:
     fields = {
         "all": args.id is None,
         "id": args.id or 0,
@@ -106,11 +111,10 @@ def _ack(u: UnitProxy, args: argparse.Namespace, timeout: float) -> int:
         "source": args.source,
     }
     resp = u.call_sync("ack_alarms", timeout, **fields)
-    print(f"{u.name}: {resp.message}")
-    return EXIT_OK if resp.accepted or (resp.result == 17 and args.id is None) else EXIT_REFUSED
+    ok = resp.accepted or (resp.result == 17 and args.id is None)
+    return f"{u.name}: {resp.message}", EXIT_OK if ok else EXIT_REFUSED
 
 
-def _reset(u: UnitProxy, args: argparse.Namespace, timeout: float) -> int:
+def _reset(u: UnitProxy, args: argparse.Namespace, timeout: float) -> tuple[str, int]:
     resp = u.call_sync("reset_alarms", timeout, clear_first_out=args.first_out, source=args.source)
-    print(f"{u.name}: {resp.message}")
-    return EXIT_OK if resp.accepted else EXIT_REFUSED
+    return f"{u.name}: {resp.message}", EXIT_OK if resp.accepted else EXIT_REFUSED

@@ -101,7 +101,7 @@ def cmd(args: argparse.Namespace) -> int:
         number = command_number(args.command)
     except ValueError as exc:
         return fail(str(exc), EXIT_USAGE)
-    with session(args) as s:
+    with session(args, topics=("status",)) as s:
         try:
             if s.is_cell(args.target):
                 req = Command.Request(command=number, source=args.source)
@@ -123,7 +123,7 @@ def cmd(args: argparse.Namespace) -> int:
 
 
 def mode(args: argparse.Namespace) -> int:
-    with session(args) as s:
+    with session(args, topics=("status",)) as s:
         try:
             if s.is_cell(args.target):
                 req = SetMode.Request(source=args.source)
@@ -147,7 +147,7 @@ def fault(args: argparse.Namespace) -> int:
     parts = args.em.strip("/").split("/")
     if len(parts) not in (2, 3):
         return fail(f"{args.em!r}: give unit/em or cell/unit/em", EXIT_USAGE)
-    with session(args) as s:
+    with session(args, topics=("status",)) as s:
         try:
             if len(parts) == 2:
                 unit = s.unit(parts[0])

@@ -19,11 +19,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 
 def status(args: argparse.Namespace) -> int:
-    with session(args) as s:
+    with session(args, topics=("status", "admin")) as s:
         try:
             if args.unit:
                 unit = s.unit(args.unit)
                 unit.wait_status(timeout=s.timeout)
+                unit.wait_admin(timeout=s.timeout)  # latched too: counters, times, OEE
                 print(detail(unit))
                 return 0
             cell = s.cell()
@@ -31,6 +32,7 @@ def status(args: argparse.Namespace) -> int:
                 return fail(f"no unit found in cell {cell.cell}", EXIT_UNAVAILABLE)
             for unit in cell.units.values():
                 unit.wait_status(timeout=s.timeout)
+                unit.wait_admin(timeout=s.timeout)  # the counts
             print(table(cell.cell, list(cell.units.values()), cell.cell_status))
             return 0
         except LookupError as exc:

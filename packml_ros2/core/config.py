@@ -138,7 +138,7 @@ class UnitConfig:
     remote_interfaces: tuple[RemoteInterfaceDef, ...] = ()
     persistence_path: str | None = None
     persistence_period: float = 5.0
-    admin_period: float = 1.0
+    admin_period: float = 5.0  # a slow heartbeat: Admin also goes out on every change
     system_alarms: SystemAlarms = SystemAlarms()
     planned_stop_ids: tuple[int, int] = (4000, 4999)
     #: ``plc:`` block (a unit whose state machine runs in a PLC, reached over OPC UA): validated

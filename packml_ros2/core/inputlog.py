@@ -124,13 +124,14 @@ PRODUCTS = _def("products", "set_product", "products", "source",
 REMOTE = _def("remote", "set_remote_enabled", "enabled")
 INTERLOCK = _def("interlock", "set_interlock", "active", "reason", "source")
 ADVANCE = _def("advance", "advance")
+SHUTDOWN = _def("shutdown", "shutdown", "detail")
 
 #: Every input of schema 1, by name.
 INPUTS: Mapping[str, InputDef] = {
     d.name: d
     for d in (COMMAND, MODE, STEP, EM_STATE_COMPLETE, EM_SEEN, EM_LOST, EM_INTERLOCK, EM_COUNT,
               EM_ACTIVE, ALARM, ALARM_ACK, ALARM_RESET, TIMES_RESET, COUNTERS_RESET, SPEED,
-              PARAMETERS, PRODUCTS, REMOTE, INTERLOCK, ADVANCE)
+              PARAMETERS, PRODUCTS, REMOTE, INTERLOCK, ADVANCE, SHUTDOWN)
 }  # fmt: skip
 #: Inputs an EM's reports cause (``packml replay --live`` sends the reports, not these).
 EM_INPUTS = frozenset(d.name for d in (EM_STATE_COMPLETE, EM_SEEN, EM_LOST, EM_INTERLOCK, EM_COUNT))
@@ -175,6 +176,7 @@ _SCHEMA_0: Mapping[str, tuple[InputDef, tuple[str, ...]]] = {
     "set_remote_enabled": (REMOTE, ("enabled",)),
     "set_interlock": (INTERLOCK, ("active", "reason", "source")),
     "advance": (ADVANCE, ()),
+    "shutdown": (SHUTDOWN, ("detail",)),
 }  # fmt: skip
 _REQUEST_0 = {"command": ("command", {"cmd": "command"}), "mode": ("mode", {}),
               "complete": ("state_complete", {})}  # fmt: skip

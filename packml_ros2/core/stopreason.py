@@ -15,6 +15,7 @@ from .rules import PLANNED_STOP_STATES, is_remote
 #: OMAC stop-reason IDs (Beckhoff E_AlarmID ranges) for stops that were not alarms.
 STOP_ID_OPERATOR = 33  # operator action: cycle stop button
 STOP_ID_REMOTE = 4006  # out of service: remote stop requested
+STOP_ID_SHUTDOWN = 1000  # machine internal, vendor defined: the unit's own process shut down
 
 
 def stopped_as_planned(mode: int, state: int) -> bool:
@@ -61,6 +62,14 @@ class StopReasons:
         return AlarmEvent(
             stop_id, cmd, f"{command_name(cmd)} by {source}", 0, Kind.COMMAND, t,
             source=source, reaction=cmd, trigger=False, latched=False,
+        )  # fmt: skip
+
+    @staticmethod
+    def of_shutdown(message: str, t: float) -> AlarmEvent:
+        """The stop reason of the unit's own process shutting down while producing."""
+        return AlarmEvent(
+            STOP_ID_SHUTDOWN, 0, message, 9, Kind.EVENT, t,
+            source="unit", trigger=False, latched=False,
         )  # fmt: skip
 
     @staticmethod

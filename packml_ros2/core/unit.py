@@ -49,6 +49,7 @@ from .rules import (
     MODE_CHANGE_NOT_ALLOWED_SECONDS,
     MODE_REQUESTS,
     OPERATOR,
+    SETTLE,
     STATE_COMPLETE_REPORTS,
     SUPERSEDED_SENTENCE,
     Alert,
@@ -756,6 +757,24 @@ class Unit:
         self.remote_enabled = bool(enabled)
         self._rev += 1
         self._leave()
+
+    def shutdown(self, detail: str = "") -> Answer:
+        """The unit's own process is shutting down (Ctrl-C, SIGTERM): recorded as what it is, an
+        event in the alarm history and, when the unit was producing (Execute or on its way
+        there), its StopReason, so the restarted unit tells why it stopped. The state is not
+        changed; status, alarms and admin go out at once (the process ends after this)."""
+        self._enter()
+        self._record(inputlog.SHUTDOWN, detail)
+        message = f"unit shut down{f' ({detail})' if detail else ''} in {state_name(self.state)}"
+        self.alarms.log_event(message, self._t, source="unit")
+        stops = self.stops
+        if stops.armed and SETTLE.get(self.state) is S.EXECUTE:
+            stops.record(stops.of_shutdown(message, self._t))
+            self._rev += 1
+        self._status_now()
+        self.publication.admin(build_admin(self, self._t), coalesced=False)
+        self._leave()
+        return Answer.ok(message)
 
     def set_interlock(self, active: bool, reason: str = "", source: str = "remote") -> Answer:
         """A line interlock from outside (the coordinator): suspend while set, unsuspend when

@@ -25,12 +25,14 @@ from contextlib import suppress
 from typing import Any
 
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from packml_interfaces.srv import Command, SetMode
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
+from .. import qos
 from ..client import CellProxy, Unavailable, call_future
 from ..core import CellConfig
 from ..core.numbers import ACTING, MAX_MODE, Cmd, State, command_name, parse_command, state_name
@@ -42,7 +44,7 @@ Event = dict[str, Any]
 Listener = Callable[[Event], None]
 
 SOURCE = "hmi"
-STALE_AFTER = 3.0  # s without any message from a unit (it publishes admin every second): offline
+STALE_AFTER = 3.0  # s without any message from a unit (its /diagnostics come every second): offline
 TRANSITIONS_KEPT = 30
 HISTORY_KEPT = 50
 CALL_TIMEOUT = 10.0
@@ -356,6 +358,12 @@ class Bridge:
                 SetMode, f"/{cell.cell}/coordinator/set_mode", callback_group=self._group
             ),
         }
+        # A unit publishes /diagnostics every second, whatever else happens (its Admin goes out
+        # on change and only every 5 s otherwise): that tells it is alive.
+        self.node.create_subscription(
+            DiagnosticArray, "/diagnostics", self._on_diagnostics, qos.DIAGNOSTICS,
+            callback_group=self._group,
+        )  # fmt: skip
         self._timer = self.node.create_timer(0.5, self._check_online)
         self._running = True
         self._executor: SingleThreadedExecutor | None = None
@@ -457,6 +465,12 @@ class Bridge:
             # each topic in order and one thread handles them.)
             unit[topic] = data
             self._emit({"topic": topic, "unit": name, "data": data, "received": received})
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            name = status.name.removeprefix("packml: ")
+            if status.hardware_id == f"{self.cell.cell}/{name}":  # a unit of this cell, not an EM
+                self._on_change(f"/{self.cell.cell}/{name}", "diagnostics", status)
 
     def _check_online(self) -> None:
         now = time.monotonic()

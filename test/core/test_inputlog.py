@@ -51,6 +51,7 @@ def drive_every_input(unit: Unit, clock: FakeClock) -> None:
     unit.reset_times(all_times=False)
     unit.reset_counters()
     unit.em_lost("em1", "left")
+    unit.shutdown("SIGINT")
 
 
 def recorded() -> tuple[list[tuple[float, str, dict[str, Any]]], list[Any]]:
@@ -110,6 +111,7 @@ SCHEMA_0 = [
     ("reset_counters", {"source": "operator"}),
     ("em_lost", {"name": "em1", "detail": "no report for 2 s"}),
     ("advance", {}),
+    ("shutdown", {"detail": "SIGINT"}),
 ]  # fmt: skip
 
 

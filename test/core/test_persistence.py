@@ -83,6 +83,40 @@ def test_round_trip_restores_admin_never_the_state(tmp_path: Path) -> None:
     again.close()
 
 
+def test_shutdown_is_recorded_as_what_it_is(tmp_path: Path) -> None:
+    """The unit's own shutdown (Ctrl-C, SIGTERM): an event in the alarm history, and the
+    StopReason when it was producing; no alarm, no reaction; status, alarms and admin go out at
+    once. In Stopped an earlier StopReason stays."""
+    path = tmp_path / "u.sqlite3"
+    clock = FakeClock(1_000.0)
+    unit = open_unit(path, clock)
+    assert unit.command(C.RESET).accepted and unit.command(C.START).accepted
+    clock.advance(3.0)
+    unit.drain()
+    answer = unit.shutdown("SIGINT")
+    assert answer.accepted and answer.message == "unit shut down (SIGINT) in EXECUTE"
+    assert unit.state is S.EXECUTE and unit.alarms.alarms() == []
+    assert [kind for kind, _ in unit.drain()] == ["status", "alarms", "admin"]
+    unit.close()
+
+    again = open_unit(path, clock)
+    admin = again.admin()
+    assert admin.stop_reason is not None
+    assert (admin.stop_reason.id, admin.stop_reason.message) == (
+        1000, "unit shut down (SIGINT) in EXECUTE"
+    )  # fmt: skip
+    assert [e.message for e in admin.alarm_history][1] == "unit shut down (SIGINT) in EXECUTE"
+    assert not [e for e in admin.alarm_history if e.kind != 3]  # events only, no alarm
+    # Stopped by the operator, then shut down: the operator's stop stays the StopReason.
+    assert again.command(C.RESET).accepted and again.command(C.START).accepted
+    assert again.command(C.STOP).accepted
+    again.advance()
+    again.shutdown("SIGTERM")
+    assert again.stop_reason is not None and again.stop_reason.message == "STOP by operator"
+    assert again.alarms.history[0].message == "unit shut down (SIGTERM) in STOPPED"
+    again.close()
+
+
 def test_periodic_save_without_transitions(tmp_path: Path) -> None:
     path = tmp_path / "u.sqlite3"
     clock = FakeClock()

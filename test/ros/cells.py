@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -14,7 +15,8 @@ from packml_interfaces.srv import Command
 from std_srvs.srv import Trigger
 
 from packml_ros2 import qos
-from packml_ros2.core import Cmd, load_cell
+from packml_ros2.core import Cmd, Store, load_cell
+from packml_ros2.core.alarms import Kind as AlarmKind
 from packml_ros2.testing.harness import Collector, RosHarness
 from packml_ros2.testing.processes import NodeProcess, Processes
 
@@ -108,3 +110,44 @@ def start_em_process(processes: Processes, cell_file: Path, unit: str, em: str) 
 
 def unit_config_of(cell_file: Path, unit: str) -> Any:
     return load_cell(cell_file).units[unit]
+
+
+# -- a cell's shutdown ------------------------------------------------------------------------------
+#: What a terminal may show after Ctrl-C: the nodes' goodbye lines (a unit or the coordinator
+#: "shut down (SIGINT)", an EM "left unit ... (SIGINT)") and, under ros2 launch, launch's own
+#: lines about stopping its processes.
+GOODBYE = re.compile(
+    r"shut down \(SIG(INT|TERM)\)|EM \S+ left unit \S+ \(SIG(INT|TERM)\)|\[launch\]|"
+    r"sending signal 'SIG(INT|TERM)'|process has finished cleanly|^\s*$"
+)
+
+
+def shutdown_noise(output: str) -> list[str]:
+    """The lines of ``output`` (a terminal after Ctrl-C) that are not goodbye lines."""
+    return [line for line in output.splitlines() if not GOODBYE.search(line)]
+
+
+def saved_admin(path: Path, unit: str) -> dict[str, Any]:
+    """The admin data ``unit`` saved in ``path`` (the store the next start restores)."""
+    store = Store(path, unit)
+    try:
+        document = store.load()
+    finally:
+        store.close()
+    assert document is not None, f"{unit}: nothing saved in {path}"
+    return document
+
+
+def saved_faults(document: dict[str, Any], since: float = 0.0) -> list[str]:
+    """Faults in saved admin data: alarms or warnings in the history (raised at or after
+    ``since``, wall-clock seconds), a StopReason that was one."""
+    events = (AlarmKind.EVENT, AlarmKind.COMMAND)
+    faults = [
+        f"history: {e['id']} {e['message']}"
+        for e in document["alarms"]["history"]
+        if e["kind"] not in events and e["time"] >= since
+    ]
+    stop = document.get("stop_reason")
+    if stop and stop["kind"] not in events:
+        faults.append(f"stop reason: {stop['id']} {stop['message']}")
+    return faults

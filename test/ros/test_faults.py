@@ -10,6 +10,7 @@ from packml_interfaces.msg import Admin, EmReport, Result, Status, TransitionEve
 from packml_interfaces.srv import SetEmActive, SetMode
 
 from packml_ros2.core import Cmd, State
+from packml_ros2.testing.processes import NodeProcess
 from test.ros.cells import UnitClient, start_em_process, start_unit_process, write_cell
 
 FAST = {"durations": {"resetting": 0.05, "starting": 0.05, "completing": 0.05, "stopping": 0.05,
@@ -75,6 +76,26 @@ def test_full_production_cycles_with_three_em_processes(ros, processes, tmp_path
     assert unit.stop() == 0, unit.output()
 
 
+def _gripper_and_robot_started(
+    ros, processes, tmp_path: Path, ems: dict, lease: float, *unit_args: str
+) -> tuple[UnitClient, NodeProcess]:
+    """Unit ``cell_unit`` with EM processes gripper and robot, reset and sent Start; returns its
+    client and the gripper's process."""
+    cell_file, cell = write_cell(
+        tmp_path, {"cell_unit": {"equipment_modules": ems, "em_lease": lease}}
+    )
+    start_unit_process(processes, cell_file, "cell_unit", *unit_args)
+    gripper = start_em_process(processes, cell_file, "cell_unit", "gripper")
+    start_em_process(processes, cell_file, "cell_unit", "robot")
+    client = UnitClient(ros, cell, "cell_unit")
+    client.ready()
+    client.wait_status(lambda s: _online(s, "gripper", "robot"), 15, "EMs online")
+    client.trigger("reset")
+    client.wait_state("IDLE")
+    client.trigger("start")
+    return client, gripper
+
+
 @pytest.mark.parametrize("state", ["STARTING", "EXECUTE", "STOPPING"])
 def test_em_killed_in_an_acting_state_triggers_the_reaction(
     ros, processes, tmp_path: Path, state: str
@@ -87,18 +108,7 @@ def test_em_killed_in_an_acting_state_triggers_the_reaction(
         "gripper": _em(slow, cycle_time=5.0, lease=lease),
         "robot": _em(cycle_time=5.0, lease=lease),
     }
-    cell_file, cell = write_cell(
-        tmp_path, {"cell_unit": {"equipment_modules": ems, "em_lease": lease}}
-    )
-    start_unit_process(processes, cell_file, "cell_unit")
-    gripper = start_em_process(processes, cell_file, "cell_unit", "gripper")
-    start_em_process(processes, cell_file, "cell_unit", "robot")
-    client = UnitClient(ros, cell, "cell_unit")
-    client.ready()
-    client.wait_status(lambda s: _online(s, "gripper", "robot"), 15, "EMs online")
-    client.trigger("reset")
-    client.wait_state("IDLE")
-    client.trigger("start")
+    client, gripper = _gripper_and_robot_started(ros, processes, tmp_path, ems, lease)
     if state == "STOPPING":
         client.wait_state("EXECUTE")
         client.trigger("stop")
@@ -249,3 +259,24 @@ def test_a_second_unit_of_the_same_name_does_not_share_its_store(
     assert f"is in use by process {first.pid}" in second.output(), second.output()
     assert "Traceback" not in second.output()
     assert first.running()
+
+
+def test_an_em_that_leaves_in_order_is_lost_after_the_grace(ros, processes, tmp_path: Path) -> None:
+    """An EM stopped with Ctrl-C says goodbye; the unit, still running, applies the lost-EM
+    reaction once ``em_leave_grace`` has passed (had the unit shut down meanwhile, as when a
+    whole cell is stopped, nothing would be recorded: test_launcher_cli)."""
+    grace = 1.5  # longer than an EM process takes to stop, shorter than its lease
+    ems = {"gripper": _em(cycle_time=5.0, lease=5.0), "robot": _em(cycle_time=5.0, lease=5.0)}
+    client, gripper = _gripper_and_robot_started(
+        ros, processes, tmp_path, ems, 5.0, "-p", f"em_leave_grace:={grace}"
+    )
+    client.wait_state("EXECUTE")
+    stopped_at = time.monotonic()
+    assert gripper.stop() == 0, gripper.output()
+    assert "EM gripper left unit cell_unit (SIGINT)" in gripper.output()
+    lost = client.transitions.wait_for(
+        lambda t: t.trigger == TransitionEvent.TRIGGER_EM_LOST, 5.0, "EM lost reaction"
+    )
+    waited = time.monotonic() - stopped_at
+    assert grace <= waited < 5.0, f"reaction after {waited:.3f} s"  # the grace, not the lease
+    assert lost.to_state_name == "ABORTING" and "gripper lost (left)" in lost.detail

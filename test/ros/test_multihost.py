@@ -300,10 +300,13 @@ def test_cell_rides_through_a_cut_network_link(network: Network, tmp_path: Path)
             return c["all_online"] and all(u["em_online"] == u["em_total"] == 1 for u in c["units"])
 
         observer.wait_cell(every_em_online, 20, "every unit and EM online")
-        for verb in ("reset", "start"):
+        # a cell command is answered when the units took it; the next waits for them to settle
+        for verb, settled in (("reset", "IDLE"), ("start", "EXECUTE")):
             answer = observer.ask("trigger", name=verb)
             assert answer["success"], answer["message"]
-        observer.wait_cell(lambda c: c["state_current_name"] == "EXECUTE", 5, "cell in Execute")
+            observer.wait_cell(
+                lambda c, s=settled: c["state_current_name"] == s, 10, f"cell in {settled}"
+            )
 
         # -- cut the units' host off: the units lose their EMs, the coordinator loses the units
         cut_at = time.monotonic()
@@ -338,9 +341,14 @@ def test_cell_rides_through_a_cut_network_link(network: Network, tmp_path: Path)
         observer.wait_cell(lambda c: c["state_current_name"] == "ABORTED", 5, "cell Aborted")
 
         # -- and the cell runs again, through the coordinator
-        for verb in ("clear", "reset", "start"):
+        for verb, settled in (("clear", "STOPPED"), ("reset", "IDLE")):
             answer = observer.ask("trigger", name=verb)
             assert answer["success"], f"{verb}: {answer['message']}"
+            observer.wait_cell(
+                lambda c, s=settled: c["state_current_name"] == s, 10, f"cell in {settled}"
+            )
+        answer = observer.ask("trigger", name="start")
+        assert answer["success"], f"start: {answer['message']}"
         running = observer.wait_cell(
             lambda c: c["state_current_name"] == "EXECUTE" and all(
                 u["state_current_name"] == "EXECUTE" and u["health"] == "ok" for u in c["units"]
