@@ -33,6 +33,7 @@ ROOT = Path(__file__).resolve().parents[2]
 README = (ROOT / "README.md").read_text()
 SPEEDUP = 0.25
 CHROMIUM = Path("/usr/bin/chromium")
+PACKML = [sys.executable, "-m", "packml_ros2.cli.main"]
 
 
 def readme_commands() -> list[str]:
@@ -68,9 +69,21 @@ def demo_cell(tmp: Path, opcua_port: int) -> Path:
     return path
 
 
+class LaunchedWithOpcua(Launched):
+    """``packml launch <cell> --hmi --opcua`` in the background."""
+
+    def __init__(self, cell_file: Path, log: Path) -> None:
+        self.log = log
+        self._out = log.open("wb")
+        self.proc = subprocess.Popen(
+            [*PACKML, "launch", str(cell_file), "--hmi", "--opcua"],
+            stdout=self._out, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        )  # fmt: skip
+
+
 def sh(command: str, timeout: float = 60.0) -> str:
     env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
-    done = subprocess.run(["bash", "-c", command], capture_output=True, text=True, env=env, timeout=timeout)  # fmt: skip
+    done = subprocess.run(["bash", "-c", command], capture_output=True, text=True, env=env, timeout=timeout, check=False)  # fmt: skip
     assert done.returncode == 0, f"$ {command}\n{done.stdout}\n{done.stderr}"
     return done.stdout
 
@@ -80,7 +93,7 @@ def test_jam_then_full_packer_on_the_demo_cell(tmp_path: Path, ros_domain: int) 
 
     port = free_port()
     cell_file = demo_cell(tmp_path, port)
-    launched = Launched(cell_file, tmp_path / "launch.log")
+    launched = LaunchedWithOpcua(cell_file, tmp_path / "launch.log")
     ros = RosHarness(ros_domain)
     recorder: subprocess.Popen[bytes] | None = None
     client = NodeClient(tmp_path / "node_client.log", tmp_path / "pki")
@@ -92,8 +105,9 @@ def test_jam_then_full_packer_on_the_demo_cell(tmp_path: Path, ros_domain: int) 
         episodes = ros.subscribe(LineEpisode, "/demo_cell/coordinator/line/episodes", qos.LINE_EPISODES)  # fmt: skip
         for collector in status.values():
             collector.wait_for(lambda m: True, 30, "a status")
-        recorder = subprocess.Popen([sys.executable, "-m", "packml_ros2.cli.main", "record", "demo_cell", "-o", str(tmp_path / "bag")],  # fmt: skip
-                                    stdout=(tmp_path / "record.log").open("wb"), stderr=subprocess.STDOUT)  # fmt: skip
+        log = (tmp_path / "record.log").open("wb")
+        recorder = subprocess.Popen([*PACKML, "record", "demo_cell", "-o", str(tmp_path / "bag")],
+                                    stdout=log, stderr=subprocess.STDOUT)  # fmt: skip
         wait_for_file(tmp_path / "record.log", "recording")
 
         commands = readme_commands()
@@ -175,8 +189,8 @@ def test_jam_then_full_packer_on_the_demo_cell(tmp_path: Path, ros_domain: int) 
     assert "Traceback" not in launched.output(), launched.output()[-3000:]
 
     # -- the recording replays: the line's episodes and losses are made again exactly
-    replay = subprocess.run([sys.executable, "-m", "packml_ros2.cli.main", "replay", str(tmp_path / "bag")],  # fmt: skip
-                            capture_output=True, text=True, timeout=300)  # fmt: skip
+    replay = subprocess.run([*PACKML, "replay", str(tmp_path / "bag")],
+                            capture_output=True, text=True, timeout=300, check=False)  # fmt: skip
     assert replay.returncode == 0, replay.stdout + replay.stderr
     assert re.search(r"line demo_cell: match \(\d+ inputs; (\d+) episodes, (\d+) losses compared\)", replay.stdout), replay.stdout  # fmt: skip
     compared = re.search(r"(\d+) episodes, (\d+) losses compared", replay.stdout)
