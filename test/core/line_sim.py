@@ -68,6 +68,7 @@ class SimLine:
         for driver in self.drivers.values():
             driver.flush()
         self._every(tick, self._tick)
+        self._every(1.0, self._diagnostics)  # a unit's /diagnostics every second: its sign of life
 
     # -- time ---------------------------------------------------------------------------------------
     def at(self, seconds: float, fn: Callable[[], Any]) -> None:
@@ -176,6 +177,12 @@ class SimLine:
                     self.drivers[e.unit].call(self.t, u.command, e.fields["command"], e.fields["source"])  # fmt: skip
             else:
                 self.log.append(str(e))
+
+    def _diagnostics(self) -> None:
+        for name in self.units:
+            _, effects = self.line.on_diagnostics(name, False, "")
+            self._effects(effects)
+        self.take()
 
     def _tick(self) -> None:
         self._effects(self.line.tick())
