@@ -409,10 +409,14 @@ class CoordinatorNode(Node):
         return resp
 
     def _srv_episodes(self, req: QueryEpisodes.Request, resp: QueryEpisodes.Response) -> QueryEpisodes.Response:  # fmt: skip
+        since, until, unit, bucket = line_msgs.ns_of(req.since), line_msgs.ns_of(req.until), req.unit[:200], req.bucket[:40]  # fmt: skip
         with self._cond:
-            found, total = self.line.query_episodes(
-                line_msgs.ns_of(req.since), line_msgs.ns_of(req.until), req.unit[:200],
-                req.reason[:200], req.bucket[:40], req.open_only, req.limit)  # fmt: skip
+            why = self.line.episode_filter_problem(since, until, unit, bucket)
+            if why:
+                resp.accepted, resp.result, resp.message = False, Result.INVALID_ARGUMENT, why
+                return resp
+            found, total = self.line.query_episodes(since, until, unit, req.reason[:200], bucket,
+                                                    req.open_only, req.limit)  # fmt: skip
         resp.accepted, resp.result, resp.total = True, Result.ACCEPTED, total
         resp.message = f"{len(found)} of {total} episodes"
         resp.episodes = [line_msgs.episode_msg(v, self.cell.cell) for v in found]

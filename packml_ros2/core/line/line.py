@@ -22,7 +22,7 @@ from . import inputs
 from .cell import Call, Cell, CellView, Effect
 from .episodes import Episode, Root
 from .ledger import ROLLING, Fact, History, Ledger, MemoryHistory, add_clipped
-from .losses import LINE, Summary, Totals, summarize
+from .losses import DOWN, LINE, PLANNED, Summary, Totals, summarize
 from .performance import Performance
 from .sequence import AbortRun, CommandRun, ModeRun, Outcome, Run, Runs
 from .store import LineStore
@@ -31,6 +31,7 @@ NS = 1_000_000_000
 MEMORY_FACTS = 200_000  # facts a line without a store keeps for its queries
 MAX_WINDOWS = 200  # windows one query may ask for (trend, shifts)
 MAX_EPISODES = 1000
+EPISODE_BUCKETS = (PLANNED, *DOWN)  #: the buckets an episode's root cause can be in
 
 
 @dataclass(frozen=True)
@@ -360,6 +361,17 @@ class Line:
             if f.shift == key:
                 add_clipped(out, f, None, None)
         return LossesView(f"shift:{key}", inst.start if inst else 0, inst.end if inst else 0, self._summaries(out))  # fmt: skip
+
+    def episode_filter_problem(self, since: int, until: int, unit: str, bucket: str) -> str:
+        """Why a QueryEpisodes filter cannot match anything by construction ('' when it can): a
+        typo must not read as "no episodes"."""
+        if unit and unit != "cell" and unit not in self.perf.order:
+            return f"no unit {unit!r} in the line (units: {', '.join(self.perf.order)}; or cell)"
+        if bucket and bucket not in EPISODE_BUCKETS:
+            return f"no bucket {bucket!r} (buckets: {', '.join(EPISODE_BUCKETS)})"
+        if since and until and until <= since:
+            return "until must be after since"
+        return ""
 
     def query_episodes(self, since: int = 0, until: int = 0, unit: str = "", reason: str = "",
                        bucket: str = "", open_only: bool = False,

@@ -244,9 +244,13 @@ class Performance:
             tr.pending.append(t)
             del tr.pending[:-HISTORY]
             return
-        restart = t.trigger == Trigger.RESTART and t.time > tr.restart_time
+        # a restart not seen yet (a unit restarted without its store numbers from 1 again); the
+        # latched history a restarted coordinator receives holds old ones: not after the step
+        restart = t.trigger == Trigger.RESTART and t.time > max(tr.restart_time, step.time)
         if t.sequence == step.sequence and step.trigger < 0 and t.to_state == step.state:
             self._describe(step, t)  # the status of this step came first
+            if t.trigger == Trigger.RESTART:
+                tr.restart_time = max(tr.restart_time, t.time)
             self._refine(tr)
         elif t.sequence > step.sequence or restart:
             if restart:
