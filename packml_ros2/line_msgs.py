@@ -25,8 +25,12 @@ NS = 1_000_000_000
 UNKNOWN_TRIGGER = 255
 
 
+MAX_STAMP = (2**31 - 1) * NS + NS - 1  #: builtin_interfaces/Time's sec is an int32
+
+
 def stamp(ns: int) -> Time:
-    ns = max(0, int(ns))
+    """``ns`` since the epoch as a Time, clamped to what a Time can hold (0 .. 2038)."""
+    ns = min(max(0, int(ns)), MAX_STAMP)
     return Time(sec=ns // NS, nanosec=ns % NS)
 
 

@@ -16,6 +16,8 @@ import signal
 import subprocess
 import sys
 import time
+import urllib.error
+import urllib.request
 from pathlib import Path
 from typing import Any
 
@@ -81,9 +83,14 @@ class LaunchedWithOpcua(Launched):
         )  # fmt: skip
 
 
-def sh(command: str, timeout: float = 60.0) -> str:
+def run_sh(command: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+    """``command`` in bash, with this Python's environment's ``packml`` first on the PATH."""
     env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
-    done = subprocess.run(["bash", "-c", command], capture_output=True, text=True, env=env, timeout=timeout, check=False)  # fmt: skip
+    return subprocess.run(["bash", "-c", command], capture_output=True, text=True, env=env, timeout=timeout, check=False)  # fmt: skip
+
+
+def sh(command: str, timeout: float = 60.0) -> str:
+    done = run_sh(command, timeout)
     assert done.returncode == 0, f"$ {command}\n{done.stdout}\n{done.stderr}"
     return done.stdout
 
@@ -163,8 +170,23 @@ def test_jam_then_full_packer_on_the_demo_cell(tmp_path: Path, ros_domain: int) 
         line_rows = [r for r in csv_rows if r[3] == "line"]
         assert abs(sum(float(r[-1]) for r in line_rows if r[4] != "elapsed") - next(float(r[-1]) for r in line_rows if r[4] == "elapsed")) < 0.01  # fmt: skip
 
+        # -- refused, with the reason and no traceback
+        for command, code, why in (
+            ('packml report --shift "2020-01-01 lunch"', 1, "no shift '2020-01-01 lunch' in the calendar"),
+            ("packml report --since 9999-12-31T00:00", 1, "until must be after since"),
+            ("packml report --since yesterday", 2, "'yesterday' is not a time"),
+        ):  # fmt: skip
+            done = run_sh(command)
+            assert done.returncode == code and why in done.stderr, (command, done.stdout, done.stderr)  # fmt: skip
+            assert "Traceback" not in done.stderr + done.stdout
+
         # -- the HMI's line page
         check_page(url, tmp_path)
+        for query, status in (("?shift=%3Cscript%3E", 400), ("?shift=2020-01-01%20lunch", 404), ("?shift=" + "9" * 5000, 400)):  # fmt: skip
+            with pytest.raises(urllib.error.HTTPError) as refused:
+                urllib.request.urlopen(f"{url}api/line{query}", timeout=10)
+            body = json.loads(refused.value.read())
+            assert refused.value.code == status and body["message"], body
 
         # -- OPC UA: the line's OEE and its last episode
         client.wait_ready()
