@@ -163,6 +163,22 @@ def test_jam_then_full_packer_on_the_demo_cell(tmp_path: Path, ros_domain: int) 
         assert (
             "robot_cell: alarm 202: Infeed jam" in table and "case_packer: loader blocked" in table
         )
+        # the episodes as the README shows them (all but the times)
+        shown = (
+            README.split("`packml report` prints", 1)[1].split("```text", 1)[1].split("```", 1)[0]
+        )
+        assert shown.strip().splitlines()[0] in table, table
+
+        def columns(text: str) -> list[list[str]]:
+            rows = [
+                re.split(r"\s{2,}", x.strip())
+                for x in text.splitlines()
+                if re.match(r"^  \d+  ", x)
+            ]
+            return [[r[0], *r[3:]] for r in rows]
+
+        assert len(columns(shown)) == 2
+        assert columns(shown) == columns(table.split("STOP EPISODES", 1)[1]), table
         total = re.search(r"^  total\s+(\S+)\s+100\.0%$", table, re.M)
         elapsed = re.search(r"^  elapsed\s+(\S+)$", table, re.M)
         assert total and elapsed and total.group(1) == elapsed.group(1), table
