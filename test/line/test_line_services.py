@@ -117,15 +117,28 @@ def test_line_services_answer_filters_refuse_nonsense_and_survive_a_killed_coord
         unit.wait_status(lambda m: "RESET" in m.commands_valid_names, 30, "its EMs online")
     line.status.wait_for(lambda m: m.all_online and len(m.units) == 2, 30, "both units online")
     ros.wait_for_service(QueryEpisodes, f"{line.base}/line/query_episodes", 30)
+    # the cell's valid commands come from the units' rules, all or nothing
+    line.status.wait_for(lambda m: list(m.commands_valid_names) == ["RESET", "ABORT"], 10, "RESET valid")  # fmt: skip
     for cmd in (Cmd.RESET, Cmd.START):
         answer = line.command(cmd)
         assert answer.accepted, answer.message
     line.running("the line running")
+    running = line.status.last
+    assert list(running.commands_valid_names) == ["STOP", "HOLD", "SUSPEND", "ABORT", "COMPLETE"], running  # fmt: skip
+    assert list(running.commands_valid) == [
+        Cmd.STOP,
+        Cmd.HOLD,
+        Cmd.SUSPEND,
+        Cmd.ABORT,
+        Cmd.COMPLETE,
+    ]
 
     # -- episode 1: a jam at the filler; the packer runs dry ------------------------------------------
     ros.call(SetBool, f"/{cell}/filler/feeder/fault/jam", SetBool.Request(data=True))
     line.episodes.wait_for(lambda e: e.id == 1 and {(d.unit, d.how) for d in e.affected} == {("filler", "internal"), ("packer", "starved")},
                            20, "the packer starved in episode 1")  # fmt: skip
+    # filler Stopped, packer Suspended: STOP (the filler is there already) and ABORT, not RESET
+    line.status.wait_for(lambda m: list(m.commands_valid_names) == ["STOP", "ABORT"], 10, "STOP, ABORT valid")  # fmt: skip
     ros.call(SetBool, f"/{cell}/filler/feeder/fault/jam", SetBool.Request(data=False))
     for name, then in (("reset", "IDLE"), ("start", "EXECUTE")):
         answer = filler.trigger(name)
