@@ -18,6 +18,8 @@ compare), of the median of ``--repeats`` runs; ``messages_per_cpu_second`` divid
 process's CPU time instead. The EM reports (heartbeats included, about 70 % of the messages) are
 counted but not decoded: the input log holds every report the unit applied, so the offline check
 has no use for them (``--live`` publishes them). The target is 20000 messages/s.
+``bytes_per_recorded_hour``: the bag's size on disk over the simulated time it covers (target
+10 MB per hour).
 """
 
 from __future__ import annotations
@@ -44,6 +46,8 @@ from packml_ros2.paths import config_dir
 from packml_ros2.sim_em import parse_sim
 
 TARGET = 20000
+#: Issue 16: a recording grows at most 10 MB per recorded hour.
+SIZE_TARGET = 10_000_000
 #: The timed part: read, replay and compare (imports done before the clock starts).
 CHECK = """
 import json, sys, time
@@ -246,6 +250,9 @@ def main() -> int:
             "em_reports_not_decoded": em_reports(path),
             "recording_seconds": round(simulated),
             "bag_bytes": size,
+            "bytes_per_recorded_hour": round(size / simulated * 3600),
+            "target_bytes_per_recorded_hour": SIZE_TARGET,
+            "meets_size_target": size / simulated * 3600 <= SIZE_TARGET,
             "storage": args.storage,
             "build_seconds": round(built, 2),
             "python": platform.python_version(),

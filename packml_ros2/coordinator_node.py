@@ -9,8 +9,8 @@ losses; see :mod:`packml_ros2.core.line.cell`, :mod:`~packml_ros2.core.line.sequ
 units through their remote path (source ``remote:coordinator``: a unit accepts it only while its
 parameter ``remote_commands_enabled`` is true); ``line/query_episodes`` (QueryEpisodes),
 ``line/query_losses`` (QueryLosses), ``line/reset_losses`` (Trigger). Topics: ``status``
-(CellStatus, latched, on every change), ``line/episodes`` (LineEpisode, every change of an
-episode), ``line/losses`` (LineLosses, every ``line.publish_period``), ``line/input_log``
+(CellStatus, latched, DDS liveliness with lease ``unit_lease`` like the units' status, on
+every change), ``line/episodes`` (LineEpisode, every change of an episode), ``line/losses`` (LineLosses, every ``line.publish_period``), ``line/input_log``
 (UnitInput: what the line's performance was given, for ``packml record``/``replay``).
 
 The service handlers block while a sequence runs: spin the node with a MultiThreadedExecutor
@@ -107,7 +107,11 @@ class CoordinatorNode(Node):
         self._last_msg: CellStatus | None = None
         self._closed = False
 
-        self.pub_status = self.create_publisher(CellStatus, "~/status", qos.CELL_STATUS)
+        # with the units' liveliness lease: faces see a coordinator that is gone within it
+        # (packml_ros2.presence); subscribers with the default QoS are unaffected
+        self.pub_status = self.create_publisher(
+            CellStatus, "~/status", qos.with_lease(qos.CELL_STATUS, self.config.unit_lease)
+        )
         self.pub_inputs = self.create_publisher(UnitInput, "~/line/input_log", qos.LINE_INPUT_LOG)
         self.pub_episodes = self.create_publisher(LineEpisode, "~/line/episodes", qos.LINE_EPISODES)  # fmt: skip
         self.pub_losses = self.create_publisher(LineLosses, "~/line/losses", qos.LINE_LOSSES)

@@ -9,17 +9,22 @@ same messages in the same order:
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from typing import Any, TypeVar
 
 from . import convert
-from .core import Unit
+from .core import Unit, inputlog, snapshot
 from .core.counters import KINDS
 from .core.liveliness import Liveliness
 from .core.packtags import AdminView
 from .core.unit import StatusMark, Transition
 
 T = TypeVar("T")
+#: Schema of the JSON object a ``UnitSnapshot`` carries around core.snapshot's engine state:
+#: ``schema``, ``engine``, ``persistence`` (the unit has a store), ``input_schema`` (of its
+#: input log) and ``published`` (messages per output topic so far).
+SNAPSHOT_SCHEMA = 1
 #: emit(topic, message): topic is "status", "transitions", "admin", "alarms" or "log".
 Emit = Callable[[str, Any], None]
 
@@ -108,6 +113,21 @@ class UnitDriver:
                 self.emit("admin", self.admin_message(item))
             else:
                 self.emit("log", item)
+
+    def snapshot_message(self, index: int, published: dict[str, int], persistence: bool) -> Any:
+        """``UnitSnapshot``: the engine state now, after input ``index`` (between inputs), with
+        what a replay from it needs besides."""
+        from packml_interfaces.msg import UnitSnapshot
+
+        state = {
+            "schema": SNAPSHOT_SCHEMA,
+            "engine": snapshot.capture(self.unit),
+            "persistence": persistence,
+            "input_schema": inputlog.SCHEMA,
+            "published": dict(published),
+        }
+        return UnitSnapshot(stamp=convert.stamp(self.unit.now), index=index, unit=self.name,
+                            state_json=json.dumps(state, separators=(",", ":")))  # fmt: skip
 
     def admin_message(self, view: AdminView | None = None) -> Any:
         """The Admin message of ``view`` (default: the unit's admin data now)."""

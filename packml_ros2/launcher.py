@@ -221,7 +221,17 @@ def launch_in_process(p: Plan, threads: int = 0, ready: Callable[[str], None] = 
             if close is not None:
                 close()
 
-    return run.spin(nodes, threads=threads or min(8, 2 + len(nodes) // 2), on_shutdown=shutdown)
+    # Units and EMs never block in a callback: one thread spins them all (idle, they cost
+    # nothing). The coordinator's and a PLC bridge's service handlers wait for other nodes: they
+    # get a multi-threaded executor of their own. ``threads`` > 1: one such executor for all.
+    if threads > 1:
+        return run.spin(nodes, threads=threads, on_shutdown=shutdown)
+    from .equipment_module import EquipmentModule
+    from .unit_node import UnitNode
+
+    blocking = [n for n in nodes if not isinstance(n, (UnitNode, EquipmentModule))]
+    light = [n for n in nodes if isinstance(n, (UnitNode, EquipmentModule))]
+    return run.spin(light, on_shutdown=shutdown, blocking=blocking)
 
 
 # -- one process per node --------------------------------------------------------------------------------

@@ -17,6 +17,9 @@ subscriptions with the default QoS, which stays compatible with the unit's write
 offers a longer lease than ours does not match (DDS: requested < offered) and would look lost:
 that is logged once as a configuration mismatch.
 
+The coordinator's ``status`` (CellStatus) carries the same liveliness: follow it with
+``message_type=CellStatus`` and the path ``/cell/coordinator``.
+
 ``on_change(path, seen)`` is called from the executor thread that spins ``node``; hand it over
 to your own loop (``loop.call_soon_threadsafe``).
 """
@@ -55,7 +58,8 @@ class Seen:
 
 
 class Presence:
-    """The presence of the units ``paths`` (``/cell/unit``) seen from ``node``."""
+    """The presence of the units ``paths`` (``/cell/unit``) seen from ``node`` (``message_type``:
+    what their ``status`` topic carries)."""
 
     def __init__(
         self,
@@ -64,6 +68,7 @@ class Presence:
         lease: float,
         on_change: Callable[[str, Seen], None] | None = None,
         callback_group: Any = None,
+        message_type: Any = Status,
     ) -> None:
         self.node = node
         self.lease = lease
@@ -82,7 +87,7 @@ class Presence:
             )
             self._subs.append(
                 node.create_subscription(
-                    Status, f"{path}/status", _ignore, profile, raw=True,
+                    message_type, f"{path}/status", _ignore, profile, raw=True,
                     event_callbacks=events, callback_group=callback_group,
                 )
             )  # fmt: skip

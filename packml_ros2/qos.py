@@ -44,6 +44,9 @@ LINE_EPISODES = _profile(100, latched=True)
 #: ``<cell>/coordinator/line/losses``: one message per window at each publication; the last set
 #: reaches a late subscriber.
 LINE_LOSSES = _profile(8, latched=True)
+#: ``<unit>/snapshot``: the engine state, published when a subscriber (a recorder) joins; the last
+#: one reaches late subscribers at once.
+SNAPSHOT = LATCHED
 #: ``/diagnostics`` (diagnostic_msgs), as the standard aggregator expects.
 DIAGNOSTICS = _profile(10, latched=False)
 

@@ -3,6 +3,7 @@ Ctrl-C / SIGTERM (exit code 0, no traceback)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import sys
@@ -15,6 +16,7 @@ from rclpy.executors import (
     Executor,
     ExternalShutdownException,
     MultiThreadedExecutor,
+    ShutdownException,
     SingleThreadedExecutor,
 )
 from rclpy.node import Node
@@ -65,12 +67,16 @@ def default_environment() -> None:
 
 
 def make_executor(nodes: int, threads: int = 0) -> Executor:
-    """Several nodes, or ``threads`` > 1: a multi-threaded executor (one node's long callback
-    does not hold up the others). One node: rclpy's C++ EventsExecutor, which halves the latency
-    of a hop compared with the Python executors (bench/ros_latency.py measures it);
-    ``PACKML_EXECUTOR=single`` selects the SingleThreadedExecutor instead."""
-    if threads > 1 or (threads == 0 and nodes > 1):
-        return MultiThreadedExecutor(num_threads=threads or None)
+    """``threads`` > 1: a multi-threaded executor (one node's long callback does not hold up the
+    others). Otherwise rclpy's C++ EventsExecutor, for one node or several whose callbacks never
+    block (units, EMs in one process): it halves the latency of a hop compared with the Python
+    executors (bench/ros_latency.py measures it), and an idle node costs it nothing, where the
+    Python executors rebuild their wait set of every entity at each wake-up (the demo cell in one
+    process idled at 27 % of a core on a multi-threaded executor, 7-9 % on one single-threaded,
+    3-4 % on this one: bench/scale.py). ``PACKML_EXECUTOR=single`` selects the
+    SingleThreadedExecutor."""
+    if threads > 1:
+        return MultiThreadedExecutor(num_threads=threads)
     if os.environ.get("PACKML_EXECUTOR", "events") == "events":
         from rclpy.experimental import EventsExecutor
 
@@ -79,18 +85,28 @@ def make_executor(nodes: int, threads: int = 0) -> Executor:
 
 
 def spin(
-    nodes: Sequence[Node], threads: int = 0, on_shutdown: Callable[[], None] | None = None
+    nodes: Sequence[Node],
+    threads: int = 0,
+    on_shutdown: Callable[[], None] | None = None,
+    blocking: Sequence[Node] = (),
+    blocking_threads: int = 8,
 ) -> int:
     """Spin ``nodes`` until Ctrl-C or SIGTERM, then shut down in order; returns the exit code.
     ``on_shutdown`` runs first, while the nodes can still publish (:func:`shutdown_reason` says
-    why); then the executor and the nodes are destroyed.
+    why); then the executors and the nodes are destroyed.
 
-    ``threads``: 0 = one thread for a single node, a multi-threaded executor (one thread per
-    core) for several; 1 = single-threaded; more = a multi-threaded executor with that many
-    threads, also for a single node (e.g. one whose service handlers wait for other nodes)."""
+    ``threads``: 0 or 1 = one thread (:func:`make_executor`), also for several nodes whose
+    callbacks never block; more = a multi-threaded executor with that many
+    threads. ``blocking``: nodes whose callbacks wait for other nodes (the coordinator, a PLC
+    bridge), spun by a multi-threaded executor of ``blocking_threads`` in a thread of its own."""
     executor = make_executor(len(nodes), threads)
     for node in nodes:
         executor.add_node(node)
+    side: Executor | None = None
+    if blocking:
+        side = MultiThreadedExecutor(num_threads=blocking_threads)
+        for node in blocking:
+            side.add_node(node)
     # Ctrl-C and SIGTERM only ask the loop to end: the nodes are shut down below, after the
     # callback that was running has finished. (Shutting the context down from the handler would
     # destroy the nodes under that callback: a traceback, and a half-done update saved.) A
@@ -101,11 +117,12 @@ def spin(
         s: signal.signal(s, lambda signum, _: _shutdown.request(signal.Signals(signum).name))
         for s in STOP_SIGNALS
     }
+    side_thread = None
+    if side is not None:
+        side_thread = threading.Thread(target=_spin_side, args=(side,), name="packml-blocking", daemon=True)  # fmt: skip
+        side_thread.start()
     try:
-        # spin_once in a loop, not spin(): the EventsExecutor's spin() does not return on
-        # shutdown (see the notes); this loop does, for every executor.
-        while rclpy.ok() and not _shutdown.event.is_set():
-            executor.spin_once(timeout_sec=0.2)
+        _spin_loop(executor)
         _shutdown.request("context shut down")
     except KeyboardInterrupt:
         _shutdown.request("SIGINT")
@@ -117,9 +134,12 @@ def spin(
         try:
             if on_shutdown is not None:
                 on_shutdown()
-            _drain(executor, timeout=2.0)
-            executor.shutdown(timeout_sec=2)
-            for node in nodes:
+            for ex in (executor, side) if side is not None else (executor,):
+                _drain(ex, timeout=2.0)
+                ex.shutdown(timeout_sec=2)
+            if side_thread is not None:
+                side_thread.join(2)
+            for node in [*nodes, *blocking]:
                 node.destroy_node()
             rclpy.try_shutdown()
         finally:
@@ -127,6 +147,20 @@ def spin(
                 if handler is not None:  # None: installed outside Python, cannot be put back
                     signal.signal(s, handler)
     return 0
+
+
+def _spin_loop(executor: Executor) -> None:
+    """spin_once in a loop, not spin(): the EventsExecutor's spin() does not return on shutdown
+    (see the notes); this loop does, for every executor."""
+    while rclpy.ok() and not _shutdown.event.is_set():
+        executor.spin_once(timeout_sec=0.2)
+
+
+def _spin_side(executor: Executor) -> None:
+    """The blocking nodes' executor, in its thread, until the main loop ends."""
+    # the context or the executor shut down: the main loop takes it from there
+    with contextlib.suppress(ExternalShutdownException, ShutdownException):
+        _spin_loop(executor)
 
 
 def _drain(executor: Executor, timeout: float) -> None:

@@ -3,17 +3,23 @@
 Each acting state takes its configured duration; Execute cycles (``cycle_time``), counting a
 product per cycle with defects at ``defect_rate``. Faults listed under ``faults`` are switched on
 and off with a service per fault (``std_srvs/SetBool``):
-``/<cell>/<unit>/<em>/fault/<name>`` — an alarm (by category it stops or aborts the unit), or an
-interlock (``blocked`` / ``starved``: the unit suspends).
+``/<cell>/<unit>/<em>/fault/<name>`` — an alarm (by category it stops or aborts the unit), an
+interlock (``blocked`` / ``starved``: the unit suspends), or ``repeat_complete``: a flaky link that
+delivers every State Complete report of the EM a second time, :data:`REPEAT_AFTER` seconds later
+(by then usually stale: the unit ignores and counts it).
 
-Run: ``em_node <cell.yaml> <unit> <em>``; ``packml launch`` starts these for every configured EM.
+Run: ``em_node <cell.yaml> <unit> <em> [<em> ...]``; ``packml launch`` starts these for every
+configured EM. Several EMs named: they run composed in one process on one executor (one thread),
+as an integrator runs all EMs of one controller (``run.spin([em1, em2, ...])``).
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import random
 import sys
+import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import partial
@@ -33,12 +39,15 @@ SIM_KEYS = {"durations", "cycle_time", "counter", "counter_index", "defect_rate"
             "consumed_per_cycle", "cycles_per_run", "lease", "faults", "seed", "fed_by", "buffer"}  # fmt: skip
 BUFFER_TICK = 0.1  # s between looks at the buffer of an EM fed by another unit
 FAULT_KEYS = {"kind", "alarm_id", "value", "category", "message"}
+FAULT_KINDS = ("alarm", "warning", "blocked", "starved", "repeat_complete")
+#: ``repeat_complete``: seconds after which a State Complete report is sent again.
+REPEAT_AFTER = 0.5
 
 
 @dataclass(frozen=True)
 class Fault:
     name: str
-    kind: str  # alarm | warning | blocked | starved
+    kind: str  # alarm | warning | blocked | starved | repeat_complete
     alarm_id: int = 0
     value: int = 0
     category: int = -1
@@ -80,9 +89,7 @@ def parse_sim(data: Mapping[str, Any], path: str = "sim", file: str = "<memory>"
     faults: dict[str, Fault] = {}
     for name, child in n.items_at("faults"):
         child.check_keys(FAULT_KEYS)
-        kind = child.get(
-            "kind", sc.choice({k: k for k in ("alarm", "warning", "blocked", "starved")}), "alarm"
-        )
+        kind = child.get("kind", sc.choice({k: k for k in FAULT_KINDS}), "alarm")
         if kind in ("alarm", "warning") and "alarm_id" not in child.mapping():
             child.error("an alarm fault needs alarm_id")
         faults[name] = Fault(
@@ -185,11 +192,27 @@ class SimulatedEm(EquipmentModule):
                            starved="starved" in kinds or (bool(self.sim.fed_by) and self.buffer <= 0))  # fmt: skip
 
     # -- fault injection ----------------------------------------------------------------------------------------
+    def report_complete(self, state: int | None = None, sequence: int | None = None) -> None:
+        state = int(self.state if state is None else state)
+        sequence = self.sequence if sequence is None else sequence
+        super().report_complete(state, sequence)
+        if any(self.sim.faults[f].kind == "repeat_complete" for f in self.faults_on):
+            again = threading.Timer(REPEAT_AFTER, self._repeat, (state, sequence))
+            again.daemon = True
+            again.start()
+
+    def _repeat(self, state: int, sequence: int) -> None:
+        if self.context.ok():
+            with contextlib.suppress(Exception):  # (the node is going away)
+                super().report_complete(state, sequence)
+
     def _srv_fault(
         self, fault: Fault, req: SetBool.Request, resp: SetBool.Response
     ) -> SetBool.Response:
         on = bool(req.data)
-        if fault.kind in ("blocked", "starved"):
+        if fault.kind == "repeat_complete":
+            (self.faults_on.add if on else self.faults_on.discard)(fault.name)
+        elif fault.kind in ("blocked", "starved"):
             (self.faults_on.add if on else self.faults_on.discard)(fault.name)
             self._report_interlock()
         elif on:
@@ -223,15 +246,25 @@ def create(cell_file: str, unit: str, em: str, **node_kwargs: Any) -> SimulatedE
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = run.init(argv)
-    if len(args) != 3:
+    if len(args) < 3:
         print(__doc__)
         return 2
+    cell_file, unit, *names = args
+    nodes: list[SimulatedEm] = []
     try:
-        node = create(*args)
+        for name in names:
+            nodes.append(create(cell_file, unit, name))
     except (ConfigError, OSError) as exc:
+        for node in nodes:
+            node.destroy_node()
         print(f"em_node: {exc}", file=sys.stderr)
         return 2
-    return run.spin([node], on_shutdown=node.close)
+
+    def close() -> None:
+        for node in nodes:
+            node.close()
+
+    return run.spin(nodes, on_shutdown=close)
 
 
 if __name__ == "__main__":

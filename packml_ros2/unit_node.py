@@ -13,6 +13,7 @@ Run: ``unit_node <cell.yaml> [unit] [--ros-args -p remote_commands_enabled:=true
 from __future__ import annotations
 
 import json
+import math
 import sys
 from collections.abc import Callable, Sequence
 from functools import partial
@@ -20,7 +21,15 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from diagnostic_msgs.msg import DiagnosticArray
-from packml_interfaces.msg import Admin, AlarmList, EmReport, Status, TransitionEvent, UnitInput
+from packml_interfaces.msg import (
+    Admin,
+    AlarmList,
+    EmReport,
+    Status,
+    TransitionEvent,
+    UnitInput,
+    UnitSnapshot,
+)
 from packml_interfaces.srv import (
     AckAlarms,
     Command,
@@ -37,6 +46,7 @@ from packml_interfaces.srv import (
     SetUnitParameters,
 )
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.event_handler import PublisherEventCallbacks, QoSPublisherMatchedInfo
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_msgs.msg import String
@@ -63,7 +73,10 @@ from .driver import FrozenClock, UnitDriver
 T = TypeVar("T")
 SORTS = {QueryAlarms.Request.SORT_TIME: "time", QueryAlarms.Request.SORT_CATEGORY_TIME: "category",
          QueryAlarms.Request.SORT_TIME_NEWEST: "newest"}  # fmt: skip
-ADVANCE_PERIOD = 0.05  # s: deadlines (timeouts, dwell, admin) and EM leases are checked this often
+#: s: the input log goes out at most this long after an input (in batches, after the outputs)
+INPUT_LOG_DELAY = 0.05
+#: s: a wake-up for a lease is armed this much after it expires (``Liveliness.expired`` is strict)
+LEASE_SLACK = 0.001
 DIAGNOSTICS_PERIOD = 1.0
 #: s: an EM that leaves (shuts down in order) is lost this long after its goodbye, unless the
 #: unit shuts down meanwhile: a cell stopped with Ctrl-C, every process at once, records no fault.
@@ -118,16 +131,29 @@ class UnitNode(Node):
             "admin": self.pub_admin,
             "alarms": self.pub_alarms,
         }
+        #: messages published per output topic: a snapshot says where a replay from it aligns
+        self._published = dict.fromkeys(self._outputs, 0)
+        # a recorder that joins gets the engine state: a replay starts from it (bag/replay.py)
+        self.pub_snapshot = self.create_publisher(
+            UnitSnapshot, "~/snapshot", qos.SNAPSHOT,
+            event_callbacks=PublisherEventCallbacks(matched=self._on_snapshot_matched),
+        ) if self._record else None  # fmt: skip
         self.create_subscription(EmReport, "~/em_reports", self._on_report, qos.EM_REPORTS)
         self._create_services()
+        # No polling: one timer, armed for the engine's next deadline, the next lease that can
+        # expire, a goodbye's grace or the input log's batch (_arm after every callback).
+        self._wake = self.create_timer(3600.0, self._on_wake)
+        self._wake.cancel()
+        self._wake_at = math.inf
         self._timers = [
-            self.create_timer(ADVANCE_PERIOD, self._on_tick),
+            self._wake,
             self.create_timer(DIAGNOSTICS_PERIOD, self._publish_diagnostics),
         ]
         self._closed = False
         self.add_post_set_parameters_callback(self._on_parameters_set)
         self.add_on_set_parameters_callback(self._validate_parameters)
         self._publish_start()
+        self._arm(self._now())
         self.get_logger().info(
             f"PackML unit {self.get_fully_qualified_name()} up: {state_name(self.unit.state)} in "
             f"{self.unit.mode_def.name}, {len(config.equipment_modules)} EM(s) configured"
@@ -340,17 +366,21 @@ class UnitNode(Node):
     def _on_report(self, msg: EmReport) -> None:
         now = self._now()
         if msg.kind == EmReport.KIND_LEAVE:
-            # An EM's goodbye counts after a grace: when a whole cell is stopped (Ctrl-C under
-            # ros2 launch: every process gets SIGINT at once), its EMs' goodbyes can arrive before
-            # this process notices its own signal; its shutdown then drops them (no false fault).
-            if not run.shutting_down():
-                grace = float(self.get_parameter("em_leave_grace").value)
-                self._leaving[msg.em] = (now + grace, msg)
-                if grace <= 0:
-                    self._apply_leaves(now)
-            return
-        self._leaving.pop(msg.em, None)  # anything else from it: it is back (or never left)
-        self.driver.report(now, msg, self.liveliness)
+            self._leave(msg, now)
+        else:
+            self._leaving.pop(msg.em, None)  # anything else from it: it is back (or never left)
+            self.driver.report(now, msg, self.liveliness)
+        self._arm(now)
+
+    def _leave(self, msg: EmReport, now: float) -> None:
+        """An EM's goodbye counts after a grace: when a whole cell is stopped (Ctrl-C under
+        ros2 launch: every process gets SIGINT at once), its EMs' goodbyes can arrive before
+        this process notices its own signal; its shutdown then drops them (no false fault)."""
+        if not run.shutting_down():
+            grace = float(self.get_parameter("em_leave_grace").value)
+            self._leaving[msg.em] = (now + grace, msg)
+            if grace <= 0:
+                self._apply_leaves(now)
 
     def _apply_leaves(self, now: float) -> None:
         for name, (due, msg) in list(self._leaving.items()):
@@ -358,7 +388,9 @@ class UnitNode(Node):
                 del self._leaving[name]
                 self.driver.report(now, msg, self.liveliness)
 
-    def _on_tick(self) -> None:
+    def _on_wake(self) -> None:
+        self._wake_at = math.inf  # fired: _arm sets it again
+        self._wake.cancel()
         if run.shutting_down():
             return  # this process is stopping: EMs going silent now are no news
         now = self._now()
@@ -368,11 +400,34 @@ class UnitNode(Node):
             self.driver.call(now, self.unit.em_lost, name, f"no report for {lease:g} s")
         self.driver.catch_up(now)
         self._flush_inputs()
+        self._arm(now)
+
+    def _arm(self, now: float) -> None:
+        """Arm the wake-up timer for the next thing due (nothing: no timer runs)."""
+        due = self.unit.deadlines.next_due
+        expiry = self.liveliness.next_expiry() + LEASE_SLACK
+        due = min(due, expiry)
+        for leave_at, _ in self._leaving.values():
+            due = min(due, leave_at)
+        if self._inputs and now + INPUT_LOG_DELAY < due:
+            due = now + INPUT_LOG_DELAY
+        if due == self._wake_at or self._closed:
+            return
+        self._wake_at = due
+        if due == math.inf:
+            self._wake.cancel()
+            return
+        self._wake.timer_period_ns = max(int((due - now) * 1e9), 1)
+        self._wake.reset()
 
     # -- publishing ------------------------------------------------------------------------------------
     def _run(self, fn: Callable[..., T], *args: Any) -> T:
         """An input from a service or parameter callback, at the node's time now."""
-        return self.driver.call(self._now(), fn, *args)
+        now = self._now()
+        try:
+            return self.driver.call(now, fn, *args)
+        finally:
+            self._arm(now)
 
     def _emit(self, topic: str, msg: Any) -> None:
         if topic == "log":
@@ -381,6 +436,7 @@ class UnitNode(Node):
         if not self.context.ok():
             return  # Ctrl-C arrived while a callback ran: the publishers are gone
         self._outputs[topic].publish(msg)
+        self._published[topic] += 1
         if topic == "alarms":
             self._publish_diagnostics()
         if len(self._inputs) >= 200:
@@ -402,7 +458,21 @@ class UnitNode(Node):
                      "persistence": self.store is not None, "schema": inputlog.SCHEMA}  # fmt: skip
             self._on_input(self.unit.now, inputlog.START, start)
         self.driver.flush()
-        self.pub_admin.publish(self.driver.admin_message())
+        self._emit("admin", self.driver.admin_message())
+
+    def _on_snapshot_matched(self, info: QoSPublisherMatchedInfo) -> None:
+        if info.current_count_change > 0 and not self._closed:
+            self.publish_snapshot()
+
+    def publish_snapshot(self) -> None:
+        """The engine state now (between inputs: the node's callbacks are mutually exclusive),
+        after input ``index``, with what replay needs besides it."""
+        if self.pub_snapshot is None or not self.context.ok():
+            return
+        msg = self.driver.snapshot_message(
+            self._input_index, self._published, self.store is not None
+        )
+        self.pub_snapshot.publish(msg)
 
     def _log(self, level: str, text: str) -> None:
         # rclpy ties a severity to each call site: one call per level.

@@ -27,3 +27,17 @@ def test_reports_of_made_up_ems_mid_production_keep_nothing_and_say_little() -> 
     assert len(unit.equipment) == 0 and unit.state.name == "EXECUTE"
     warnings = [m for topic, m in emitted if topic == "log" and "not registered" in str(m)]
     assert len(warnings) == 64  # each name said once, up to 64 names
+
+
+def test_the_next_lease_expiry_is_when_the_longest_silent_em_runs_out() -> None:
+    """The unit node arms one timer for it instead of polling the leases."""
+    live = Liveliness(2.0)
+    assert live.next_expiry() == float("inf")  # nobody alive: nothing to wake up for
+    live.seen("a", 10.0)
+    live.seen("b", 11.0)
+    assert live.next_expiry() == 12.0
+    assert live.expired(12.0) == []  # strict: lost only after the lease
+    assert live.expired(12.001) == [("a", 2.0)]
+    assert live.next_expiry() == 13.0
+    live.left("b")
+    assert live.next_expiry() == float("inf")

@@ -31,8 +31,10 @@ BAGS = ROOT / "test" / "bags"
 PACKML = [sys.executable, "-m", "packml_ros2.cli.main"]
 RECORDED = sorted(p.name for p in BAGS.iterdir() if p.is_dir())
 ALL_BAGS = [*RECORDED, "independent_writer.mcap"]
-SCENARIOS = {"normal_production", "hold_unhold", "suspend_interlock", "alarm_stop",
-             "alarm_abort_clear_reset", "mode_changes", "em_lost"}  # fmt: skip
+#: recorded before the input log schema (issue 14); shift was recorded with schema 1
+SCHEMA_0 = {"normal_production", "hold_unhold", "suspend_interlock", "alarm_stop",
+            "alarm_abort_clear_reset", "mode_changes", "em_lost"}  # fmt: skip
+SCENARIOS = SCHEMA_0 | {"shift"}
 
 
 def packml(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
@@ -41,11 +43,11 @@ def packml(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str
     )
 
 
-def rewrite(
-    src: Path, dst: Path, change: Any = None, drop: Any = None, custom: bool = True
-) -> None:
+def rewrite(src: Path, dst: Path, change: Any = None, drop: Any = None, custom: bool = True,
+            add: Any = None) -> None:  # fmt: skip
     """Copy bag ``src`` to ``dst`` (rosbags), ``change(topic, index, raw) -> raw`` per message,
-    ``drop(topic, index, raw) -> bool``; ``custom=False`` leaves out the recorder's notes."""
+    ``drop(topic, index, raw) -> bool``, ``add(topic, index, raw) -> [raw]`` written after it (1 ns
+    apart); ``custom=False`` leaves out the recorder's notes."""
     from rosbags.highlevel import AnyReader
     from rosbags.rosbag2 import Writer
 
@@ -64,6 +66,8 @@ def rewrite(
             writer.write(
                 conns[conn.topic], ts, raw if change is None else change(conn.topic, i, raw)
             )
+            for n, extra in enumerate(add(conn.topic, i, raw) if add is not None else [], 1):
+                writer.write(conns[conn.topic], ts + n, extra)
         notes = (
             reader.readers[0].storage.metadata.custom
             if hasattr(reader.readers[0], "storage")
@@ -90,14 +94,16 @@ def test_bag_replays_to_the_recorded_outputs(packml_replay: Any, bag: str) -> No
 
 
 def test_bags_recorded_before_the_input_log_schema_replay() -> None:
-    """The bags of test/bags were recorded with schema 0 (the engine's method names): they are
+    """Most bags of test/bags were recorded with schema 0 (the engine's method names): they are
     read through inputlog.upgrade, and replay (test above)."""
     from packml_ros2.core import inputlog
 
     for bag in RECORDED:
         inputs = next(iter(load(BAGS / bag).units.values())).inputs
         start = next(i for i in inputs if i.name == "start")
-        assert inputlog.schema_of(start.args) == 0, bag
+        assert inputlog.schema_of(start.args) == (0 if bag in SCHEMA_0 else 1), bag
+        if bag not in SCHEMA_0:
+            continue
         assert any(i.name == "em_complete" for i in inputs), bag  # a schema 0 name
         assert any(i.name == "em.state_complete" for i in replay(BAGS / bag).units[0].inputs)
 
@@ -122,6 +128,12 @@ def test_the_scenarios_do_what_their_names_say() -> None:
     )
     assert transitions("mode_changes").count("STOPPED:MODE") == 3
     assert "ABORTING:EM_LOST" in transitions("em_lost")
+    # shift: what the short bags do not hold (the mutation score of test_mutations needs it)
+    u = replay(BAGS / "shift").units[0]
+    assert any(e.stale_reports for m in u.produced["status"] for e in m.equipment_modules)
+    assert any(m.mode_change_not_allowed for m in u.produced["status"])
+    assert {i.name for i in u.inputs} >= {"alarm.ack", "counters.reset", "em.lost"}
+    assert transitions("shift").count("STOPPING:COMMAND") == 2
     # hold_unhold: a recorder that joined late, on a unit that restored its admin data
     u = replay(BAGS / "hold_unhold").units[0]
     assert u.inputs[0].args["document"] is not None
@@ -149,6 +161,30 @@ def test_bags_carry_metadata_qos_and_type_definitions() -> None:
                 "alarms",
                 "em_reports",
             }
+
+
+def test_bags_written_here_name_the_ros_distribution(tmp_path: Path) -> None:
+    """metadata.yaml (and the storage file's copy of it) says ``ros_distro: kilted``, as
+    rosbag2 writes its distribution, not ``rosbags``; mcap chunks are zstd-compressed."""
+    _, dst = update(BAGS / "normal_production", tmp_path / "mcap")
+    _, db = update(BAGS / "alarm_stop", tmp_path / "db")
+    for bag in (dst, db):
+        meta = (bag / "metadata.yaml").read_text()
+        assert "ros_distro: kilted" in meta and "rosbags" not in meta.split("ros_distro:")[1]
+    raw = (dst / "mcap.mcap").read_bytes()
+    # the storage's metadata record (outside the chunks) names the distribution too ...
+    assert b"ros_distro: kilted" in raw and b"ros_distro: rosbags" not in raw
+    # ... and the messages are in zstd chunks: the config's text is not in the file as such,
+    # though a reader gets it back (rosbags decompresses)
+    assert b"zstd" in raw and b"\x28\xb5\x2f\xfd" in raw  # the compression, a zstd frame
+    assert b"pick-and-place" not in raw
+    config = next(iter(load(dst).units.values())).config_json or ""
+    assert "pick-and-place" in config
+    import sqlite3
+
+    with sqlite3.connect(db / "db.db3") as conn:
+        (stored,) = conn.execute("SELECT metadata FROM metadata").fetchone()
+    assert "ros_distro: kilted" in stored
 
 
 def test_alignment_by_content_when_the_bag_has_no_recorder_notes() -> None:
@@ -219,6 +255,68 @@ def test_a_tampered_output_fails_with_the_diverging_transition_and_its_inputs(
         result.assert_matches()
 
 
+def test_exit_codes_tell_a_mismatch_from_a_bag_that_cannot_be_replayed(tmp_path: Path) -> None:
+    """0 match, 1 mismatch, 2 the bag cannot be replayed (truncated, corrupt, not a PackML
+    recording, incomplete): one line saying why, no traceback."""
+    assert packml("replay", str(BAGS / "normal_production")).returncode == 0
+    mismatch = packml("replay", str(_tamper_status(tmp_path)))
+    assert mismatch.returncode == 1 and "MISMATCH" in mismatch.stdout
+
+    def bag_copy(name: str, src: str = "normal_production") -> Path:
+        dst = tmp_path / name
+        shutil.copytree(BAGS / src, dst)
+        return dst
+
+    unusable: dict[str, tuple[Path, str]] = {}
+    for src, suffix in (("normal_production", "mcap"), ("alarm_stop", "db3")):
+        bag = bag_copy(f"truncated_{suffix}", src)
+        f = bag / f"{src}.{suffix}"
+        f.write_bytes(f.read_bytes()[: f.stat().st_size // 2])
+        unusable[f"truncated {suffix}"] = (bag, "cannot read the bag")
+        bag = bag_copy(f"corrupt_{suffix}", src)
+        f = bag / f"{src}.{suffix}"
+        f.write_bytes(bytes(range(256)) * 64)
+        unusable[f"corrupt {suffix}"] = (bag, "cannot read the bag")
+    foreign = tmp_path / "foreign"
+    from rosbags.rosbag2 import Writer
+    from std_msgs.msg import String
+
+    writer = Writer(foreign, version=9)
+    writer.open()
+    conn = writer.add_connection("/chatter", "std_msgs/msg/String", typestore=typestore())
+    writer.write(conn, 1, bytes(serialize_message(String(data="hi"))))
+    writer.close()
+    unusable["foreign"] = (foreign, "no PackML unit topics")
+    rewrite(BAGS / "normal_production", tmp_path / "gap",
+            drop=lambda t, i, raw: t.endswith("/input_log") and i == 7)  # fmt: skip
+    unusable["incomplete"] = (tmp_path / "gap", "inputs #8..#8 are missing")
+    for what, (bag, reason) in unusable.items():
+        out = packml("replay", str(bag))
+        assert out.returncode == 2, (what, out.returncode, out.stdout, out.stderr)
+        assert reason in out.stderr and "Traceback" not in out.stderr, (what, out.stderr)
+        assert out.stderr.count("\n") == 1, (what, out.stderr)
+
+
+def test_the_diverging_line_agrees_with_the_field_differences(tmp_path: Path) -> None:
+    """A hand-edited bag whose state number and name disagree: the diverging transition names
+    states by their numbers, as the field differences above it do, and says what the message
+    calls them."""
+    bad = tmp_path / "number_only"
+
+    def change(topic: str, i: int, raw: bytes) -> bytes:
+        if topic.endswith("/transitions") and i == 4:  # STARTING -> EXECUTE, number edited only
+            m = deserialize_message(raw, TransitionEvent)
+            m.to_state = 11
+            return bytes(serialize_message(m))
+        return raw
+
+    rewrite(BAGS / "normal_production", bad, change)
+    text = replay(bad).report()
+    assert "to_state: recorded 11 (HELD), replayed 6 (EXECUTE)" in text
+    assert "recorded: seq 5 STARTING -> HELD (named 'EXECUTE' in the message)" in text
+    assert "replayed: seq 5 STARTING -> EXECUTE [STATE_COMPLETE" in text
+
+
 def test_update_rewrites_the_expected_outputs(tmp_path: Path) -> None:
     bad = _tamper_status(tmp_path)
     assert packml("replay", str(bad), "--check").returncode == 1
@@ -276,6 +374,43 @@ def test_other_output_differences_are_found_too(tmp_path: Path) -> None:
     assert d.fields == [("banner", "not what the unit said", "")]
 
 
+@pytest.mark.parametrize("bag", ALL_BAGS)
+def test_the_end_of_a_recording_is_checked(tmp_path: Path, bag: str) -> None:
+    """Up to the recorder's stop, every output counts: deleting the last transition, status,
+    alarm list or admin message of a bag is a difference, and so is a status the unit never
+    published added at the end (a copy of the last, 1 ms later)."""
+    src = BAGS / bag
+    counts = {t.rsplit("/", 1)[1]: n for t, n in _topic_counts(src).items()}
+    for topic in ("transitions", "status", "alarms", "admin"):
+        last = counts[topic] - 1
+        dst = tmp_path / f"no_last_{topic}"
+        rewrite(src, dst, drop=lambda t, i, raw, topic=topic, last=last: t.endswith(f"/{topic}") and i == last)  # fmt: skip
+        result = replay(dst)
+        assert not result.ok, f"{bag}: the last {topic} message deleted, and it still matches"
+        (d,) = result.differences
+        assert d.topic == topic and d.kind == "extra", d
+
+    def later(raw: bytes) -> bytes:
+        m = deserialize_message(raw, Status)
+        m.stamp.nanosec += 1_000_000
+        if m.stamp.nanosec >= 1_000_000_000:
+            m.stamp.sec, m.stamp.nanosec = m.stamp.sec + 1, m.stamp.nanosec - 1_000_000_000
+        return bytes(serialize_message(m))
+
+    dst = tmp_path / "one_more_status"
+    rewrite(src, dst, add=lambda t, i, raw: [later(raw)] if t.endswith("/status") and i == counts["status"] - 1 else [])  # fmt: skip
+    result = replay(dst)
+    assert not result.ok, f"{bag}: a status added at the end, and it still matches"
+    assert result.differences[0].topic == "status"
+
+
+def _topic_counts(bag: Path) -> dict[str, int]:
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([bag]) as reader:
+        return {c.topic: c.msgcount for c in reader.connections}
+
+
 def test_incomplete_input_logs_are_refused(tmp_path: Path) -> None:
     rewrite(BAGS / "normal_production", tmp_path / "gap",
             drop=lambda t, i, raw: t.endswith("/input_log") and i == 7)  # fmt: skip
@@ -286,7 +421,7 @@ def test_incomplete_input_logs_are_refused(tmp_path: Path) -> None:
     with pytest.raises(RecordingError, match=r"begins at input #4, not at the unit's start"):
         replay(tmp_path / "late")
     out = packml("replay", str(tmp_path / "late"))
-    assert out.returncode == 1 and "not at the unit's start" in out.stderr
+    assert out.returncode == 2 and "not at the unit's start" in out.stderr  # unusable
 
 
 def test_the_fast_comparison_ignores_padding_only() -> None:
@@ -457,7 +592,7 @@ def test_live_replay_drives_a_running_unit(tmp_path: Path, processes: Any) -> No
     assert "--live at speed 2: match" in out.stdout
     # the unit is no longer fresh (it ran the recording): refused
     again = packml("replay", str(BAGS / "alarm_abort_clear_reset"), "--live", "--timeout", "20")
-    assert again.returncode == 1 and "freshly started" in again.stderr
+    assert again.returncode == 3 and "freshly started" in again.stderr  # not a mismatch
 
 
 def test_live_without_a_unit_is_unavailable() -> None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+import signal
 import sys
 import tempfile
 import threading
@@ -34,7 +35,13 @@ os.environ["ROS_DOMAIN_ID"] = str(allocate_domain())
 
 import rclpy  # noqa: E402
 from packml_interfaces.msg import Admin, Status  # noqa: E402
-from packml_interfaces.srv import Command, SetEmActive, SetMode  # noqa: E402
+from packml_interfaces.srv import (  # noqa: E402
+    AckAlarms,
+    Command,
+    ResetCounters,
+    SetEmActive,
+    SetMode,
+)
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from std_srvs.srv import SetBool, Trigger  # noqa: E402
@@ -94,6 +101,10 @@ class Scenario:
 
     def kill_em(self, em: str) -> None:
         self.ems[em].kill()
+
+    def freeze_em(self, em: str, frozen: bool = True) -> None:
+        """SIGSTOP (a hung EM: alive to the OS, silent to the unit) or SIGCONT."""
+        os.kill(self.ems[em].pid, signal.SIGSTOP if frozen else signal.SIGCONT)
 
     # -- recording --------------------------------------------------------------------------------------
     def record(self, path: Path, storage: str = "mcap") -> None:
@@ -166,6 +177,23 @@ class Scenario:
     def fault(self, em: str, fault: str, on: bool) -> None:
         resp = self.ros.call(SetBool, f"{self.base}/{em}/fault/{fault}", SetBool.Request(data=on))
         print(f"    fault {em}/{fault}: {resp.message}")
+
+    def ack_alarms(self) -> None:
+        resp = self.ros.call(
+            AckAlarms, f"{self.base}/ack_alarms", AckAlarms.Request(all=True, source="operator")
+        )
+        print(f"    ack_alarms: {resp.message}")
+
+    def reset_counters(self) -> None:
+        resp = self.ros.call(
+            ResetCounters, f"{self.base}/reset_counters", ResetCounters.Request(source="operator")
+        )
+        print(f"    reset_counters: {resp.message}")
+
+    def wait_admins(self, n: int, timeout: float = 15.0) -> None:
+        """``n`` more Admin messages (with nothing happening: heartbeats)."""
+        target = len(self.admin) + n
+        wait(lambda: len(self.admin) >= target, f"{n} more admin messages", timeout)
 
     def wait_counted(self, n: int) -> None:
         def counted() -> bool:
@@ -316,6 +344,64 @@ def em_lost(s: Scenario, path: Path) -> None:
     s.wait_state("IDLE")
 
 
+def shift(s: Scenario, path: Path) -> None:
+    """A longer run with what the short bags do not hold (issue 16): stale EM reports, an
+    acknowledged warning, a first-out cleared by the next Start, a StopReason re-armed by
+    Resetting, an EM hung in Starting (lost, excused), the mode-change lamp going out, counters
+    reset, a mode left and re-entered, and admin heartbeats."""
+    begin(s, path)
+    s.fault("robot", "flaky_link", True)  # each robot State Complete arrives twice: one stale
+    s.trigger("reset")
+    s.wait_state("IDLE")
+
+    def stale() -> bool:
+        st = s.last()
+        return st is not None and any(e.stale_reports for e in st.equipment_modules)
+
+    wait(stale, "a stale report counted")
+    s.fault("robot", "flaky_link", False)
+    s.trigger("start")
+    s.wait_state("EXECUTE")
+    s.wait_counted(2)
+    s.fault("vision", "lighting", True)  # warning 301: acknowledged, then gone
+    s.wait_admins(1)
+    s.ack_alarms()
+    s.fault("vision", "lighting", False)
+    s.fault("gripper", "vacuum_loss", True)  # alarm 201 stops the unit: first-out, StopReason
+    s.wait_state("STOPPED")
+    s.fault("gripper", "vacuum_loss", False)
+    s.ack_alarms()
+    s.trigger("reset")  # resets the latched alarm and re-arms the StopReason ...
+    s.wait_state("IDLE")
+    s.trigger("stop")  # ... so this stop records its own (operator, 33)
+    s.wait_state("STOPPED")
+    s.trigger("reset")
+    s.wait_state("IDLE")
+    # hung: Starting waits for it until its lease runs out (lost_reaction ignore: excused)
+    s.freeze_em("outfeed")
+    s.trigger("start")  # Starting clears the first-out
+    s.wait_state("EXECUTE")
+    s.freeze_em("outfeed", False)
+    s.wait_ems()
+    s.mode("MAINTENANCE")  # refused in EXECUTE: the lamp is lit for 3 s
+    wait(lambda: (st := s.last()) is not None and st.mode_change_not_allowed, "the lamp on")
+    wait(lambda: (st := s.last()) is not None and not st.mode_change_not_allowed, "the lamp off")
+    s.trigger("stop")
+    s.wait_state("STOPPED")
+    s.reset_counters()
+    s.mode("MAINTENANCE")
+    wait(
+        lambda: (st := s.last()) is not None and st.unit_mode_current_name == "MAINTENANCE",
+        "MAINTENANCE",
+    )
+    s.mode("PRODUCTION")  # ModeCurrentTime of Production starts again at 0
+    wait(
+        lambda: (st := s.last()) is not None and st.unit_mode_current_name == "PRODUCTION",
+        "PRODUCTION",
+    )
+    s.wait_admins(2)  # nothing happens: two heartbeats
+
+
 SCENARIOS: dict[str, tuple[str, Callable[[Scenario, Path], None]]] = {
     "normal_production": ("robot_cell", production),
     "hold_unhold": ("robot_cell", hold_unhold),
@@ -324,6 +410,7 @@ SCENARIOS: dict[str, tuple[str, Callable[[Scenario, Path], None]]] = {
     "alarm_abort_clear_reset": ("robot_cell", alarm_abort),
     "mode_changes": ("robot_cell", mode_changes),
     "em_lost": ("robot_cell", em_lost),
+    "shift": ("robot_cell", shift),
 }
 
 

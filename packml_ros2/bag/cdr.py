@@ -28,6 +28,16 @@ _U32 = {True: struct.Struct("<I").unpack_from, False: struct.Struct(">I").unpack
 _walkers: dict[Any, Walker] = {}
 
 
+def raw_stamp(raw: bytes) -> float:
+    """The leading ``builtin_interfaces/Time stamp`` of a serialized message (every output of a
+    unit begins with one), in seconds; ``nan`` when the buffer is too short."""
+    if len(raw) < 12:
+        return float("nan")
+    little = raw[1] & 1
+    sec, nanosec = struct.unpack_from("<iI" if little else ">iI", raw, 4)
+    return float(sec + nanosec * 1e-9)
+
+
 class _Gen:
     """Generates the walker of one message class as Python source (straight-line code)."""
 

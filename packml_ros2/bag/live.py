@@ -42,7 +42,7 @@ from .. import convert, qos
 from ..client import Unavailable, call_blocking
 from ..core import inputlog
 from ..core.numbers import state_name
-from .recording import Input, RecordingError, UnitRecording, load
+from .recording import Input, UnitRecording, load
 from .replay import checked_inputs, stamp_of
 from .topics import UNIT_TOPICS, msg_class
 
@@ -359,7 +359,7 @@ def _run(path: Path, node: Any, chosen: list[UnitRecording], speed: float, timeo
         if not live.wait(lambda lv=live: lv.status is not None, timeout):  # type: ignore[misc]
             raise Unavailable(f"unit {rec.prefix} is not running (no status within {timeout:g} s)")
         if live.status.state_current_name != "STOPPED":
-            raise RecordingError(
+            raise Unavailable(
                 f"the live unit {rec.prefix} is {live.status.state_current_name}: --live needs "
                 "freshly started units (STOPPED), without their EMs"
             )

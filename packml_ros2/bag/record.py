@@ -1,10 +1,12 @@
 """``packml record``: a recorder node writing a unit's (or a cell's) topics into a rosbag2 bag.
 
 Per unit ``/<cell>/<unit>`` it subscribes (raw CDR, no decoding) to the inputs ``input_log``,
-``em_reports``, ``config`` and the outputs ``status``, ``transitions``, ``admin``, ``alarms``; for a
-cell also ``/<cell>/coordinator/status``. Subscriptions take the publishers' durability, so a
-recorder started after the unit still gets the input log since the unit's start (transient local,
-5000 deep) and the latest status, admin data, alarm list and the last 100 transitions.
+``em_reports``, ``config``, ``snapshot`` and the outputs ``status``, ``transitions``, ``admin``,
+``alarms``; for a cell also ``/<cell>/coordinator/status``. Subscriptions take the publishers'
+durability, so a recorder started after the unit still gets the last 5000 inputs (transient
+local), the latest status, admin data, alarm list and the last 100 transitions — and the unit
+publishes a snapshot of its engine state when the recorder's subscription joins, from which a
+replay starts when the unit had applied more inputs than that.
 
 Bag timestamps are receive times (strictly increasing in the bag's order). The bag stores the
 publishers' QoS and every type definition (mcap by default, sqlite3 on request), readable by
@@ -12,9 +14,12 @@ rosbag2 and other tools. ``custom_data`` (metadata.yaml) key ``packml`` holds th
 the DDS publication sequence numbers of the recorded output messages (replay aligns on them
 exactly) and the stop time.
 
-Stopping (Ctrl-C, SIGTERM or ``--duration``): outputs received after the stop are not written; the
-input log is kept open for :data:`DRAIN` seconds more, because the unit publishes it in batches
-(every 50 ms), so every input behind a recorded output is in the bag.
+Stopping (Ctrl-C, SIGTERM or ``--duration``) at time T: the bag holds exactly the outputs the units
+stamped before T (their clock is this host's), so replay compares everything up to T. The
+subscriptions stay open for :data:`DRAIN` seconds more: a unit publishes what a deadline due
+before T caused at its next 50 ms tick, and its input log in batches (every 50 ms), so every
+output stamped before T and every input behind it reach the bag; outputs stamped at or after T
+are left out.
 """
 
 from __future__ import annotations
@@ -32,22 +37,26 @@ from pathlib import Path
 from typing import Any
 
 from . import line
+from .cdr import raw_stamp
 from .topics import (
     CELL_STATUS_TYPE,
     CUSTOM_KEY,
     LATCHED_OUTPUTS,
     OUTPUT_TOPICS,
     PUBLISHER_QOS,
+    STORAGES,
     UNIT_TOPICS,
+    close_writer,
     msg_class,
+    open_writer,
     reader_qos,
     rosbags_qos,
     typestore,
 )
 
-#: Seconds the input log stays open after a stop (the unit flushes it every 50 ms).
-DRAIN = 0.5
-STORAGES = ("mcap", "sqlite3")
+#: Seconds the subscriptions stay open after a stop (a unit publishes at its 50 ms ticks; a loaded
+#: host delays them).
+DRAIN = 1.0
 
 
 class Recorder:
@@ -65,18 +74,16 @@ class Recorder:
         node_name: str | None = None,
     ) -> None:
         from rclpy.node import Node
-        from rosbags.rosbag2 import StoragePlugin, Writer
 
         if storage not in STORAGES:
             raise ValueError(f"storage {storage!r}: choose one of {', '.join(STORAGES)}")
         self.path = Path(path)
         self.units = [u.rstrip("/") for u in units]
         self.cells = list(cells)
-        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
         # One thread owns the writer (sqlite3 objects stay in the thread that made them) and
         # does the disk I/O, so subscription callbacks only queue what they received.
         self._io = _WriterThread()
-        self.writer = self._io.call(_open_writer, Writer, self.path, plugin)
+        self.writer = self._io.call(open_writer, self.path, storage)
         self.node = Node(node_name or f"packml_recorder_{os.getpid()}", context=context)
         self.counts: dict[str, int] = {}
         self.stopped_at: int | None = None  # ns (receive-time clock) when stop() was called
@@ -122,8 +129,13 @@ class Recorder:
         with self._lock:
             if self._closed:
                 return
-            if self.stopped_at is not None and received > self.stopped_at and not input_log:
-                return
+            stopped = self.stopped_at
+            if stopped is not None and not input_log:
+                # outputs: what was stamped before the stop (the unit's clock); others: what
+                # arrived before it
+                when = raw_stamp(raw) * 1e9 if output else received
+                if not when < stopped:
+                    return
             ts = max(received, self._last_ts + 1)
             self._last_ts = ts
             self._io.post(self.writer.write, conn, ts, raw)
@@ -174,7 +186,8 @@ class Recorder:
         return out
 
     def stop(self) -> None:
-        """Stop recording outputs now; the input log stays open (see :data:`DRAIN`)."""
+        """Stop recording now: outputs stamped from now on are left out, the subscriptions stay
+        open for what was stamped before (see :data:`DRAIN`)."""
         if self.stopped_at is None:
             self.stopped_at = time.time_ns()
 
@@ -197,16 +210,10 @@ class Recorder:
         self._io.call(
             self.writer.set_custom_data, CUSTOM_KEY, json.dumps(notes, separators=(",", ":"))
         )
-        self._io.call(self.writer.close)
+        self._io.call(close_writer, self.writer)
         self._io.stop()
         self.node.destroy_node()
         return self.path
-
-
-def _open_writer(writer_cls: Any, path: Path, plugin: Any) -> Any:
-    writer = writer_cls(path, version=9, storage_plugin=plugin)
-    writer.open()
-    return writer
 
 
 class _WriterThread:

@@ -27,6 +27,13 @@ class RecordingError(Exception):
     """The bag cannot be replayed (the message says why and what to do)."""
 
 
+#: A bag without our recorder's stop time: outputs are compared up to its last message less this
+#: (seconds: a deadline's output goes out at the node's next 50 ms tick, then travels), and at
+#: least up to the unit's last input in the bag (a unit publishes what happened up to an input
+#: before that input's record).
+FOREIGN_MARGIN = 0.1
+
+
 @dataclass
 class Input:
     index: int
@@ -41,6 +48,16 @@ class Input:
 
 
 @dataclass
+class Snapshot:
+    """A unit's engine state as the recorder received it (``<unit>/snapshot``): replay can start
+    from it, applying the inputs after ``index``."""
+
+    index: int
+    time: float
+    state_json: str
+
+
+@dataclass
 class UnitRecording:
     """One unit's part of a bag."""
 
@@ -52,6 +69,7 @@ class UnitRecording:
     publications: dict[str, list[int]] = field(default_factory=dict)
     config_json: str | None = None
     em_reports: list[tuple[int, bytes]] = field(default_factory=list)  # (bag time ns, raw)
+    snapshots: list[Snapshot] = field(default_factory=list)
 
     @property
     def name(self) -> str:
@@ -77,6 +95,17 @@ class Recording:
     connections: list[Any]
     raw_messages: list[tuple[Any, int, bytes]] = field(default_factory=list)
     digests: dict[str, str] = field(default_factory=dict)  # msgtype -> stored RIHS01
+    #: the bag's last message (receive time, seconds); None: no message
+    end: float | None = None
+
+    @property
+    def stop(self) -> float | None:
+        """When our recorder stopped (seconds; the units' clock on one host); None: the bag does
+        not say (another recorder's)."""
+        stopped = self.custom.get("stopped_at_ns")
+        if isinstance(stopped, (int, float)) and not isinstance(stopped, bool):
+            return float(stopped) * 1e-9
+        return None
 
     def unit(self, name: str) -> UnitRecording:
         for u in self.units.values():
@@ -330,11 +359,14 @@ def _load(bag: _Bag, path: str | Path, keep_raw: bool, em_reports: bool = True) 
             wanted.append(conn)
     string_cls = msg_class("std_msgs/msg/String")
     input_cls = msg_class("packml_interfaces/msg/UnitInput")
+    snapshot_cls = msg_class(UNIT_TOPICS["snapshot"])
     raw_messages: list[tuple[Any, int, bytes]] = []
     count = 0
+    last = -1
     by_topic = {c.topic: split_topic(c.topic) for c in wanted}
     for conn, ts, data in bag.messages(() if keep_raw else wanted):
         count += 1
+        last = max(last, ts)
         raw = bytes(data)
         if keep_raw:
             raw_messages.append((conn, ts, raw))
@@ -357,6 +389,11 @@ def _load(bag: _Bag, path: str | Path, keep_raw: bool, em_reports: bool = True) 
             unit.config_json = deserialize_message(raw, string_cls).data
         elif name == "em_reports":
             unit.em_reports.append((ts, raw))
+        elif name == "snapshot":
+            m = deserialize_message(raw, snapshot_cls)
+            unit.snapshots.append(
+                Snapshot(m.index, m.stamp.sec + m.stamp.nanosec * 1e-9, m.state_json)
+            )
         else:
             unit.outputs[name].append(raw)
     if not keep_raw:
@@ -371,4 +408,4 @@ def _load(bag: _Bag, path: str | Path, keep_raw: bool, em_reports: bool = True) 
             if len(numbers) == len(recorded):
                 unit.publications[topic] = numbers
     return Recording(bag.path, bag.storage, units, bag.custom, count, bag.connections, raw_messages,
-                     digests)  # fmt: skip
+                     digests, last * 1e-9 if last >= 0 else None)  # fmt: skip

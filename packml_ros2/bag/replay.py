@@ -1,42 +1,50 @@
-"""``packml replay <bag> --check``: feed a recording's inputs to a fresh engine and compare.
+"""``packml replay <bag> --check``: feed a recording's inputs to an engine and compare.
 
 Per unit in the bag:
 
 1. the configuration comes from the recorded ``config`` topic (the cell file the unit was started
    with), or from ``--config <cell.yaml>`` (which takes precedence when given);
-2. a fresh :class:`~packml_ros2.core.Unit` is built on the bag's own clock: frozen at the time of
-   the ``start`` input, with a memory store whose ``load()`` returns the persistence document the
-   recorded unit had restored — if the recorded unit had a store (the ``start`` input says so:
-   the store's periodic saves are engine deadlines too, and every deadline publishes what
-   changed); its start-up outputs are emitted as the node does;
-3. every input of ``input_log`` (in index order) is applied by the same
+2. the origin: where the replay starts (:func:`starting_point`). The unit's start when the bag
+   holds the input log from its ``start`` input on: a fresh :class:`~packml_ros2.core.Unit` on
+   the bag's own clock, frozen at the time of the ``start`` input, with a memory store whose
+   ``load()`` returns the persistence document the recorded unit had restored — if the recorded
+   unit had a store (the ``start`` input says so: the store's periodic saves are engine
+   deadlines too, and every deadline publishes what changed); its start-up outputs are emitted
+   as the node does. Otherwise (the recorder joined a unit that had run more inputs than the
+   input log's history keeps) the earliest snapshot of the unit's engine state
+   (``<unit>/snapshot``, :mod:`packml_ros2.core.snapshot`; the unit publishes one whenever a
+   recorder joins) after which every input is in the bag: the engine is restored from it;
+3. every input after the origin (in index order) is applied by the same
    :class:`~packml_ros2.driver.UnitDriver` the node uses, at its recorded time; before each input
    the engine's deadlines are fired one at a time, each with the clock at its own time (as the
    node's 50 ms timer does; catching up to the input's time at once would skip periodic
-   deadlines after long idle gaps); after the last input, deadlines are fired up to the end of
-   the recording (its last recorded output or input);
+   deadlines after long idle gaps); after the last input, deadlines are fired up to the
+   recorder's stop;
 4. the replayed outputs (``status``, ``transitions``, ``alarms``, ``admin``) are compared with the
    recorded ones message by message, on decoded values: serialized bytes with the padding ignored
    (:mod:`.cdr`; CDR padding bytes are unset and differ between writers), and when those differ,
    the decoded messages field by field.
 
-Alignment of recorded outputs (a recorder may join late or stop early):
+Alignment of recorded outputs (a recorder joins late and stops):
 
-- The input log must be complete: indices 1..n without gaps, starting with ``start`` (a recorder
-  gets it from the unit's start through transient-local history, 5000 deep). Otherwise the bag
-  is refused.
+- Inputs: from the origin on, indices without gaps. Otherwise the bag is refused.
 - Start of each output topic: with our recorder's notes (``custom_data``) every recorded message
-  carries its DDS publication sequence number p, and it is compared with the p-th replayed
-  message of that topic (exact, also across messages the recorder missed). Without them (bags of
-  other recorders/writers) the first recorded message is located in the replayed stream by value
-  (the earliest replayed message equal to it, or the first with the same or a later stamp), and
-  from there the streams are compared one to one. Replayed messages before it were published
-  before the recorder subscribed (transient-local history delivers only the last status, admin
-  data and alarm list and the last 100 transitions) and are not compared.
-- End: each recorded message must have been replayed. Replayed messages after a topic's last
-  recorded message are differences when stamped before the unit's last recorded output (the
-  recorder was listening then); stamped at or after it they were in flight when the recording
-  stopped and are not compared.
+  carries its DDS publication sequence number p, and it is compared with the replayed message
+  p - n (n: what the unit had published on the topic before the origin, 0 at its start; the
+  snapshot says) — exact, also across messages the recorder missed; recorded messages published
+  before the origin (the latched history a late recorder gets) are not compared. Without notes
+  (bags of other recorders/writers) the first recorded message published after the origin is
+  located in the replayed stream by value (the earliest replayed message equal to it, or the
+  first with the same or a later stamp), and from there the streams are compared one to one.
+  Replayed messages before it were published before the recorder subscribed (transient-local
+  history delivers only the last status, admin data and alarm list and the last 100 transitions)
+  and are not compared.
+- End: each recorded message must have been replayed, and every replayed message stamped before
+  the recorder's stop (its notes) must have been recorded: a deleted last transition and an
+  added final status are both differences. Our recorder writes exactly the outputs stamped
+  before its stop. A bag without the stop time is compared up to
+  :data:`~.recording.FOREIGN_MARGIN` before its last message, and at least up to the unit's
+  last input in it.
 """
 
 from __future__ import annotations
@@ -51,22 +59,47 @@ import itertools
 import json
 import math
 import shutil
-import struct
 import time
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from rclpy.serialization import deserialize_message, serialize_message
 
-from ..core import CellConfig, Unit, UnitConfig, inputlog, load_cell, parse_cell, state_name
+from ..core import (
+    CellConfig,
+    Unit,
+    UnitConfig,
+    inputlog,
+    load_cell,
+    parse_cell,
+    snapshot,
+    state_name,
+)
 from ..core.config import ConfigError
-from ..driver import FrozenClock, UnitDriver
+from ..core.unit import Trigger
+from ..driver import SNAPSHOT_SCHEMA, FrozenClock, UnitDriver
 from . import cdr
-from .cdr import canonical, same_bytes
-from .recording import Input, Recording, RecordingError, UnitRecording, load
-from .topics import CUSTOM_KEY, OUTPUT_TOPICS, UNIT_TOPICS, msg_class, typestore
+from .cdr import canonical, raw_stamp, same_bytes
+from .recording import (
+    FOREIGN_MARGIN,
+    Input,
+    Recording,
+    RecordingError,
+    Snapshot,
+    UnitRecording,
+    load,
+)
+from .topics import (
+    CUSTOM_KEY,
+    OUTPUT_TOPICS,
+    UNIT_TOPICS,
+    close_writer,
+    msg_class,
+    open_writer,
+    typestore,
+)
 
 OUTPUT_CLASSES = {t: msg_class(UNIT_TOPICS[t]) for t in OUTPUT_TOPICS}
 #: Serializers for the comparison: ours for the messages full of shared alarms (4x faster than
@@ -97,13 +130,6 @@ class MemoryStore:
 def stamp_of(msg: Any) -> float:
     s = msg.stamp
     return float(s.sec + s.nanosec * 1e-9)
-
-
-def raw_stamp(raw: bytes) -> float:
-    """The leading ``builtin_interfaces/Time stamp`` of a serialized output message."""
-    little = len(raw) > 1 and raw[1] & 1
-    sec, nanosec = struct.unpack_from("<iI" if little else ">iI", raw, 4)
-    return float(sec + nanosec * 1e-9)
 
 
 def _is_msg(x: Any) -> bool:
@@ -193,8 +219,11 @@ class UnitResult:
     compared: dict[str, int]
     not_recorded: dict[str, int]  # replayed before the recording / after it stopped
     windows: dict[str, tuple[int, int]]  # topic -> (first replayed index, end) matched to the bag
-    out_end: float
+    stop: float  # outputs published up to here are compared (the recorder's stop)
+    origin: Origin
     differences: list[Difference] = field(default_factory=list)
+    #: recorded messages published before the origin (a snapshot): not compared
+    before_origin: dict[str, int] = field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -238,7 +267,10 @@ class ReplayResult:
         parts = []
         for u in self.units:
             n = sum(u.compared.values())
-            parts.append(f"{u.unit}: {len(u.inputs)} inputs, {n} outputs compared")
+            since = (
+                f" from a snapshot after input #{u.origin.index}" if u.origin.start is None else ""
+            )
+            parts.append(f"{u.unit}: {len(u.inputs)} inputs{since}, {n} outputs compared")
         verdict = "match" if self.ok else "MISMATCH"
         return f"{self.path}: {verdict} ({'; '.join(parts)}; {self.messages} messages, {self.seconds:.2f} s)"
 
@@ -259,6 +291,20 @@ class ReplayResult:
         return self
 
 
+def _named(number: int, name: str, namer: Callable[[int], str]) -> str:
+    """A state (mode, trigger) by its number, as the field diff shows it; the message's own name
+    field too when it says something else (a hand-edited bag)."""
+    text = namer(number)
+    return text if name in ("", text) else f"{text} (named {name!r} in the message)"
+
+
+def _trigger_name(number: int) -> str:
+    try:
+        return Trigger(number).name
+    except ValueError:
+        return f"TRIGGER_{number}"
+
+
 def _transition_text(m: Any, t0: float) -> str:
     if m is None:
         return "none"
@@ -266,9 +312,12 @@ def _transition_text(m: Any, t0: float) -> str:
     cmd = f" {m.command}" if m.command else ""
     src = f" from {m.source}" if m.source else ""
     detail = f" ({m.detail})" if m.detail else ""
+    frm = _named(m.from_state, m.from_state_name, state_name)
+    to = _named(m.to_state, m.to_state_name, state_name)
+    trigger = _named(m.trigger, m.trigger_name, _trigger_name)
     return (
-        f"seq {m.sequence} {m.from_state_name} -> {m.to_state_name}{modes} "
-        f"[{m.trigger_name}{cmd}{src}]{detail} at t=+{stamp_of(m) - t0:.3f} s"
+        f"seq {m.sequence} {frm} -> {to}{modes} [{trigger}{cmd}{src}]{detail} "
+        f"at t=+{stamp_of(m) - t0:.3f} s"
     )
 
 
@@ -368,48 +417,131 @@ def unit_config(rec: UnitRecording, config_file: str | Path | None, bag: Path) -
     return cell.units[name]
 
 
-def checked_inputs(rec: UnitRecording, bag: Path) -> list[Input]:
-    """The input log in index order; refused unless complete from the unit's start."""
+@dataclass
+class Origin:
+    """Where a replay starts: the unit's start (its ``start`` input, index 0) or a snapshot of
+    its engine state taken after input ``index``."""
+
+    index: int
+    time: float
+    start: Input | None = None
+    #: the snapshot's JSON object (``engine``, ``persistence``, ``input_schema``, ``published``)
+    state: dict[str, Any] | None = None
+    #: per output topic, how many messages the unit had published before the origin
+    published: dict[str, int] = field(default_factory=dict)
+
+
+def _refuse_plc(rec: UnitRecording, bag: Path) -> None:
     if plc_unit(rec):
         raise RecordingError(
             f"{bag}: {rec.prefix} is a PLC unit: its state machine ran in the PLC, the bag holds "
             "its outputs only; there is nothing to replay"
         )
-    if not rec.inputs:
+
+
+def _sorted_inputs(rec: UnitRecording, bag: Path) -> list[Input]:
+    inputs = sorted(rec.inputs, key=lambda i: i.index)
+    firsts = [i for i in inputs if i.index == 1]
+    restarted = any(b.time < a.time for a, b in itertools.pairwise(inputs))
+    if len(firsts) > 1 or restarted:
+        raise RecordingError(
+            f"{bag}: {rec.prefix} started more than once during the recording (its input log "
+            "begins again at #1); replay covers one run of a unit: record each run apart"
+        )
+    return inputs
+
+
+def checked_inputs(rec: UnitRecording, bag: Path) -> list[Input]:
+    """The input log in index order, complete from the unit's start (``--live`` replays that
+    only: it drives a freshly started unit)."""
+    _refuse_plc(rec, bag)
+    origin, inputs = starting_point(rec, bag)
+    if origin.start is None:
+        raise RecordingError(
+            f"{bag}: the recording of {rec.prefix} starts from a snapshot of its state after input "
+            f"#{origin.index}, not at the unit's start: --live drives a freshly started unit; "
+            "check this bag offline (packml replay --check)"
+        )
+    return inputs
+
+
+def starting_point(rec: UnitRecording, bag: Path) -> tuple[Origin, list[Input]]:
+    """Where the replay of ``rec`` starts and the inputs after it (current schema). The earliest
+    origin from which every later input is in the bag: the unit's start, else the earliest
+    snapshot. Refused (:class:`RecordingError`) when there is none."""
+    _refuse_plc(rec, bag)
+    inputs = _sorted_inputs(rec, bag)
+    if not inputs and not rec.snapshots:
         raise RecordingError(
             f"{bag}: no input log for {rec.prefix} ({rec.prefix}/input_log is empty or missing; "
             "was the unit started with record_inputs:=false?)"
         )
-    inputs = sorted(rec.inputs, key=lambda i: i.index)
-    firsts = [i for i in inputs if i.index == 1]
-    if len(firsts) > 1:
+    present = [i.index for i in inputs]
+    last = present[-1] if present else 0
+    # the lowest index from which every input up to the last one is in the bag
+    tail = last + 1
+    for k in range(len(present) - 1, -1, -1):
+        if present[k] != tail - 1:
+            break
+        tail = present[k]
+    if inputs and inputs[0].index == 1 and inputs[0].name == inputlog.START and tail == 1:
+        start = inputs[0]
+        origin = Origin(0, float(start.args.get("time", start.time)), start=start)
+        return origin, upgraded(inputs, inputlog.schema_of(start.args), rec, bag)
+    usable = [snap for snap in rec.snapshots if snap.index + 1 >= tail]
+    if usable:
+        snap = min(usable, key=lambda x: (x.index, x.time))
+        origin = _snapshot_origin(snap, rec, bag)
+        after = [i for i in inputs if i.index > snap.index]
+        schema = int(origin.state.get("input_schema", inputlog.SCHEMA)) if origin.state else 0
+        return origin, upgraded(after, schema, rec, bag, first=False)
+    if tail > present[0]:  # inputs before the tail: a gap ends where the tail begins
+        before = max(i for i in present if i < tail)
         raise RecordingError(
-            f"{bag}: {rec.prefix} started {len(firsts)} times during the recording (input #1 "
-            "appears more than once); replay covers one run of a unit: record each run apart"
+            f"{bag}: the input log of {rec.prefix} has a gap: inputs #{before + 1}..#{tail - 1} "
+            "are missing (the recorder lost them) and no snapshot of the unit's state follows "
+            "it; record again"
         )
-    if inputs[0].index != 1 or inputs[0].name != "start":
-        raise RecordingError(
-            f"{bag}: the input log of {rec.prefix} begins at input #{inputs[0].index}, not at the "
-            "unit's start: the recorder joined more than 5000 inputs after the unit started; "
-            "record from an earlier point (restart the unit with the recorder running)"
-        )
-    for a, b in itertools.pairwise(inputs):
-        if b.index != a.index + 1:
-            raise RecordingError(
-                f"{bag}: the input log of {rec.prefix} has a gap: inputs #{a.index + 1}..#{b.index - 1} "
-                "are missing (the recorder lost them); record again"
-            )
-    return upgraded(inputs, rec, bag)
+    raise RecordingError(
+        f"{bag}: the input log of {rec.prefix} begins at input #{present[0]}, not at the unit's "
+        f"start, and the bag holds no snapshot of its state ({rec.prefix}/snapshot) to start "
+        "from: the unit runs a version that does not publish one, or the recorder did not "
+        "subscribe to it; record it again with packml record"
+    )
 
 
-def upgraded(inputs: list[Input], rec: UnitRecording, bag: Path) -> list[Input]:
-    """The inputs in the input log's current schema (core.inputlog): bags recorded with an older
-    one replay too."""
-    schema = inputlog.schema_of(inputs[0].args)
-    if schema == inputlog.SCHEMA:
+def _snapshot_origin(snap: Snapshot, rec: UnitRecording, bag: Path) -> Origin:
+    where = f"{bag}: the snapshot of {rec.prefix} (after input #{snap.index})"
+    try:
+        state = json.loads(snap.state_json)
+    except ValueError as exc:
+        raise RecordingError(f"{where} is not JSON: {exc}") from None
+    if not isinstance(state, dict) or not isinstance(state.get("engine"), dict):
+        raise RecordingError(f"{where} holds no engine state")
+    schema = state.get("schema")
+    if schema != SNAPSHOT_SCHEMA:
+        raise RecordingError(
+            f"{where} has schema {schema!r}; this version reads {SNAPSHOT_SCHEMA}: replay "
+            "it with the version that recorded it"
+        )
+    published = state.get("published")
+    if not isinstance(published, dict) or not all(
+        isinstance(published.get(t), int) and published[t] >= 0 for t in OUTPUT_TOPICS
+    ):
+        raise RecordingError(f"{where} does not say how many messages the unit had published")
+    return Origin(
+        snap.index, snap.time, state=state, published={t: published[t] for t in OUTPUT_TOPICS}
+    )
+
+
+def upgraded(inputs: list[Input], schema: int, rec: UnitRecording, bag: Path,
+             first: bool = True) -> list[Input]:  # fmt: skip
+    """The inputs (of input log ``schema``) in the current schema (core.inputlog): bags recorded
+    with an older one replay too. ``first``: the first input is the ``start`` record."""
+    if schema == inputlog.SCHEMA or not inputs:
         return inputs
-    out = [inputs[0]]
-    for i in inputs[1:]:
+    out = inputs[:1] if first else []
+    for i in inputs[1:] if first else inputs:
         try:
             name, fields = inputlog.upgrade(i.name, i.args, schema)
         except (ValueError, KeyError) as exc:
@@ -421,24 +553,35 @@ def upgraded(inputs: list[Input], rec: UnitRecording, bag: Path) -> list[Input]:
 
 
 class UnitReplay:
-    """A fresh engine on the recording's clock, driven like the node drives it."""
+    """An engine on the recording's clock, driven like the node drives it: a fresh one at the
+    unit's start, or the one a snapshot describes."""
 
-    def __init__(self, config: UnitConfig, start: Input) -> None:
-        args = start.args
-        self.start_time = float(args.get("time", start.time))
+    def __init__(self, config: UnitConfig, origin: Origin) -> None:
+        self.start_time = origin.time
         self.clock = FrozenClock(lambda: self.start_time)
         self.clock.frozen = self.start_time
+        self.outputs: dict[str, list[Any]] = {t: [] for t in OUTPUT_TOPICS}
+        self.causes: dict[str, list[int]] = {t: [] for t in OUTPUT_TOPICS}
+        self.current = origin.index
+        if origin.start is None:
+            assert origin.state is not None
+            # The store matters beyond its document: its periodic saves are engine deadlines.
+            self.store = MemoryStore(None) if origin.state.get("persistence") else None
+            try:
+                self.unit = snapshot.restore(config, self.clock, origin.state["engine"], self.store)
+            except snapshot.SnapshotError as exc:
+                raise RecordingError(f"the snapshot of {config.name} after input #{origin.index}: {exc}") from None  # fmt: skip
+            self.clock.frozen = None
+            self.driver = UnitDriver(self.unit, self.clock, self._emit)
+            return
+        args = origin.start.args
         document = args.get("document")
         persistence = args.get("persistence")
         if persistence is None:  # a unit node that did not say: its configuration's default
             persistence = document is not None or bool(config.persistence_path)
-        # The store matters beyond the document: its periodic saves are engine deadlines.
         self.store = MemoryStore(document) if persistence else None
         self.unit = Unit(config, clock=self.clock, store=self.store)  # type: ignore[arg-type]
         self.clock.frozen = None
-        self.outputs: dict[str, list[Any]] = {t: [] for t in OUTPUT_TOPICS}
-        self.causes: dict[str, list[int]] = {t: [] for t in OUTPUT_TOPICS}
-        self.current = start.index
         self.driver = UnitDriver(self.unit, self.clock, self._emit)
         # what UnitNode._publish_start publishes: the start-up outputs, then the admin data
         self.driver.flush()
@@ -481,26 +624,30 @@ def _locate(raw: bytes, produced: Sequence[Any]) -> int:
 
 def compare_topic(
     unit: str, topic: str, recorded: list[bytes], pubs: list[int] | None, produced: list[Any],
-    causes: list[int], out_end: float,
-) -> tuple[Difference | None, int, tuple[int, int]]:  # fmt: skip
-    """Compare one topic: (first difference or None, messages compared, replayed window)."""
+    causes: list[int], stop: float, origin: Origin,
+) -> tuple[Difference | None, int, tuple[int, int], int]:  # fmt: skip
+    """Compare one topic: (first difference or None, messages compared, replayed window,
+    recorded messages published before the origin: not compared)."""
     cls = OUTPUT_CLASSES[topic]
     ser = SERIALIZE.get(topic, serialize_message)
-    n = len(recorded)
-    if pubs is not None:
-        js: Sequence[int] = [p - 1 for p in pubs]
-    else:
-        j0 = _locate(recorded[0], produced) if n else len(produced)
-        js = range(j0, j0 + n)
-    first = js[0] if n else len(produced)
-    for k, (raw, j) in enumerate(zip(recorded, js, strict=True)):
+    offset = origin.published.get(topic, 0)
+    if pubs is not None:  # the publication numbers of our recorder: exact
+        pairs = [(k, p - 1 - offset) for k, p in enumerate(pubs) if p > offset]
+    else:  # by content, from the first recorded message published after the origin
+        k0 = 0
+        if origin.start is None:
+            while k0 < len(recorded) and raw_stamp(recorded[k0]) <= origin.time:
+                k0 += 1
+        j0 = _locate(recorded[k0], produced) if k0 < len(recorded) else len(produced)
+        pairs = [(k, j0 + k - k0) for k in range(k0, len(recorded))]
+    before = len(recorded) - len(pairs)
+    first = pairs[0][1] if pairs else len(produced)
+    for n, (k, j) in enumerate(pairs):
+        raw = recorded[k]
         if j >= len(produced):
             rec = deserialize_message(raw, cls)
-            return (
-                Difference(unit, topic, "missing", k, len(produced), stamp_of(rec), rec),
-                k,
-                (first, j),
-            )
+            d = Difference(unit, topic, "missing", k, len(produced), stamp_of(rec), rec)
+            return d, n, (first, j), before
         m = produced[j]
         if same_bytes(raw, ser(m), cls):
             continue
@@ -511,40 +658,50 @@ def compare_topic(
         if fields:
             d = Difference(unit, topic, "differs", k, j, min(stamp_of(rec), stamp_of(m)), rec, m,
                            fields, causes[j])  # fmt: skip
-            return d, k, (first, j)
-    end = (js[-1] + 1) if n else first
-    if n == 0:
-        end = 0
+            return d, n, (first, j), before
+    # Everything the unit published after the last recorded message, up to the recorder's stop,
+    # must have been recorded (a recorder that joined late got the latest as history).
+    end = pairs[-1][1] + 1 if pairs else 0
     for j in range(end, len(produced)):
         m = produced[j]
-        if stamp_of(m) < out_end:
+        if stamp_of(m) < stop:
             d = Difference(unit, topic, "extra", -1, j, stamp_of(m), None, m, [], causes[j])
-            return d, n, (first, end)
+            return d, len(pairs), (first, end), before
         break
-    return None, n, (first, end)
+    return None, len(pairs), (first, end), before
 
 
 def replay_unit(rec: UnitRecording, bag: Path, config_file: str | Path | None = None,
-                until: float | None = None) -> UnitResult:  # fmt: skip
+                stop: float | None = None, end: float | None = None) -> UnitResult:  # fmt: skip
+    """Replay one unit from its origin and compare what it published up to ``stop`` (the
+    recorder's stop time); without one, up to :data:`~.recording.FOREIGN_MARGIN` before the
+    bag's ``end`` (its last message), and at least up to the unit's last input."""
     config = unit_config(rec, config_file, bag)
-    inputs = checked_inputs(rec, bag)
-    stamps = [raw_stamp(raw) for msgs in rec.outputs.values() for raw in msgs]
-    out_end = max(stamps, default=-math.inf)
-    end = max(out_end, inputs[-1].time) if until is None else until
-    r = UnitReplay(config, inputs[0])
-    r.run(inputs[1:], end)
+    origin, inputs = starting_point(rec, bag)
+    if stop is None:
+        last_input = inputs[-1].time if inputs else origin.time
+        stop = max(
+            -math.inf if end is None else end - FOREIGN_MARGIN,
+            math.nextafter(last_input, math.inf),
+        )
+    r = UnitReplay(config, origin)
+    # (up to the last recorded output too: every recorded message must be produced)
+    last = max((raw_stamp(msgs[-1]) for msgs in rec.outputs.values() if msgs), default=-math.inf)
+    r.run(inputs if origin.start is None else inputs[1:], max(stop, origin.time, last))
     name = config.name
     result = UnitResult(
-        name, rec.prefix, r.start_time, inputs, r.outputs, r.causes, {}, {}, {}, out_end
+        name, rec.prefix, r.start_time, inputs, r.outputs, r.causes, {}, {}, {}, stop, origin
     )
     for topic in OUTPUT_TOPICS:
         if topic not in rec.outputs:
             continue  # not recorded (e.g. a bag of another recorder without it): not compared
-        d, n, window = compare_topic(name, topic, rec.outputs[topic], rec.publications.get(topic),
-                                     r.outputs[topic], r.causes[topic], out_end)  # fmt: skip
+        d, n, window, before = compare_topic(name, topic, rec.outputs[topic],
+                                             rec.publications.get(topic), r.outputs[topic],
+                                             r.causes[topic], stop, origin)  # fmt: skip
         result.compared[topic] = n
         result.windows[topic] = window
         result.not_recorded[topic] = len(r.outputs[topic]) - n
+        result.before_origin[topic] = before
         if d is not None:
             result.differences.append(d)
     return result
@@ -588,8 +745,7 @@ def _replay(path: str | Path, config: str | Path | None, units: Sequence[str],
         raise RecordingError(
             f"{path}: no PackML unit topics in the bag (/<cell>/<unit>/input_log ...)"
         )
-    until = rec.custom.get("replay_until", {})
-    results = [replay_unit(u, rec.path, config, until.get(u.prefix)) for u in chosen]
+    results = [replay_unit(u, rec.path, config, rec.stop, rec.end) for u in chosen]
     return ReplayResult(Path(path), results, rec.message_count, time.perf_counter() - t)
 
 
@@ -598,8 +754,6 @@ def update(path: str | Path, out: str | Path | None = None, config: str | Path |
            storage: str | None = None) -> tuple[ReplayResult, Path]:  # fmt: skip
     """Rewrite the recorded outputs with the replayed ones (into ``out``, or in place for a bag
     directory). Inputs, configuration and other topics are copied unchanged."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-
     src = Path(path)
     rec = load(src, keep_raw=True)
     result = replay(src, config, recording=rec)
@@ -613,11 +767,9 @@ def update(path: str | Path, out: str | Path | None = None, config: str | Path |
     if dst.exists() or (in_place and staging.exists()):
         raise RecordingError(f"{staging if in_place else dst} exists already")
     kind = storage or rec.storage
-    plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
     if in_place:
         staging.mkdir()
-    writer = Writer(dst, version=9, storage_plugin=plugin)
-    writer.open()
+    writer = open_writer(dst, kind)
     try:
         _write_update(writer, rec, result)
     except BaseException:
@@ -664,7 +816,7 @@ def _write_update(writer: Any, rec: Recording, result: ReplayResult) -> None:
     publications: dict[str, list[list[int]]] = {}
     for u in result.units:
         for topic, (first, _) in u.windows.items():
-            msgs = [m for m in u.produced[topic][first:] if stamp_of(m) <= u.out_end]
+            msgs = [m for m in u.produced[topic][first:] if stamp_of(m) < u.stop]
             last = 0
             for m in msgs:
                 ts = max(round(stamp_of(m) * 1e9), last + 1)
@@ -672,7 +824,10 @@ def _write_update(writer: Any, rec: Recording, result: ReplayResult) -> None:
                 items.append((ts, order, f"{u.prefix}/{topic}", bytes(serialize_message(m))))
                 order += 1
             if msgs:
-                publications[f"{u.prefix}/{topic}"] = [[first + 1, first + len(msgs)]]
+                offset = u.origin.published.get(topic, 0)
+                publications[f"{u.prefix}/{topic}"] = [
+                    [offset + first + 1, offset + first + len(msgs)]
+                ]
     items.sort()
     for ts, _, topic, raw in items:
         writer.write(conns[topic], ts, raw)
@@ -680,5 +835,8 @@ def _write_update(writer: Any, rec: Recording, result: ReplayResult) -> None:
     notes.update(
         {"version": 1, "publications": publications, "updated_by": "packml replay --update"}
     )
+    stops = [u.stop for u in result.units]
+    if stops and "stopped_at_ns" not in notes:  # (another recorder's bag: where it was compared)
+        notes["stopped_at_ns"] = round(min(stops) * 1e9)
     writer.set_custom_data(CUSTOM_KEY, json.dumps(notes, separators=(",", ":")))
-    writer.close()
+    close_writer(writer)

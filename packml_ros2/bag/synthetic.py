@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +26,9 @@ from .topics import (
     OUTPUT_TOPICS,
     PUBLISHER_QOS,
     UNIT_TOPICS,
+    close_writer,
     msg_class,
+    open_writer,
     rosbags_qos,
     typestore,
 )
@@ -105,46 +107,78 @@ class SyntheticUnit:
         self.messages["em_reports"].append((self.now, serialize_message(msg)))
         self.driver.report(self.now, msg, self.liveliness)
 
-    def write(self, path: str | os.PathLike[str], storage: str = "mcap") -> int:
-        """Write the bag (outputs stamped at the time they were published); returns its size in
-        messages."""
-        from rosbags.rosbag2 import StoragePlugin, Writer
+    def snapshot(self) -> None:
+        """The unit node's answer to a recorder joining now: its engine state on ``snapshot``."""
+        published = {t: len(self.messages[t]) for t in OUTPUT_TOPICS}
+        msg = self.driver.snapshot_message(self._index, published, self.unit.store is not None)
+        self.messages["snapshot"].append((self.now, serialize_message(msg)))
 
-        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-        writer = Writer(Path(path), version=9, storage_plugin=plugin)
-        writer.open()
+    def write(self, path: str | os.PathLike[str], storage: str = "mcap",
+              joined: float | None = None, stop: float | None = None) -> int:  # fmt: skip
+        """Write the bag (outputs stamped at the time they were published); returns its size in
+        messages. ``joined`` (seconds after the start): what a recorder that joined then has —
+        the history the publishers keep (:data:`HISTORY`) and everything after; ``stop``: when it
+        stopped (it has the outputs published before, and notes the time)."""
+        writer = open_writer(Path(path), storage)
         store = typestore()
         items: list[tuple[int, int, Any, bytes]] = []
         order = 0
-        if self.cell_yaml is not None:
+        if self.cell_yaml is not None and not self.messages["config"]:
             text = json.dumps({"unit": self.config.name, "cell_yaml": self.cell_yaml})
             self.messages["config"].append(
                 (self.start, serialize_message(msg_class(UNIT_TOPICS["config"])(data=text)))
             )
+        since = None if joined is None else self.start + joined
+        until = None if stop is None else self.start + stop
         publications = {}
         for name, msgs in self.messages.items():
             conn = writer.add_connection(
                 f"{self.prefix}/{name}", UNIT_TOPICS[name], typestore=store,
                 offered_qos_profiles=[rosbags_qos(PUBLISHER_QOS[name])],
             )  # fmt: skip
-            for t, raw in msgs:
-                items.append((round(t * 1e9), order, conn, raw))
+            numbers = list(range(len(msgs)))
+            if since is not None:  # the publishers' history, then what came after
+                before = [i for i in numbers if msgs[i][0] < since]
+                numbers = before[len(before) - HISTORY[name] :] + numbers[len(before) :]
+            if until is not None and name != "input_log":
+                numbers = [i for i in numbers if msgs[i][0] < until]
+            for i in numbers:
+                t, raw = msgs[i]
+                items.append((round(max(t, since or t) * 1e9), order, conn, raw))
                 order += 1
-            if name in OUTPUT_TOPICS and msgs:
-                publications[f"{self.prefix}/{name}"] = [[1, len(msgs)]]
+            if name in OUTPUT_TOPICS and numbers:
+                publications[f"{self.prefix}/{name}"] = _ranges(n + 1 for n in numbers)
         items.sort(key=lambda x: (x[0], x[1]))
         last = 0
         for ts, _, conn, raw in items:
             last = max(ts, last + 1)
             writer.write(conn, last, raw)
-        notes = {
-            "version": 1,
+        notes: dict[str, Any] = {
+            "version": 2,
             "recorder": "packml_ros2.bag.synthetic",
             "publications": publications,
         }
+        if until is not None:
+            notes["stopped_at_ns"] = round(until * 1e9)
         writer.set_custom_data(CUSTOM_KEY, json.dumps(notes, separators=(",", ":")))
-        writer.close()
+        close_writer(writer)
         return len(items)
+
+
+#: Messages a publisher keeps for a subscriber that joins late (packml_ros2.qos), per topic.
+HISTORY = {"input_log": 5000, "transitions": 100, "em_reports": 0, "config": 1, "status": 1,
+           "admin": 1, "alarms": 1, "snapshot": 1}  # fmt: skip
+
+
+def _ranges(numbers: Iterable[int]) -> list[list[int]]:
+    """[[first, last], ...] of runs of consecutive numbers."""
+    out: list[list[int]] = []
+    for n in numbers:
+        if out and out[-1][1] + 1 == n:
+            out[-1][1] = n
+        else:
+            out.append([n, n])
+    return out
 
 
 class _Store:

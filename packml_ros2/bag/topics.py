@@ -19,9 +19,10 @@ OUTPUT_TOPICS = ("transitions", "status", "alarms", "admin")
 #: Outputs a unit publishes at its start and keeps latched (depth 1): a recorder matched on them
 #: has their newest message.
 LATCHED_OUTPUTS = ("status", "admin", "alarms")
-#: What the unit was given: the engine's input log (replayed offline), EM reports (replayed live)
-#: and the configuration the unit was started with.
-INPUT_TOPICS = ("input_log", "em_reports", "config")
+#: What the unit was given: the engine's input log (replayed offline), EM reports (replayed live),
+#: the configuration the unit was started with, and the engine state when the recorder joined
+#: (replay starts from it when the input log does not reach back to the unit's start).
+INPUT_TOPICS = ("input_log", "em_reports", "config", "snapshot")
 #: Topic (relative to ``/<cell>/<unit>``) -> ROS type name.
 UNIT_TOPICS: dict[str, str] = {
     "input_log": "packml_interfaces/msg/UnitInput",
@@ -31,6 +32,7 @@ UNIT_TOPICS: dict[str, str] = {
     "admin": "packml_interfaces/msg/Admin",
     "alarms": "packml_interfaces/msg/AlarmList",
     "em_reports": "packml_interfaces/msg/EmReport",
+    "snapshot": "packml_interfaces/msg/UnitSnapshot",
 }
 CELL_STATUS_TYPE = "packml_interfaces/msg/CellStatus"
 #: Publisher QoS of each unit topic (packml_ros2.qos), stored in the bag's metadata.
@@ -42,6 +44,7 @@ PUBLISHER_QOS: dict[str, QoSProfile] = {
     "admin": qos.ADMIN,
     "alarms": qos.ALARMS,
     "em_reports": qos.EM_REPORTS,
+    "snapshot": qos.SNAPSHOT,
     "coordinator": qos.CELL_STATUS,
     "line_input_log": qos.LINE_INPUT_LOG,  # the line's topics: packml_ros2.bag.line
     "line_episodes": qos.LINE_EPISODES,
@@ -49,6 +52,52 @@ PUBLISHER_QOS: dict[str, QoSProfile] = {
 }
 #: Key of the recorder's notes in the bag's ``custom_data`` (metadata.yaml).
 CUSTOM_KEY = "packml"
+#: What metadata.yaml says the bag was recorded on (rosbag2 writes the distribution's name: the
+#: ``ROS_DISTRO`` of a sourced installation); the interfaces here are Kilted's.
+DEFAULT_ROS_DISTRO = "kilted"
+
+
+def ros_distro() -> str:
+    return os.environ.get("ROS_DISTRO", "").strip() or DEFAULT_ROS_DISTRO
+
+
+STORAGES = ("mcap", "sqlite3")
+
+
+def open_writer(path: Path, storage: str = "mcap") -> Any:
+    """A new rosbags ``Writer`` at ``path``, opened: rosbag2 bag version 9; mcap with its chunks
+    compressed (zstd, as rosbag2's ``zstd_fast`` preset: readers decompress them transparently;
+    admin data and alarm lists repeat a lot, a recording shrinks about 20 times), or sqlite3."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+
+    if storage not in STORAGES:
+        raise ValueError(f"storage {storage!r}: choose one of {', '.join(STORAGES)}")
+    mcap = storage == "mcap"
+    writer = Writer(
+        path, version=9, storage_plugin=StoragePlugin.MCAP if mcap else StoragePlugin.SQLITE3
+    )
+    if mcap:
+        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    writer.open()
+    return writer
+
+
+def close_writer(writer: Any) -> None:
+    """Close a rosbags ``Writer`` (index, metadata.yaml) with the distribution's name where
+    rosbags writes its own ("ros_distro: rosbags"), in metadata.yaml and in the storage file's
+    copy of it, as rosbag2 does."""
+    storage = writer.storage
+    close = storage.close
+    line = f"ros_distro: {ros_distro()}"
+
+    def close_storage(version: int, metadata: str) -> None:
+        close(version, metadata.replace("ros_distro: rosbags", line))
+
+    storage.close = close_storage
+    writer.close()
+    meta = Path(writer.metapath)
+    meta.write_text(meta.read_text("utf-8").replace("ros_distro: rosbags", line), "utf-8")
 
 
 def reader_qos(topic: str) -> QoSProfile:

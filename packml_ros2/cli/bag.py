@@ -11,6 +11,9 @@ from typing import Any
 
 from .main import EXIT_OK, EXIT_REFUSED, EXIT_UNAVAILABLE, EXIT_USAGE
 
+#: ``packml replay``: the recording differs from the replay (1), the bag cannot be replayed (2).
+EXIT_MISMATCH, EXIT_UNUSABLE = EXIT_REFUSED, EXIT_USAGE
+
 RECORD_EPILOG = """\
 targets: cell/unit (or /cell/unit) records one unit without looking at the graph (it may start
 later); a unit or cell name is looked up on the graph; a cell records all its units and
@@ -31,7 +34,14 @@ on a difference it prints the first diverging transition and the inputs that led
 --live sends the recorded inputs to running unit nodes (start them first, without EMs) at the
 recorded pace / --speed and compares the transitions (states, modes, triggers) and the final state.
 
-exit codes: 0 match, 1 mismatch or refused bag, 2 usage, 3 (--live) a unit is not running
+Recorded from any moment: a bag whose input log does not reach back to the unit's start replays
+from the snapshot of the unit's state the recorder received when it joined. Outputs are compared
+up to the recorder's stop: a message the unit published before it and the bag lacks is a
+difference, as is one the bag has and the replay does not produce.
+
+exit codes: 0 match, 1 mismatch, 2 the bag cannot be replayed (corrupt, truncated, not a PackML
+recording, incomplete, recorded by a newer version) or usage error, 3 (--live) a unit is not
+running or not freshly started
 """
 
 
@@ -232,7 +242,7 @@ def replay(args: argparse.Namespace) -> int:
         lines = line.check(args.bag, args.config) if not args.unit else []
         result = None if lines and not _has_units(args.bag) else check(args.bag, args.config, args.unit)  # fmt: skip
     except RecordingError as exc:
-        return _fail(str(exc), EXIT_REFUSED)
+        return _fail(str(exc), EXIT_UNUSABLE)
     except KeyError as exc:
         return _fail(str(exc.args[0] if exc.args else exc), EXIT_USAGE)
     if result is not None:
@@ -240,7 +250,7 @@ def replay(args: argparse.Namespace) -> int:
     for r in lines:
         print(r.report())
     ok = (result is None or result.ok) and all(r.ok for r in lines)
-    return EXIT_OK if ok else EXIT_REFUSED
+    return EXIT_OK if ok else EXIT_MISMATCH
 
 
 def _has_units(bag: str) -> bool:
@@ -259,4 +269,4 @@ def _live(args: argparse.Namespace) -> int:
     except Unavailable as exc:
         return _fail(str(exc), EXIT_UNAVAILABLE)
     print(result.report())
-    return EXIT_OK if result.ok else EXIT_REFUSED
+    return EXIT_OK if result.ok else EXIT_MISMATCH

@@ -24,11 +24,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="the operator HMI in a browser",
         description="Serve the operator screens of a cell (overview, state diagram, modes, "
         "commands, alarms, EMs, times, counters, OEE) on http://127.0.0.1:<port>/. Every action "
-        "goes to the units' services with source 'hmi'. Host, port and an optional access token "
-        f"come from the cell file's hmi: block; the options and ${TOKEN_ENV} override it. "
-        "Ctrl-C stops the server.",
+        "goes to the units' services with source 'hmi:<user>'. Host, port, user logins (with "
+        "levels operator, maintenance, engineer) or an access token come from the cell file's "
+        f"hmi: block; the options and ${TOKEN_ENV} override it. Ctrl-C stops the server.",
     )
-    p.add_argument("cell_file", type=Path, help="the cell YAML (e.g. config/demo_cell.yaml)")
+    p.add_argument(
+        "cell_file", type=Path, nargs="?", help="the cell YAML (e.g. config/demo_cell.yaml)"
+    )
+    p.add_argument(
+        "--hash-password",
+        action="store_true",
+        help="read a password (prompt or stdin) and print the hash to put under "
+        "hmi.users.<name>.password",
+    )
     p.add_argument(
         "--host",
         help="interface to serve on (default: hmi.host, else 127.0.0.1; 0.0.0.0 = every "
@@ -47,6 +55,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def hmi(args: argparse.Namespace) -> int:
+    if args.hash_password:
+        return _hash_password()
+    if args.cell_file is None:
+        print("packml hmi: give a cell file (e.g. config/demo_cell.yaml)", file=sys.stderr)
+        return EXIT_USAGE
     try:
         cell = load_cell(args.cell_file)
         settings = hmi_settings(cell)
@@ -60,13 +73,36 @@ def hmi(args: argparse.Namespace) -> int:
         port=args.port if args.port is not None else settings.port,
         token=(token or None) if token is not None else settings.token,
     )
+    if settings.users and settings.token:
+        print(
+            f"packml hmi: {args.cell_file} has user logins (hmi.users): an access token "
+            f"(--token, ${TOKEN_ENV}) cannot be added to them",
+            file=sys.stderr,
+        )
+        return EXIT_USAGE
     if not 0 <= settings.port <= 65535:
         print(f"packml hmi: port {settings.port} is outside 0..65535", file=sys.stderr)
         return EXIT_USAGE
     if args.check:
-        print(f"{args.cell_file}: hmi valid ({settings.host}:{settings.port})")
+        n = len(settings.users)
+        access = (f", {n} user login{'s' if n > 1 else ''}" if n
+                  else ", an access token" if settings.token else "")  # fmt: skip
+        print(f"{args.cell_file}: hmi valid ({settings.host}:{settings.port}{access})")
         return EXIT_OK
     return serve(cell, settings)
+
+
+def _hash_password() -> int:
+    """Read a password (a prompt on a terminal, else one line of stdin) and print its hash."""
+    import getpass
+
+    password = getpass.getpass("password: ") if sys.stdin.isatty() else sys.stdin.readline()
+    password = password.rstrip("\n")
+    if len(password) < 8:
+        print("packml hmi: a password needs at least 8 characters", file=sys.stderr)
+        return EXIT_USAGE
+    print(secrets.hash_password(password))
+    return EXIT_OK
 
 
 def _token_override(option: str | None) -> str | None:
@@ -103,21 +139,24 @@ def serve(cell: CellConfig, settings: HmiSettings) -> int:
             file=sys.stderr,
         )
         return EXIT_USAGE
-    bridge = Bridge(cell, token=settings.token, title=settings.title)
+    bridge = Bridge(cell, token=settings.token, users=settings.users,
+                    logout_after=settings.logout_after, title=settings.title)  # fmt: skip
     try:
         bridge.spin_in_background()
         server = Server(bridge, sock, allowed_hosts=(*settings.allowed_hosts, settings.host))
         access = (
-            "an access token is required for commands (read-only without it)"
+            f"{len(settings.users)} user login(s): read-only until someone logs in"
+            if settings.users
+            else "an access token is required for commands (read-only without it)"
             if settings.token
             else "no access token: whoever opens the page can operate"
         )
         print(f"PackML HMI for cell {cell.cell}: {url_of(sock, settings.host)}  ({access})",
               flush=True)  # fmt: skip
-        if not settings.loopback and not settings.token:
+        if not settings.loopback and not settings.token and not settings.users:
             print(
                 f"packml hmi: warning: serving on {settings.host} without a token: other "
-                "machines can operate the cell (set hmi.token: env:VAR or file:PATH)",
+                "machines can operate the cell (set hmi.users, or hmi.token: env:VAR or file:PATH)",
                 file=sys.stderr,
                 flush=True,
             )

@@ -26,7 +26,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         "--threads",
         type=int,
         default=0,
-        help="executor threads in one-process mode (default: by node count)",
+        help="one-process mode: one multi-threaded executor of this many threads for every node "
+        "(default: one thread for the units and EMs, a pool for the coordinator)",
     )
     p.add_argument(
         "--logs", type=Path, help="with --processes: write each node's output to this directory"

@@ -10,6 +10,7 @@ replays exactly.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 
@@ -50,6 +51,14 @@ class Liveliness:
         for name, _ in gone:
             self.alive.discard(name)
         return gone
+
+    def next_expiry(self) -> float:
+        """When the next alive EM expires if it stays silent (``inf``: none is alive): the unit
+        node arms its timer for it instead of polling."""
+        if not self.alive:
+            return math.inf
+        last_seen = self.last_seen
+        return min(last_seen[name] for name in self.alive) + self.lease
 
     def forget(self, name: str) -> None:
         """``name`` is not an EM of the unit (its registration was refused): keep nothing of it

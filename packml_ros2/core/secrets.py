@@ -1,13 +1,14 @@
 """Secrets of a cell file: never written in it, only pointed to.
 
-Every secret key (:data:`SECRET_KEYS`: the HMI access token, the OPC UA users' passwords, the
-PLC units' passwords) takes
-one of:
+Every secret key (:data:`SECRET_KEYS`: the HMI access token, the HMI and OPC UA users'
+passwords, the PLC units' passwords) takes one of:
 
 - ``env:VARIABLE``: the value of an environment variable of the process that needs it;
 - ``file:PATH``: the contents of a file (relative to the cell file, ``~`` expanded; one trailing
   newline dropped); keep it readable by the service's user only;
-- where the key says so, a one-way hash (``pbkdf2_sha256$...`` for OPC UA passwords).
+- where the key says so (:data:`HASHED_KEYS`: users' passwords), a one-way hash
+  (``pbkdf2_sha256$...``, :func:`hash_password`; ``packml hmi --hash-password``, ``packml opcua
+  --hash-password``).
 
 A secret written in plain text is refused when the cell file is loaded (by every loader: units,
 coordinator, launcher, HMI, OPC UA), naming the key and never the value: the cell file is
@@ -18,9 +19,13 @@ one (token, password, secret, private key), reads :data:`REDACTED`.
 
 from __future__ import annotations
 
+import base64
 import functools
+import hashlib
+import hmac
 import os
 import re
+import secrets
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -32,12 +37,20 @@ from .schema import Node, invalid
 #: Key paths of secrets (``*``: any key of that mapping).
 SECRET_KEYS: tuple[tuple[str, ...], ...] = (
     ("hmi", "token"),
+    ("hmi", "users", "*", "password"),
     ("opcua", "users", "*"),
     ("units", "*", "plc", "password"),
 )
+#: Secret keys that may also hold a one-way hash (passwords a program only checks) -> the
+#: command that makes one.
+HASHED_KEYS: Mapping[tuple[str, ...], str] = {
+    ("hmi", "users", "*", "password"): "packml hmi --hash-password",
+    ("opcua", "users", "*"): "packml opcua --hash-password",
+}
 REDACTED = "<redacted>"
 MAX_SECRET_BYTES = 4096
-HASH_PREFIXES = ("pbkdf2_sha256$",)
+HASH_PREFIX = "pbkdf2_sha256$"
+HASH_PREFIXES = (HASH_PREFIX,)
 _SECRET_NAME = re.compile(r"token|passw|secret|private|credential|api_?key", re.IGNORECASE)
 _VARIABLE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
@@ -67,14 +80,18 @@ def plain_secrets(document: Any) -> list[tuple[str, str]]:
     reference (the value itself is never quoted)."""
     out = []
     for pattern in SECRET_KEYS:
-        hashed = pattern[0] == "opcua"
-        for path, value in _matches(document, pattern):
-            if value is None or value == "" or is_reference(value, hashed):
-                continue  # (an empty value holds no secret: the key's own check refuses it)
-            ways = "env:VARIABLE, file:PATH" + (" or a hash (packml opcua --hash-password)"
-                                                if hashed else "")  # fmt: skip
-            out.append((path, f"a secret is never written in the cell file (it is published "
-                              f"on the units' ~/config topic and recorded in bags): give {ways}"))  # fmt: skip
+        out.extend(_plain(document, pattern, HASHED_KEYS.get(pattern, "")))
+    return out
+
+
+def _plain(document: Any, pattern: tuple[str, ...], hasher: str) -> list[tuple[str, str]]:
+    out = []
+    for path, value in _matches(document, pattern):
+        if value is None or value == "" or is_reference(value, bool(hasher)):
+            continue  # (an empty value holds no secret: the key's own check refuses it)
+        ways = "env:VARIABLE, file:PATH" + (f" or a hash ({hasher})" if hasher else "")
+        out.append((path, f"a secret is never written in the cell file (it is published "
+                          f"on the units' ~/config topic and recorded in bags): give {ways}"))  # fmt: skip
     return out
 
 
@@ -114,6 +131,41 @@ def resolve(n: Node, base: Path, hashed: bool = False) -> str:
     if not secret.strip():
         raise invalid(f"{value[:80]} is empty")
     return secret
+
+
+def hash_password(password: str, iterations: int = 200_000) -> str:
+    """``pbkdf2_sha256$<iterations>$<salt>$<hash>`` (base64): what a users' password key may hold
+    instead of a reference."""
+    salt = secrets.token_bytes(16)
+    digest = hashlib.pbkdf2_hmac("sha256", password.encode(), salt, iterations)
+    b64 = base64.b64encode
+    return f"{HASH_PREFIX}{iterations}${b64(salt).decode()}${b64(digest).decode()}"
+
+
+def check_password(password: str | None, stored: str) -> bool:
+    """Constant-time comparison with a plain or hashed password (``env:``/``file:`` are resolved
+    at load)."""
+    if password is None:
+        return False
+    if stored.startswith(HASH_PREFIX):
+        try:
+            iterations, salt, digest = stored[len(HASH_PREFIX) :].split("$")
+            expected = base64.b64decode(digest)
+            got = hashlib.pbkdf2_hmac(
+                "sha256", password.encode(), base64.b64decode(salt), int(iterations)
+            )
+        except ValueError:
+            return False
+        return hmac.compare_digest(got, expected)
+    return hmac.compare_digest(password.encode(), stored.encode())
+
+
+def check_hash(value: str) -> str:
+    """``value`` when it is a well-formed :func:`hash_password` hash (raises ``invalid``)."""
+    parts = value[len(HASH_PREFIX) :].split("$")
+    if not value.startswith(HASH_PREFIX) or len(parts) != 3 or not parts[0].isdigit():
+        raise invalid("malformed password hash (expected pbkdf2_sha256$<n>$<salt>$<hash>)")
+    return value
 
 
 def redact(document: Any) -> Any:

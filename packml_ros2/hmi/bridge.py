@@ -2,9 +2,19 @@
 alarms, transitions) and the coordinator's CellStatus through :class:`~packml_ros2.client.CellProxy`,
 keeps the latest of each as a JSON-able dict, and pushes every change to its listeners at once.
 
-Actions go to the units' (and the coordinator's) services with source ``hmi``; each returns the
-service's answer as a dict ``{accepted, result, result_name, message, ...}``. With a token
-configured, an action without it (or with a wrong one) is refused here with result
+Presence: whether each unit and the coordinator is there comes from their status' DDS liveliness
+(:mod:`packml_ros2.presence`, lease ``coordinator.unit_lease``): a unit that is gone is reported
+within its lease (event ``online``, its ``presence`` with since when and why), its last values
+kept for the page to grey out, and actions on it refused at once.
+
+The page draws each unit's state diagram from the unit's compiled rules (:func:`config_dict`:
+the model's edges, each mode's edges and disabled states), and shows why a command or mode change
+is not available now (:mod:`.why`, recomputed on every status and alarm list: event ``why``).
+
+Actions go to the units' (and the coordinator's) services with source
+:func:`.access.command_source` (``hmi:<user>``); each returns the service's answer as a dict
+``{accepted, result, result_name, message, ...}``. Without the credential the access rule asks for,
+or below the level an action needs (:mod:`.access`), an action is refused here with result
 ``UNAUTHORIZED`` and never reaches the unit.
 
 Threads: the node is spun by one single-threaded executor (:meth:`Bridge.spin_in_background`), so
@@ -25,26 +35,38 @@ from contextlib import suppress
 from typing import Any
 
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray
+from packml_interfaces.msg import CellStatus
 from packml_interfaces.srv import Command, SetMode
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
-from .. import qos
 from ..client import CellProxy, Unavailable, call_future
 from ..core import CellConfig
+from ..core.config import UnitConfig
 from ..core.numbers import ACTING, MAX_MODE, Cmd, State, command_name, parse_command, state_name
 from ..core.reasons import Reason
+from ..core.rules import Edge, rules_of
 from ..core.schema import shown
-from .access import Access, Principal
+from ..presence import Presence, Seen
+from . import why
+from .access import (
+    CELL_ACTION_LEVEL,
+    LEVELS,
+    LOGOUT_AFTER,
+    UNIT_ACTION_LEVEL,
+    Access,
+    Principal,
+    Refusal,
+    User,
+    command_source,
+    level_refusal,
+)
 
 Event = dict[str, Any]
 Listener = Callable[[Event], None]
 
-SOURCE = "hmi"
-STALE_AFTER = 3.0  # s without any message from a unit (its /diagnostics come every second): offline
 TRANSITIONS_KEPT = 30
 HISTORY_KEPT = 50
 CALL_TIMEOUT = 10.0
@@ -275,53 +297,89 @@ def refusal(reason: Reason, message: str) -> dict[str, Any]:
     }
 
 
-def config_dict(cell: CellConfig, title: str = "", token_required: bool = False) -> dict[str, Any]:
-    """What the page needs to draw itself: units, their modes and EMs, states and commands."""
+def _edge(e: Edge) -> list[Any]:
+    """``[from, command or None (State Complete), to, [skipped states]]``"""
+    return [e.from_state.name, e.trigger.name if e.trigger else None, e.to_state.name,
+            [s.name for s in e.skipped]]  # fmt: skip
+
+
+def unit_config_dict(name: str, u: UnitConfig) -> dict[str, Any]:
+    """One unit for the page: its modes and EMs, and its state diagram from its compiled rules
+    (``edges``: the model's graph; each mode's ``edges`` and ``disabled_states``)."""
+    rules = rules_of(u)
+    commands = rules.table.commands
+    return {
+        "name": name,
+        "description": u.description,
+        "model": rules.table.model,
+        "hold_from": sorted(s.name for s, c in commands if c is Cmd.HOLD),
+        "complete_from": sorted(s.name for s, c in commands if c is Cmd.COMPLETE),
+        "edges": [_edge(e) for e in rules.edges()],
+        "modes": [
+            {
+                "number": m.number,
+                "name": m.name,
+                "disabled": m.disabled_mask,
+                "disabled_states": sorted(s.name for s in m.disabled),
+                "change_allowed": sorted(s.name for s in m.change_allowed),
+                "edges": [_edge(e) for e in rules.edges(m.number)],
+            }
+            for m in sorted(u.modes.values(), key=lambda m: m.number)
+        ],
+        "equipment_modules": [e.name for e in u.equipment_modules],
+        "mach_design_speed": u.mach_design_speed,
+    }
+
+
+def config_dict(cell: CellConfig, title: str = "", access: Access | None = None) -> dict[str, Any]:
+    """What the page needs to draw itself: units (their modes, EMs and state diagrams), states,
+    commands, how one logs in and which level each action needs."""
+    access = access or Access(None)
     return {
         "cell": cell.cell,
         "title": title or cell.cell,
-        "token_required": token_required,
+        "login": access.kind,  # users, token or none
+        "token_required": access.kind == "token",
+        "levels": list(LEVELS),
+        "unit_action_level": dict(UNIT_ACTION_LEVEL),
+        "cell_action_level": dict(CELL_ACTION_LEVEL),
+        "logout_after": access.sessions.idle,
+        "lease": cell.coordinator.unit_lease,
         "coordinator": cell.coordinator.enabled,
         "states": [{"number": int(s), "name": s.name, "acting": s in ACTING} for s in State if s],
         "commands": [{"number": int(c), "name": c.name} for c in Cmd if c],
-        "units": [
-            {
-                "name": name,
-                "description": u.description,
-                "modes": [
-                    {
-                        "number": m.number,
-                        "name": m.name,
-                        "disabled": m.disabled_mask,
-                        "change_allowed": sorted(s.name for s in m.change_allowed),
-                    }
-                    for m in sorted(u.modes.values(), key=lambda m: m.number)
-                ],
-                "equipment_modules": [e.name for e in u.equipment_modules],
-                "mach_design_speed": u.mach_design_speed,
-            }
-            for name, u in cell.units.items()
-        ],
+        "units": [unit_config_dict(name, u) for name, u in cell.units.items()],
     }
+
+
+def presence_dict(seen: Seen) -> dict[str, Any]:
+    """``{present, since, reason}``: ``present`` None while not known yet; ``since`` in s since
+    the epoch."""
+    return {"present": seen.present, "since": seen.since, "reason": seen.reason}
 
 
 # -- the bridge -------------------------------------------------------------------------------------------
 class Bridge:
     """The cell seen by the HMI. ``context``: an initialised rclpy Context (default: a new one,
-    shut down by :meth:`close`). Spin the node with :meth:`spin_in_background`."""
+    shut down by :meth:`close`). Spin the node with :meth:`spin_in_background`. ``token`` or
+    ``users`` (with ``logout_after``): the access rule (:class:`.access.Access`); ``lease``: how
+    long a silent unit or coordinator is still present (default ``coordinator.unit_lease``)."""
 
     def __init__(
         self,
         cell: CellConfig,
         *,
         token: str | None = None,
+        users: Mapping[str, User] | None = None,
+        logout_after: float = LOGOUT_AFTER,
         title: str = "",
         context: Context | None = None,
-        stale_after: float = STALE_AFTER,
+        lease: float | None = None,
     ) -> None:
         self.cell = cell
-        self.access = Access(token or None)
-        self.config = config_dict(cell, title, self.access.required)
+        self.access = Access(token or None, users=users, logout_after=logout_after)
+        self.config = config_dict(cell, title, self.access)
+        self.lease = cell.coordinator.unit_lease if lease is None else lease
         self._modes = {name: sorted(m for m in u.modes if m < 32) for name, u in cell.units.items()}
         self._own_context = context is None
         if context is None:
@@ -335,6 +393,7 @@ class Bridge:
         )
         self._lock = threading.RLock()
         self._listeners: list[Listener] = []
+        started = Seen(None, time.time())
         self._units: dict[str, dict[str, Any]] = {
             name: {
                 "status": None,
@@ -342,14 +401,29 @@ class Bridge:
                 "alarms": None,
                 "transitions": [],
                 "online": False,
+                "presence": presence_dict(started),
+                "why": why.reasons(cell.units[name], None, None),
             }
             for name in cell.units
         }
-        self._last_seen: dict[str, float] = {}
         self._cell_status: dict[str, Any] | None = None
-        self._stale_after = stale_after
+        self._coordinator_presence: dict[str, Any] | None = (
+            presence_dict(started) if cell.coordinator.enabled else None
+        )
         self._group = MutuallyExclusiveCallbackGroup()
         self.proxy = CellProxy(self.node, cell.cell, cell.units, on_change=self._on_change)
+        self.presence = Presence(
+            self.node,
+            [f"/{cell.cell}/{name}" for name in cell.units],
+            self.lease,
+            on_change=self._on_presence,
+        )
+        self.coordinator_presence: Presence | None = None
+        if cell.coordinator.enabled:
+            self.coordinator_presence = Presence(
+                self.node, [f"/{cell.cell}/coordinator"], self.lease,
+                on_change=self._on_presence, message_type=CellStatus,
+            )  # fmt: skip
         self._coordinator = {
             "command": self.node.create_client(
                 Command, f"/{cell.cell}/coordinator/command", callback_group=self._group
@@ -358,13 +432,6 @@ class Bridge:
                 SetMode, f"/{cell.cell}/coordinator/set_mode", callback_group=self._group
             ),
         }
-        # A unit publishes /diagnostics every second, whatever else happens (its Admin goes out
-        # on change and only every 5 s otherwise): that tells it is alive.
-        self.node.create_subscription(
-            DiagnosticArray, "/diagnostics", self._on_diagnostics, qos.DIAGNOSTICS,
-            callback_group=self._group,
-        )  # fmt: skip
-        self._timer = self.node.create_timer(0.5, self._check_online)
         self._running = True
         self._executor: SingleThreadedExecutor | None = None
         self._thread: threading.Thread | None = None
@@ -406,6 +473,7 @@ class Bridge:
                     for name, u in self._units.items()
                 },
                 "cell_status": self._cell_status,
+                "coordinator": self._coordinator_presence,
                 "time": time.time() * 1000.0,
             }
 
@@ -429,6 +497,24 @@ class Bridge:
             except Exception as exc:  # one broken listener must not starve the others
                 self.node.get_logger().warning(f"HMI listener failed: {exc!r}")
 
+    def _on_presence(self, path: str, seen: Seen) -> None:
+        """A unit's or the coordinator's presence changed (the node's thread)."""
+        name = path.rsplit("/", 1)[-1]
+        with self._lock:
+            if path == f"/{self.cell.cell}/coordinator":
+                self._coordinator_presence = data = presence_dict(seen)
+                self._emit({"topic": "coordinator", "unit": None, "data": data,
+                            "received": time.time() * 1000.0})  # fmt: skip
+            elif name in self._units:
+                self._set_presence(name, seen)
+
+    def _set_presence(self, name: str, seen: Seen) -> None:
+        unit = self._units[name]
+        unit["online"] = seen.present is True
+        unit["presence"] = data = presence_dict(seen)
+        self._emit({"topic": "online", "unit": name, "data": data,
+                    "received": time.time() * 1000.0})  # fmt: skip
+
     def _on_change(self, path: str, topic: str, msg: Any) -> None:
         received = time.time() * 1000.0
         name = path.rsplit("/", 1)[-1]
@@ -437,14 +523,15 @@ class Bridge:
                 data = cell_status_dict(msg)
                 self._cell_status = data
                 self._emit({"topic": "cell", "unit": None, "data": data, "received": received})
+                coordinator = self._coordinator_presence
+                if coordinator is not None and coordinator["present"] is None:  # a sign of life
+                    self._on_presence(path, Seen(True, time.time()))
                 return
             unit = self._units.get(name)
             if unit is None:
                 return
-            self._last_seen[name] = time.monotonic()
-            if not unit["online"]:
-                unit["online"] = True
-                self._emit({"topic": "online", "unit": name, "data": True, "received": received})
+            if unit["presence"]["present"] is None:  # a sign of life before liveliness says so
+                self._set_presence(name, Seen(True, time.time()))
             if topic == "transitions":
                 data = transition_dict(msg)
                 unit["transitions"].append(data)
@@ -465,28 +552,28 @@ class Bridge:
             # each topic in order and one thread handles them.)
             unit[topic] = data
             self._emit({"topic": topic, "unit": name, "data": data, "received": received})
+            if topic in ("status", "alarms"):
+                reasons = why.reasons(self.cell.units[name], unit["status"], unit["alarms"])
+                if reasons != unit["why"]:
+                    unit["why"] = reasons
+                    self._emit({"topic": "why", "unit": name, "data": reasons,
+                                "received": received})  # fmt: skip
 
-    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
-        for status in msg.status:
-            name = status.name.removeprefix("packml: ")
-            if status.hardware_id == f"{self.cell.cell}/{name}":  # a unit of this cell, not an EM
-                self._on_change(f"/{self.cell.cell}/{name}", "diagnostics", status)
-
-    def _check_online(self) -> None:
-        now = time.monotonic()
+    def gone(self, unit: str | None) -> str:
+        """Why ``unit`` (None: the coordinator) cannot be called now ('' = it can)."""
         with self._lock:
-            for name, unit in self._units.items():
-                if unit["online"] and now - self._last_seen.get(name, 0.0) > self._stale_after:
-                    unit["online"] = False
-                    self._emit({"topic": "online", "unit": name, "data": False,
-                                "received": time.time() * 1000.0})  # fmt: skip
+            if unit is None:
+                seen = self._coordinator_presence
+                what = f"the {self.cell.cell} coordinator"
+            else:
+                seen = self._units[unit]["presence"]
+                what = f"{self.cell.cell}/{unit}"
+        if seen is None or seen["present"] is not False:
+            return ""
+        clock = time.strftime("%H:%M:%S", time.localtime(seen["since"]))
+        return f"{what} is not reachable since {clock} ({seen['reason']})"
 
     # -- actions -------------------------------------------------------------------------------------
-    def authorized(self, token: str | None) -> dict[str, Any] | None:
-        """None when ``token`` may operate; otherwise the refusal to show."""
-        result = self.access.verify(token)
-        return None if isinstance(result, Principal) else result.body()
-
     def builder(self, unit: str | None, action: str) -> Builder:
         """The request builder of ``action`` on ``unit`` (None: the cell); raises
         :class:`ActionError` for an unknown unit or action."""
@@ -505,16 +592,24 @@ class Bridge:
         action: str,
         args: Mapping[str, Any] | None = None,
         token: str | None = None,
+        *,
+        who: Principal | None = None,
     ) -> Future[dict[str, Any]]:
-        """Call ``action`` of ``unit`` (None: the cell coordinator) with source ``hmi``; a future
-        of the answer dict. Raises :class:`ActionError` for an unknown unit or action."""
+        """Call ``action`` of ``unit`` (None: the cell coordinator) for ``who`` (default: whom
+        ``token`` stands for) with source :func:`.access.command_source`; a future of the answer
+        dict. Refused here below the action's level and when the unit is gone. Raises
+        :class:`ActionError` for an unknown unit or action."""
         args = dict(args or {})
         builder = self.builder(unit, action)
         done: Future[dict[str, Any]] = Future()
-        denied = self.authorized(token)
+        verified = self.access.verify(token) if who is None else who
+        denied = (
+            verified if isinstance(verified, Refusal) else level_refusal(verified, unit, action)
+        )
         if denied is not None:
-            done.set_result(denied)
+            done.set_result(denied.body())
             return done
+        assert isinstance(verified, Principal)
         try:
             service, fields = builder(args)
         except (ValueError, TypeError, KeyError) as exc:
@@ -522,7 +617,11 @@ class Bridge:
             answer = refusal(Reason.INVALID_ARGUMENT, f"{action}: {text[:300]}")
             done.set_result({**answer, "code": BAD_ARGUMENT})
             return done
-        fields["source"] = SOURCE
+        gone = self.gone(unit)
+        if gone:
+            done.set_result(refusal(Reason.UNIT_UNAVAILABLE, f"{action}: {gone}; nothing was sent"))
+            return done
+        fields["source"] = command_source(verified)
         if unit is not None:
             future = self.proxy.unit(unit).call(service, **fields)
             where = f"{self.cell.cell}/{unit}"
@@ -545,10 +644,11 @@ class Bridge:
         return done
 
     def act_sync(self, unit: str | None, action: str, args: Mapping[str, Any] | None = None,
-                 token: str | None = None, timeout: float = CALL_TIMEOUT) -> dict[str, Any]:  # fmt: skip
+                 token: str | None = None, timeout: float = CALL_TIMEOUT, *,
+                 who: Principal | None = None) -> dict[str, Any]:  # fmt: skip
         """:meth:`act` and wait (not from the bridge's thread)."""
         try:
-            return self.act(unit, action, args, token).result(timeout)
+            return self.act(unit, action, args, token, who=who).result(timeout)
         except TimeoutError:
             return refusal(Reason.UNIT_UNAVAILABLE, f"{action}: no answer within {timeout:g} s")
 

@@ -7,17 +7,22 @@ forbids it):
 - ``GET /api/config``, ``GET /api/snapshot``: what the page draws, as JSON;
 - ``GET /api/events``: server-sent events: one ``snapshot`` first, then an ``update`` per change
   (``{topic, unit, data, received}``; ``received`` = when the bridge got the message, ms since the
-  epoch), a comment every 15 s to keep proxies from closing the stream;
+  epoch), a ``ping`` every 5 s (the page notices a server that went silent; proxies keep the
+  stream open);
 - ``POST /api/units/{unit}/{action}`` (command, set_mode, ack_alarms, reset_alarms, reset_times,
   reset_counters, set_em_active, set_mach_speed) and ``POST /api/cell/{action}`` (command,
   set_mode through the coordinator), JSON body with the action's arguments: the unit's answer
   ``{accepted, result, result_name, message, ...}`` (200 also when the unit refuses);
-- ``POST /api/auth``: 200 when the token is right (or none is configured), else 403.
+- ``POST /api/auth``: 200 with ``{user, level}`` when the credential is good (or none is
+  configured), else 403;
+- ``POST /api/login`` ``{user, password}`` (with ``hmi.users``): 200 with ``{session, user,
+  level}``, else 403 (``LOGIN_WRONG``); ``POST /api/logout`` ends the session sent.
 
-Access control (:mod:`.access`): with a token configured every POST needs ``Authorization:
-Bearer <token>``; without it, or with a wrong one, the answer is 403 with the reason in
-``message`` and nothing reaches the unit; wrong tokens are throttled per client (429). Reading
-(page, snapshot, events) needs no token: the page is read-only then.
+Access control (:mod:`.access`): with users or a token configured every action needs
+``Authorization: Bearer <session or token>``; without it, with a wrong one or below the level the
+action needs, the answer is 403 with the reason in ``message`` and nothing reaches the unit;
+wrong tokens, passwords and unknown sessions are throttled per client (429). Reading (page,
+snapshot, events) needs nothing: the page is read-only then.
 
 Requests (:mod:`.guard`): the Host header is checked on every request, a POST from another site is
 refused, an action's body is read only after its token is checked, and only if it is JSON and at
@@ -43,13 +48,13 @@ from starlette.exceptions import HTTPException
 
 from ..core.reasons import Reason
 from . import line
-from .access import Principal, Refusal
+from .access import Principal, Refusal, level_refusal
 from .bridge import BAD_ARGUMENT, ActionError, Bridge, Event
 from .guard import HostGuard, Json, dumps, json_content, parse_object, read_body, refuse
 from .settings import HmiSettings
 
 STATIC = Path(str(resources.files("packml_ros2.hmi") / "static"))
-KEEPALIVE = 15.0  # s between comments on an idle event stream
+KEEPALIVE = 5.0  # s between pings on an idle event stream
 QUEUE_LIMIT = 2000  # events waiting for one slow browser before it is sent a fresh snapshot
 MAX_STREAMS = 64  # event streams open at once (each holds a queue)
 ACTION_TIMEOUT = 10.0
@@ -189,7 +194,7 @@ def create_app(bridge: Bridge, allowed_hosts: Iterable[str] = ()) -> FastAPI:
                     try:
                         event = await asyncio.wait_for(queue.get(), KEEPALIVE)
                     except TimeoutError:
-                        yield ": keep-alive\n\n"
+                        yield "event: ping\ndata: {}\n\n"
                         continue
                     if event is None:
                         return
@@ -217,13 +222,13 @@ def create_app(bridge: Bridge, allowed_hosts: Iterable[str] = ()) -> FastAPI:
             bridge.builder(unit, action)
         except ActionError as exc:
             return refuse(Refusal(404, Reason.INVALID_ARGUMENT, "NOT_FOUND", str(exc.args[0])))
-        refusal = json_content(request)
+        refusal = level_refusal(who, unit, action) or json_content(request)
         body = await read_body(request) if refusal is None else refusal
         args = parse_object(body) if isinstance(body, bytes) else body
         if isinstance(args, Refusal):
             return refuse(args)
         try:
-            future = bridge.act(unit, action, args, token)
+            future = bridge.act(unit, action, args, who=who)
         except ActionError as exc:
             return refuse(Refusal(404, Reason.INVALID_ARGUMENT, "NOT_FOUND", str(exc.args[0])))
         timeout = CELL_ACTION_TIMEOUT if unit is None else ACTION_TIMEOUT
@@ -250,14 +255,39 @@ def create_app(bridge: Bridge, allowed_hosts: Iterable[str] = ()) -> FastAPI:
     async def cell_action(action: str, request: Request) -> Json:
         return await run_action(None, action, request)
 
+    def welcome(who: Principal, message: str, **more: Any) -> Json:
+        return Json({"accepted": True, "result": 0, "result_name": "ACCEPTED", "message": message,
+                     "user": who.name, "level": who.level, **more})  # fmt: skip
+
     @app.post("/api/auth")
     async def auth(request: Request) -> Json:
         who = access.authorize(_token(request), _client(request))
         if isinstance(who, Refusal):
             return refuse(who)
-        assert isinstance(who, Principal)
+        return welcome(who, "operating")
+
+    @app.post("/api/login")
+    async def login(request: Request) -> Json:
+        client = _client(request)
+        blocked = access.throttle.blocked(client)
+        refusal = blocked or json_content(request)
+        body = await read_body(request, 4096) if refusal is None else refusal
+        args = parse_object(body) if isinstance(body, bytes) else body
+        if isinstance(args, Refusal):
+            return refuse(args)
+        # (checking a password hash takes a while on purpose: not in the event loop)
+        result = await asyncio.to_thread(access.login, args.get("user"), args.get("password"),
+                                         client)  # fmt: skip
+        if isinstance(result, Refusal):
+            return refuse(result)
+        session, who = result
+        return welcome(who, f"logged in as {who.name} ({who.level})", session=session)
+
+    @app.post("/api/logout")
+    async def logout(request: Request) -> Json:
+        who = access.logout(_token(request))
         return Json({"accepted": True, "result": 0, "result_name": "ACCEPTED",
-                     "message": "operating", "user": who.name, "level": who.level})  # fmt: skip
+                     "message": f"{who.name} logged out" if who else "not logged in"})  # fmt: skip
 
     line.add_routes(app, bridge, STATIC)  # the line page: hmi/line.py
     app.mount("/static", StaticFiles(directory=STATIC), name="static")

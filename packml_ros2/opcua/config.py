@@ -29,10 +29,6 @@ Relative paths are relative to the cell file. Errors name the key path (``opcua.
 
 from __future__ import annotations
 
-import base64
-import hashlib
-import hmac
-import secrets
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,6 +37,12 @@ from ..core import schema as sc
 from ..core import secrets as secret_sources
 from ..core.config import DEFAULT_STATE_DIR, CellConfig
 from ..core.schema import ConfigError, Node, invalid
+from ..core.secrets import HASH_PREFIX, check_hash, check_password, hash_password
+
+__all__ = [  # (the password functions live in core.secrets, shared with the HMI's users)
+    "DEFAULT_POLICIES", "HASH_PREFIX", "KEYS", "POLICIES", "OpcUaConfig", "check_password",
+    "hash_password", "parse_opcua", "with_overrides",
+]  # fmt: skip
 
 #: Names accepted in ``security_policies`` -> asyncua SecurityPolicyType member names.
 POLICIES = {
@@ -59,7 +61,6 @@ KEYS = {
     "trusted_client_certificates", "state_dir", "application_uri", "call_timeout",
     "max_mach_speed",
 }  # fmt: skip
-HASH_PREFIX = "pbkdf2_sha256$"
 
 
 @dataclass(frozen=True)
@@ -100,38 +101,10 @@ class OpcUaConfig:
         return self.application_uri or f"urn:packml_ros2:{self.cell}"
 
 
-def hash_password(password: str, iterations: int = 200_000) -> str:
-    """``pbkdf2_sha256$<iterations>$<salt>$<hash>`` (base64) for ``users:``."""
-    salt = secrets.token_bytes(16)
-    digest = hashlib.pbkdf2_hmac("sha256", password.encode(), salt, iterations)
-    b64 = base64.b64encode
-    return f"{HASH_PREFIX}{iterations}${b64(salt).decode()}${b64(digest).decode()}"
-
-
-def check_password(password: str | None, stored: str) -> bool:
-    """Constant-time comparison with a plain or hashed password (``env:``/``file:`` are resolved
-    at load)."""
-    if password is None:
-        return False
-    if stored.startswith(HASH_PREFIX):
-        try:
-            iterations, salt, digest = stored[len(HASH_PREFIX) :].split("$")
-            expected = base64.b64decode(digest)
-            got = hashlib.pbkdf2_hmac(
-                "sha256", password.encode(), base64.b64decode(salt), int(iterations)
-            )
-        except ValueError:
-            return False
-        return hmac.compare_digest(got, expected)
-    return hmac.compare_digest(password.encode(), stored.encode())
-
-
 def _password(n: Node, base: Path) -> str:
     s = secret_sources.resolve(n, base, hashed=True)
     if s.startswith(HASH_PREFIX):
-        parts = s[len(HASH_PREFIX) :].split("$")
-        if len(parts) != 3 or not parts[0].isdigit():
-            raise invalid("malformed password hash (expected pbkdf2_sha256$<n>$<salt>$<hash>)")
+        check_hash(s)
     elif len(s) < 4:
         raise invalid("password too short (at least 4 characters)")
     return s

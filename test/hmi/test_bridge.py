@@ -1,6 +1,7 @@
 """Issue 7: the HMI backend's bridge (packml_ros2.hmi.bridge) and its web layer (server.py),
 against a real unit node in-process over real DDS: the snapshot, change events in order, actions
-with source ``hmi`` and the unit's refusals, the access token, the event stream over HTTP.
+with source ``hmi:<user>`` and the unit's refusals, the access token, the event stream over HTTP;
+issue 17: the unit's presence within its lease, the diagram and the reasons from its rules.
 
 Every wait is on a condition (an event, a message, a service), never a fixed sleep."""
 
@@ -46,20 +47,32 @@ UNIT_DOC: dict[str, Any] = {
 class Cell:
     """A unit node spun by the harness, a test client for it, and a bridge on the same domain."""
 
-    def __init__(self, ros: Any, tmp_path: Path, token: str | None, stale_after: float) -> None:
+    def __init__(self, ros: Any, tmp_path: Path, token: str | None, lease: float,
+                 users: dict[str, Any] | None = None) -> None:  # fmt: skip
         self.file, self.cell = write_cell(tmp_path, {UNIT: dict(UNIT_DOC)})
         self.config = load_cell(self.file)
-        self.node = UnitNode(self.config.units[UNIT], context=ros.context)
-        ros.add(self.node)
+        self.lease = lease
+        self.node = self.start_unit(ros)
         self.client = UnitClient(ros, self.cell, UNIT)
         self.client.ready()
         self.bridge = Bridge(
-            self.config, token=token, context=ros.context, stale_after=stale_after
+            self.config, token=token, users=users, context=ros.context, lease=lease
         ).spin_in_background()
         self.events: Collector[dict[str, Any]] = Collector()
         self.first_snapshot, self.unsubscribe = self.bridge.subscribe(self.events)
         self.ros = ros
         self.wait_latched("status")
+
+    def start_unit(self, ros: Any) -> UnitNode:
+        node = UnitNode(self.config.units[UNIT], context=ros.context, unit_lease=self.lease)
+        ros.add(node)
+        return node
+
+    def stop_unit(self) -> None:
+        """The unit's node gone (its status writer with it)."""
+        self.ros.executor.remove_node(self.node)
+        self.ros._nodes.remove(self.node)
+        self.node.destroy_node()
 
     def wait_latched(self, topic: str) -> None:
         """Until the bridge holds the unit's latched ``topic``: already in the snapshot taken at
@@ -104,8 +117,8 @@ def serving(bridge: Bridge) -> Iterator[httpx.Client]:
 def make_cell(ros, tmp_path: Path) -> Iterator[Callable[..., Cell]]:
     made: list[Cell] = []
 
-    def make(token: str | None = None, stale_after: float = 3.0) -> Cell:
-        cell = Cell(ros, tmp_path, token, stale_after)
+    def make(token: str | None = None, lease: float = 3.0, users: Any = None) -> Cell:
+        cell = Cell(ros, tmp_path, token, lease, users)
         made.append(cell)
         return cell
 
@@ -159,7 +172,7 @@ def test_actions_go_out_with_source_hmi_and_changes_arrive_in_order(make_cell) -
     reset = cell.wait_event(
         lambda e: e["topic"] == "transition" and e["data"]["command"] == "RESET", "the RESET", mark
     )
-    assert reset["data"]["source"] == "hmi" and reset["unit"] == UNIT
+    assert reset["data"]["source"] == "hmi:anyone" and reset["unit"] == UNIT
     assert reset["received"] <= time.time() * 1000
 
     mark = len(cell.events)
@@ -263,17 +276,95 @@ def test_alarms_are_acknowledged_and_reset_through_the_bridge(make_cell) -> None
     cell.wait_event(lambda e: e["topic"] == "alarms" and not e["data"]["alarms"], "empty", mark)
 
 
-def test_a_silent_unit_goes_offline_and_comes_back(make_cell, ros) -> None:
-    cell = make_cell(stale_after=1.0)  # the unit publishes admin every 0.2 s
+def test_a_unit_that_is_gone_is_lost_within_its_lease_and_comes_back(make_cell, ros) -> None:
+    cell = make_cell(lease=1.0)
+    if not cell.first_snapshot["units"][UNIT]["online"]:  # (else present before it subscribed)
+        cell.wait_event(lambda e: e["topic"] == "online" and e["data"]["present"], "present")
     assert cell.bridge.snapshot()["units"][UNIT]["online"]
     mark = len(cell.events)
-    ros.executor.remove_node(cell.node)  # the unit stops publishing
-    offline = cell.wait_event(
-        lambda e: e["topic"] == "online" and e["data"] is False, "offline", mark
+    gone_at = time.time()
+    cell.stop_unit()
+    lost = cell.wait_event(
+        lambda e: e["topic"] == "online" and e["data"]["present"] is False, "lost", mark
     )
-    assert offline["unit"] == UNIT and not cell.bridge.snapshot()["units"][UNIT]["online"]
-    ros.add(cell.node)
-    cell.wait_event(lambda e: e["topic"] == "online" and e["data"] is True, "online again", mark)
+    assert lost["unit"] == UNIT and lost["data"]["since"] - gone_at < 1.0 + 0.5  # the lease
+    unit = cell.bridge.snapshot()["units"][UNIT]
+    assert not unit["online"] and unit["status"]["state_name"] == "STOPPED"  # the last known
+    assert unit["presence"]["reason"], unit["presence"]
+    # an action on a lost unit is refused at once, saying since when
+    started = time.monotonic()
+    answer = cell.bridge.act_sync(UNIT, "command", {"command": "reset"})
+    assert (
+        answer["result_name"] == "UNIT_UNAVAILABLE" and "not reachable since" in answer["message"]
+    )
+    assert time.monotonic() - started < 0.5, "not at once"
+    cell.node = cell.start_unit(ros)
+    back = cell.wait_event(lambda e: e["topic"] == "online" and e["data"]["present"], "back", mark)
+    assert back["unit"] == UNIT and cell.bridge.snapshot()["units"][UNIT]["online"]
+
+
+def test_why_a_command_is_disabled_is_what_the_running_unit_answers(make_cell) -> None:
+    # Issue 17, HMI item 4: the reason each disabled command or mode button shows (event ``why``)
+    # comes from the running unit's rule book: sent anyway, the unit node refuses it with that
+    # reason code and that sentence, in each situation: stopped, executing, stopped by an alarm
+    cell = make_cell()
+
+    def shown_in(state: str, test: Callable[[dict[str, Any]], bool] = lambda w: True
+                 ) -> dict[str, Any]:  # fmt: skip
+        """The reasons the bridge shows once the unit is in ``state`` and they pass ``test``."""
+        deadline = time.monotonic() + 10
+        while True:
+            unit = cell.bridge.snapshot()["units"][UNIT]
+            if unit["status"]["state_name"] == state and test(unit["why"]):
+                return unit["why"]  # type: ignore[no-any-return]
+            assert time.monotonic() < deadline, unit["why"]
+            time.sleep(0.02)
+
+    def sent_anyway(shown: dict[str, Any]) -> None:
+        valid = cell.bridge.snapshot()["units"][UNIT]["status"]["commands_valid_names"]
+        assert set(shown["commands"]) | set(valid) == {
+            c["name"] for c in cell.bridge.snapshot()["config"]["commands"]
+        }
+        for name, reason in shown["commands"].items():
+            answer = cell.bridge.act_sync(UNIT, "command", {"command": name})
+            assert not answer["accepted"], (name, answer)
+            assert (answer["result_name"], answer["message"]) == (reason["reason"], reason["text"])
+        for number, text in shown["modes"].items():
+            answer = cell.bridge.act_sync(UNIT, "set_mode", {"mode": int(number)})
+            if "is the current mode" in text:  # no change: the unit says so
+                assert answer["message"].startswith("already in"), (number, answer)
+                continue
+            assert not answer["accepted"] and answer["message"] == text, (number, answer)
+
+    stopped = shown_in("STOPPED")
+    assert stopped["commands"]["START"] == {
+        "reason": "COMMAND_NOT_ALLOWED",
+        "text": "START not allowed in STOPPED in PRODUCTION mode (valid now: RESET, ABORT)",
+    }
+    assert set(stopped["modes"]) == {"1"}  # STOPPED allows every mode change
+    sent_anyway(stopped)
+
+    mark = len(cell.events)
+    assert cell.bridge.act_sync(UNIT, "command", {"command": "reset"})["accepted"]
+    cell.wait_status(lambda s: s["state_name"] == "IDLE", "IDLE", mark)
+    assert cell.bridge.act_sync(UNIT, "command", {"command": "start"})["accepted"]
+    executing = shown_in("EXECUTE", lambda w: "in EXECUTE" in w["commands"]["START"]["text"])
+    assert set(executing["modes"]) == {"1", "2", "3"}
+    assert "allows mode changes only in" in executing["modes"]["2"]
+    sent_anyway(executing)
+
+    raised = cell.client.call(SetAlarm, "set_alarm", id=201, value=0, active=True, category=-1,
+                              source="test")  # fmt: skip
+    assert raised.accepted, raised.message_out
+    alarmed = shown_in("STOPPED", lambda w: "RESET" in w["commands"])
+    assert alarmed["commands"]["RESET"]["reason"] == "ALARM_ACTIVE"
+    assert 'alarm 201/0 "Nozzle clogged"' in alarmed["commands"]["RESET"]["text"]
+    sent_anyway(alarmed)
+    cell.client.call(
+        SetAlarm, "set_alarm", id=201, value=0, active=False, category=-1, source="test"
+    )
+    assert "RESET" not in shown_in("STOPPED", lambda w: "RESET" not in w["commands"])["commands"]
+    assert cell.bridge.act_sync(UNIT, "command", {"command": "reset"})["accepted"]
 
 
 # -- access control -------------------------------------------------------------------------------------

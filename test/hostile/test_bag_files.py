@@ -36,6 +36,6 @@ def test_a_hostile_metadata_file_is_refused_with_a_reason(
     (bag / "metadata.yaml").write_text(metadata)
     result = subprocess.run([sys.executable, "-m", "packml_ros2.cli.main", "replay", str(bag)],
                             capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
-    assert result.returncode == 1, (result.returncode, result.stderr[-500:])  # was -11 (SIGSEGV)
+    assert result.returncode == 2, (result.returncode, result.stderr[-500:])  # was -11 (SIGSEGV)
     assert reason in result.stderr and "Traceback" not in result.stderr, result.stderr[-500:]
     assert len(result.stderr) < 2000

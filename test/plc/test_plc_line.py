@@ -37,7 +37,8 @@ from std_srvs.srv import SetBool
 
 from packml_ros2 import qos
 from packml_ros2.bag.recording import load
-from packml_ros2.core import Cmd
+from packml_ros2.core import Cmd, load_cell
+from packml_ros2.hmi.bridge import Bridge
 from packml_ros2.opcua.config import hash_password
 from packml_ros2.presence import Presence
 from packml_ros2.testing.processes import Processes, wait_until
@@ -158,8 +159,14 @@ def plc(tmp_path: Path) -> Any:
     server.close()
 
 
+def hmi_unit(hmi: Bridge, unit: str) -> dict[str, Any]:
+    """What the HMI's screens show of ``unit`` now."""
+    shown: dict[str, Any] = hmi.snapshot()["units"][unit]
+    return shown
+
+
 def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_going_away(
-    tmp_path: Path, ros: Any, processes: Processes, plc: TestPlc
+    tmp_path: Path, ros: Any, processes: Processes, plc: TestPlc, request: pytest.FixtureRequest
 ) -> None:
     endpoint = f"opc.tcp://127.0.0.1:{plc.options['port']}"
     sim = {"durations": FAST, "cycle_time": 0.1, "faults": {"empty": {"kind": "starved"}}}
@@ -187,6 +194,8 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
                         [f"/{cell}/wrapper"], LEASE)  # what the OPC UA server follows  # fmt: skip
     line = Line(ros, cell)
     episodes = ros.subscribe(LineEpisode, f"/{cell}/coordinator/line/episodes", qos.LINE_EPISODES)
+    hmi = Bridge(load_cell(path), context=ros.context, lease=LEASE).spin_in_background()
+    request.addfinalizer(hmi.close)
     robot.ready(30)
     wrapper.ready(30)
     first = wrapper.transitions.wait_for(lambda t: True, 10, "the first transition")
@@ -197,6 +206,7 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     bag = tmp_path / "line_bag"
     recorder = subprocess.Popen([*PACKML, "record", cell, "--config", str(path), "-o", str(bag)], cwd=ROOT,
                                 stderr=subprocess.PIPE, text=True)  # fmt: skip
+    request.addfinalizer(lambda: recorder.poll() is None and recorder.kill())  # a failed test's too
     recording = Output(recorder)
     for unit in ("robot", "wrapper"):
         recording.wait_for(f"receiving /{cell}/{unit}")
@@ -212,9 +222,14 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     )
     resetting = [x for x in wrapper.transitions.messages if x.command == Cmd.RESET]
     assert resetting and resetting[-1].source == "remote:coordinator"
+    # a cell command is answered when the units took it: the robot may still be resetting
+    line.wait(lambda m: states(m) == {"robot": "IDLE", "wrapper": "IDLE"}, "the line idle")
     start = line.command(Cmd.START)
     assert start.accepted, start.message
     line.wait(lambda m: states(m) == {"robot": "EXECUTE", "wrapper": "EXECUTE"}, "the line running")
+    # one HMI shows the PLC unit like the ROS unit: present, its state, its rule book's reasons
+    wait_until(lambda: all(hmi_unit(hmi, u)["online"] and (hmi_unit(hmi, u)["status"] or {}).get("state_name") == "EXECUTE"
+                           for u in ("robot", "wrapper")), 10, 0.05, "the HMI showing both units running")  # fmt: skip
     # record (the ROS side) takes the PLC unit like any other; replay replays the ROS units
     recorder.send_signal(signal.SIGINT)
     assert "wrote" in recording.rest() and recorder.returncode == 0
@@ -289,11 +304,13 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     # -- recovery: refused by the PLC while its alarm is active, then reset and start -------------------
     from_now(robot)
     assert line.command(Cmd.STOP).accepted
+    robot.wait_state("STOPPED")  # the cell's RESET checks every unit first: the robot settled
     refused = line.command(Cmd.RESET)
     assert not refused.accepted and refused.result == Result.COMMAND_NOT_ALLOWED
     assert "wrapper refused RESET: RESET refused by the PLC in STOPPED in PRODUCTION mode (BadInvalidState" in refused.message  # fmt: skip
     plc.send(clear=True)
     assert line.command(Cmd.RESET).accepted
+    line.wait(lambda m: states(m) == {"robot": "IDLE", "wrapper": "IDLE"}, "the line idle again")
     assert line.command(Cmd.START).accepted
     line.wait(lambda m: states(m) == {"robot": "EXECUTE", "wrapper": "EXECUTE"}, "running again")
     # the PLC's fault stopped the line: its alarm is the root cause, the cell's Stop followed
@@ -319,6 +336,11 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
                "the wrapper's status withdrawn")  # fmt: skip
     answer = wrapper.command(Cmd.STOP)
     assert answer.result == Result.UNIT_UNAVAILABLE and "is not reachable since" in answer.message
+    # ... the HMI too: the PLC unit shown lost (its last state kept), an action on it refused at once
+    wait_until(lambda: hmi_unit(hmi, "wrapper")["online"] is False, LEASE, 0.05, "the HMI's wrapper lost")  # fmt: skip
+    assert hmi_unit(hmi, "wrapper")["presence"]["reason"]
+    acted = hmi.act_sync("wrapper", "command", {"command": "stop"})
+    assert acted["result_name"] == "UNIT_UNAVAILABLE" and "not reachable since" in acted["message"]
     stopped = robot.wait_entered("STOPPING")  # the coordinator's lost_unit_reaction
     assert (stopped.command, stopped.source) == (Cmd.STOP, "remote:coordinator")
 
@@ -331,9 +353,11 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     )  # fmt: skip
     assert "lost: the connection to the PLC closed" in back.detail
     line.wait(lambda m: m.all_online and not m.lost_units, "the PLC unit online again")
+    wait_until(lambda: hmi_unit(hmi, "wrapper")["online"], LEASE, 0.05, "the HMI's wrapper back")
     assert presence.seen(f"/{cell}/wrapper").present
     robot.wait_state("STOPPED")
     assert line.command(Cmd.RESET).accepted
+    line.wait(lambda m: states(m) == {"robot": "IDLE", "wrapper": "IDLE"}, "idle after the restart")
     assert line.command(Cmd.START).accepted
     line.wait(lambda m: states(m) == {"robot": "EXECUTE", "wrapper": "EXECUTE"}, "running after the restart")  # fmt: skip
     # the PLC lost: the root cause, the robot stopped by the coordinator's reaction to it

@@ -280,3 +280,30 @@ def test_an_em_that_leaves_in_order_is_lost_after_the_grace(ros, processes, tmp_
     waited = time.monotonic() - stopped_at
     assert grace <= waited < 5.0, f"reaction after {waited:.3f} s"  # the grace, not the lease
     assert lost.to_state_name == "ABORTING" and "gripper lost (left)" in lost.detail
+
+
+def test_ems_composed_in_one_process_work_together_and_are_lost_together(
+    ros, processes, tmp_path: Path
+) -> None:
+    """Several EMs in one process on one executor (``em_node <cell> <unit> <em> <em> ...``, as an
+    integrator runs the EMs of one controller): each registers, works and reports on its own;
+    the process killed, every one of them is lost within its lease."""
+    ems = {name: _em(cycle_time=0.02, counter="none", cycles_per_run=3)
+           for name in ("arm", "gripper", "camera")}  # fmt: skip
+    cell_file, cell = write_cell(tmp_path, {"station": {"equipment_modules": ems}})
+    start_unit_process(processes, cell_file, "station")
+    composed = processes.module(
+        "ems_station", "packml_ros2.sim_em", str(cell_file), "station", *ems
+    )
+    client = UnitClient(ros, cell, "station")
+    client.ready()
+    client.wait_status(lambda s: _online(s, *ems), 15, "three EMs of one process online")
+    assert client.trigger("reset").success
+    client.wait_state("IDLE")
+    assert client.trigger("start").success
+    client.wait_entered("COMPLETE", timeout=10)  # Execute ended when all three finished their run
+    composed.kill()
+    status = client.wait_status(
+        lambda s: not any(e.online for e in s.equipment_modules), 5, "every EM lost"
+    )
+    assert status.state_current_name == "ABORTED"

@@ -1,0 +1,166 @@
+"""Why a command or a mode change is not available now, in the unit's own words.
+
+A unit publishes which commands are valid now (``Status.commands_valid``), not why the others are
+not. The HMI asks the unit's rule book (:func:`packml_ros2.core.rules.rules_of` of the unit's
+configuration: the same compiled table, guards and sentences the unit judges with) about the
+situation the unit's status and alarm list show: its state and mode, a mode change in process,
+its equipment modules online or not, the active alarms and their reactions, a line interlock.
+A command the rule book would accept but the unit does not list (the unit knows more than it
+publishes) gets a plain sentence saying so.
+
+Everything here reads what a unit published, which may be anything: an unknown state or mode is
+answered with a sentence, never an exception.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from ..core.config import UnitConfig
+from ..core.numbers import Cmd, State, command_name, names_of
+from ..core.reasons import Reason
+from ..core.rules import COMMANDS, Rules, rules_of
+
+SOURCE = "hmi"  #: not remote: the remote lock never refuses the HMI
+
+
+class StatusSituation:
+    """A unit's situation as its status and alarm list show it (the rules' ``Situation``)."""
+
+    def __init__(self, config: UnitConfig, status: Mapping[str, Any],
+                 alarms: Mapping[str, Any] | None) -> None:  # fmt: skip
+        self.config = config
+        self.status = status
+        self.alarms = list(alarms.get("alarms", ())) if alarms else []
+        lost = {e.name: e.lost_reaction for e in config.equipment_modules}
+        self._ignored = {
+            name for name, r in lost.items() if (config.em_lost_reaction if r is None else r) == 0
+        }
+        if config.em_lost_reaction == 0:  # registered EMs follow the unit's reaction
+            self._ignored |= {e["name"] for e in status.get("equipment_modules", ())
+                              if e.get("name") not in lost}  # fmt: skip
+
+    @property
+    def remote_enabled(self) -> bool:
+        return bool(self.status.get("remote_commands_enabled", True))
+
+    @property
+    def mode_change_in_process(self) -> bool:
+        return bool(self.status.get("mode_change_in_process"))
+
+    def missing_names(self) -> list[str]:
+        return [
+            e["name"]
+            for e in self.status.get("equipment_modules", ())
+            if e.get("active") and not e.get("online") and e.get("name") not in self._ignored
+        ]
+
+    def blocking_alarm(self, blocked: Mapping[int, frozenset[Cmd]], cmd: int) -> str | None:
+        for a in self.alarms:
+            reaction = a.get("reaction") or 0
+            if a.get("trigger") and reaction and cmd in blocked.get(reaction, ()):
+                label = f'{a["id"]}/{a["value"]} "{a["message"]}" (category {a["category"]})'
+                return f"alarm {label} with reaction {command_name(reaction)}"
+        return None
+
+    def interlock_reasons(self) -> list[str]:
+        s = self.status
+        return [w for w, on in (("blocked", s.get("blocked")), ("starved", s.get("starved"))) if on]
+
+    def mode_change_text(self) -> str:
+        s = self.status
+        waiting = sorted(
+            e["name"]
+            for e in s.get("equipment_modules", ())
+            if e.get("active") and not e.get("state_complete")
+        )
+        return (
+            f"mode change {s.get('mode_name', '')} -> {_mode_name(self.config, s.get('mode_requested', 0))} "
+            f"in process (waiting for EMs: {', '.join(waiting) or 'none'})"
+        )
+
+
+def _mode_name(config: UnitConfig, number: int) -> str:
+    m = config.modes.get(number)
+    return m.name if m else f"MODE_{number}"
+
+
+def _known(rules: Rules, status: Mapping[str, Any]) -> tuple[State, int] | str:
+    """(state, mode) of ``status``, or why they cannot be judged."""
+    state, mode = status.get("state"), status.get("mode")
+    if mode not in rules.modes:
+        return f"the unit reports mode {mode}, which its configuration does not have"
+    if not isinstance(state, int) or state not in State._value2member_map_ or not state:
+        return f"the unit reports state {state}, which PackML does not have"
+    return State(state), int(mode)
+
+
+def command_reasons(config: UnitConfig, status: Mapping[str, Any],
+                    alarms: Mapping[str, Any] | None) -> dict[str, dict[str, str]]:  # fmt: skip
+    """``{command name: {reason, text}}`` for every command the unit does not list as valid now:
+    its reason code and sentence."""
+    rules = rules_of(config)
+    valid: Sequence[int] = [c for c in status.get("commands_valid", ()) if isinstance(c, int)]
+    known = _known(rules, status)
+    out: dict[str, dict[str, str]] = {}
+    for cmd in COMMANDS:
+        if cmd in valid:
+            continue
+        if isinstance(known, str):
+            out[cmd.name] = {"reason": Reason.COMMAND_NOT_ALLOWED.name, "text": known}
+            continue
+        state, mode = known
+        mode_name = rules.modes[mode].name
+        where = f"{state.name} in {mode_name} mode"
+        verdict = rules.check(StatusSituation(config, status, alarms), state, mode, cmd, SOURCE)
+        if verdict.reason is Reason.ACCEPTED:
+            text = (
+                f"{cmd.name} is not valid now in {where} (valid now: {names_of(valid) or 'none'})"
+            )
+            out[cmd.name] = {"reason": Reason.COMMAND_NOT_ALLOWED.name, "text": text}
+            continue
+        text = rules.refusal_text(verdict, cmd, SOURCE, where, config.name, mode_name, valid)
+        out[cmd.name] = {"reason": verdict.reason.name, "text": text}
+    return out
+
+
+def mode_reasons(config: UnitConfig, status: Mapping[str, Any]) -> dict[str, str]:
+    """``{mode number: sentence}`` for every configured mode the unit cannot change to now (the
+    current one included: it is where the unit is)."""
+    rules = rules_of(config)
+    known = _known(rules, status)
+    out: dict[str, str] = {}
+    for number, target in sorted(rules.modes.items()):
+        if isinstance(known, str):
+            out[str(number)] = known
+            continue
+        state, mode = known
+        current = rules.modes[mode]
+        if status.get("mode_change_in_process"):
+            requested = _mode_name(config, status.get("mode_requested", 0))
+            out[str(number)] = (
+                f"mode change to {target.name} refused: change to {requested} still in process"
+            )
+        elif number == mode:
+            out[str(number)] = f"{target.name} is the current mode"
+        else:
+            why = rules.mode_change_refusal(mode, number, state)
+            if why is not None:
+                out[str(number)] = (
+                    f"mode change {current.name} -> {target.name} not allowed in {state.name}: "
+                    f"{why}"
+                )
+    return out
+
+
+def reasons(config: UnitConfig, status: Mapping[str, Any] | None,
+            alarms: Mapping[str, Any] | None) -> dict[str, Any]:  # fmt: skip
+    """``{commands: ..., modes: ...}`` (:func:`command_reasons`, :func:`mode_reasons`); empty
+    without a status."""
+    if status is None:
+        return {"commands": {}, "modes": {}}
+    return {
+        "commands": command_reasons(config, status, alarms),
+        "modes": mode_reasons(config, status),
+    }

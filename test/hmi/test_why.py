@@ -1,0 +1,160 @@
+"""Issue 17, HMI item 4: each disabled command and mode button says why, in the unit's words.
+
+The HMI reads a unit's status and alarm list (as the bridge turns the ROS messages into dicts) and
+asks the unit's rule book why a command or a mode change is not available now
+(packml_ros2.hmi.why). Here a real engine (packml_ros2.core.Unit, no ROS) is put in each situation
+that refuses commands; its status and alarm list go through the same conversions as on the wire;
+for every command and mode the HMI shows as unavailable, the unit itself is then asked: it refuses
+with the same reason code and, but for an interlock's own words, the same sentence."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from packml_ros2 import convert
+from packml_ros2.core import Cmd, Reason, State, Unit
+from packml_ros2.hmi import why
+from packml_ros2.hmi.bridge import alarm_list_dict, status_dict
+from test.core.helpers import FakeClock, cell_unit
+
+UNIT_DOC: dict[str, Any] = {
+    "equipment_modules": {"em1": {}},
+    "alarms": [{"id": 201, "message": "Gripper vacuum lost", "category": 2}],
+}
+
+
+def seen_by_the_hmi(unit: Unit) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The unit's status and alarm list as the bridge holds them."""
+    now = unit.now
+    return (
+        status_dict(convert.status(unit.status())),
+        alarm_list_dict(convert.alarm_list(unit.config.name, now, unit.alarms)),
+    )
+
+
+def start(doc: dict[str, Any] | None = None) -> tuple[Unit, FakeClock]:
+    clock = FakeClock()
+    unit = Unit(cell_unit(doc if doc is not None else UNIT_DOC), clock)
+    assert unit.em_seen("em1", report=True).accepted
+    return unit, clock
+
+
+def sc(unit: Unit) -> None:
+    assert unit.em_complete("em1", unit.state, unit.sequence).accepted
+
+
+def to_execute(unit: Unit) -> None:
+    assert unit.command(Cmd.RESET).accepted
+    sc(unit)
+    assert unit.command(Cmd.START).accepted
+    sc(unit)
+    assert unit.state is State.EXECUTE
+
+
+def check_commands(unit: Unit, interlock: bool = False) -> dict[str, dict[str, str]]:
+    """Every command the HMI shows unavailable is refused by the unit with that reason (and
+    sentence); every other one is valid. Returns what the HMI shows."""
+    status, alarms = seen_by_the_hmi(unit)
+    shown = why.command_reasons(unit.config, status, alarms)
+    assert set(shown) | set(status["commands_valid_names"]) == {c.name for c in Cmd if c}
+    for name, reason in shown.items():
+        answer = unit.command(Cmd[name], "hmi:anna")
+        assert not answer.accepted, (name, answer)
+        assert reason["reason"] == answer.reason.name, (name, reason, answer)
+        if not (interlock and answer.reason is Reason.INTERLOCK_ACTIVE):
+            assert reason["text"] == answer.message, (name, reason, answer)
+    return shown
+
+
+def test_not_allowed_by_the_state_model() -> None:
+    unit, _ = start()
+    shown = check_commands(unit)
+    assert shown["START"] == {
+        "reason": "COMMAND_NOT_ALLOWED",
+        "text": "START not allowed in STOPPED in PRODUCTION mode (valid now: RESET, ABORT)",
+    }
+    to_execute(unit)
+    check_commands(unit)
+
+
+def test_refused_while_an_alarm_with_a_reaction_is_active() -> None:
+    unit, _ = start()
+    to_execute(unit)
+    assert unit.set_alarm(201).accepted  # category 2: STOP
+    sc(unit)  # Stopping -> Stopped
+    assert unit.state is State.STOPPED
+    shown = check_commands(unit)
+    assert shown["RESET"]["reason"] == "ALARM_ACTIVE"
+    assert (
+        'alarm 201/0 "Gripper vacuum lost" (category 2) with reaction STOP'
+        in shown["RESET"]["text"]
+    )
+
+
+def test_refused_while_an_active_em_is_missing() -> None:
+    unit, _ = start({**UNIT_DOC, "em_lost_reaction": "stop"})
+    assert unit.em_lost("em1").accepted
+    sc_free = check_commands(unit)
+    assert (
+        sc_free["RESET"]["reason"] == "EM_MISSING"
+        and "active EM em1 offline" in sc_free["RESET"]["text"]
+    )
+
+
+def test_refused_while_a_mode_change_is_in_process() -> None:
+    unit, _ = start()
+    assert unit.set_mode(2).accepted  # MAINTENANCE: waits for em1's report
+    status, _ = seen_by_the_hmi(unit)
+    assert status["mode_change_in_process"]
+    shown = check_commands(unit)
+    assert shown["RESET"]["reason"] == "MODE_CHANGE_IN_PROCESS"
+    modes = why.mode_reasons(unit.config, status)
+    assert set(modes) == {"1", "2", "3"}  # no other change meanwhile
+    answer = unit.set_mode(3)
+    assert modes["3"] == answer.message and answer.reason is Reason.MODE_CHANGE_IN_PROCESS
+
+
+def test_refused_while_an_interlock_holds_the_unit() -> None:
+    unit, _ = start()
+    to_execute(unit)
+    assert unit.set_interlock(True, "case_packer blocked").accepted
+    unit.advance()
+    sc(unit)
+    assert unit.state is State.SUSPENDED
+    shown = check_commands(unit, interlock=True)
+    assert shown["UNSUSPEND"]["reason"] == "INTERLOCK_ACTIVE"
+
+
+def test_mode_buttons_follow_the_units_mode_rules() -> None:
+    unit, _ = start()
+    status, _ = seen_by_the_hmi(unit)
+    assert why.mode_reasons(unit.config, status) == {"1": "PRODUCTION is the current mode"}
+    to_execute(unit)
+    status, _ = seen_by_the_hmi(unit)
+    modes = why.mode_reasons(unit.config, status)
+    assert set(modes) == {"1", "2", "3"}
+    for number in (2, 3):
+        answer = unit.set_mode(number)
+        assert not answer.accepted and answer.reason is Reason.MODE_CHANGE_NOT_ALLOWED
+        assert modes[str(number)] == answer.message
+
+
+@pytest.mark.parametrize(
+    "status",
+    [
+        {"state": 99, "mode": 1, "commands_valid": []},
+        {"state": 2, "mode": 0, "commands_valid": [1, "x", None]},
+        {"state": "STOPPED", "mode": None},
+        {},
+    ],
+)
+def test_a_status_the_configuration_does_not_know_is_answered_not_raised(
+    status: dict[str, Any],
+) -> None:
+    config = cell_unit(UNIT_DOC)
+    reasons = why.reasons(config, status, {"alarms": [{"trigger": True}]})
+    assert set(reasons["commands"]) <= {c.name for c in Cmd if c} and reasons["commands"]
+    assert all("does not have" in r["text"] for r in reasons["commands"].values())
+    assert all("does not have" in text for text in reasons["modes"].values())
