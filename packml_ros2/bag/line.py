@@ -99,7 +99,11 @@ def load(path: str | Path) -> list[LineRecording]:
     except RecordingError:
         raise
     except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise RecordingError(f"{path}: cannot read the line of the bag: {exc}") from None
+        raise RecordingError(f"{path}: cannot read the bag: {exc}") from None
+    except Exception as exc:  # rosbags' reader errors (truncated, corrupt): as recording.load
+        if type(exc).__module__.startswith("rosbags"):
+            raise RecordingError(f"{path}: cannot read the bag: {exc}") from None
+        raise
     return list(lines.values())
 
 
