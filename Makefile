@@ -49,8 +49,8 @@ bench: setup
 clean:
 	rm -rf $(VENV) .cache msg_defs/build build *.egg-info .pytest_cache .mypy_cache .ruff_cache
 
-# The HMI's main screens (overview, unit with state diagram, alarms) as PNGs for the README,
+# The HMI's main screens (overview, unit with state diagram, alarms, line) as PNGs for the README,
 # written by the browser test against a running demo-like cell.
 .PHONY: screenshots
 screenshots:
-	PACKML_SCREENSHOTS_DIR=$(CURDIR)/docs/screenshots $(BIN)/pytest test/hmi/test_browser.py -q -rs
+	PACKML_SCREENSHOTS_DIR=$(CURDIR)/docs/screenshots $(BIN)/pytest test/hmi/test_browser.py test/line/test_line_demo.py -q -rs

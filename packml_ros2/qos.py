@@ -40,6 +40,14 @@ INPUT_LOG = _profile(5000, latched=True)
 #: enough for every client a cell has (operators, the coordinator, the HMI, OPC UA, scripts)
 #: pipelining requests; with the ROS default (10) a burst of 50 lost 40 of them.
 SERVICES = _profile(256, latched=False)
+#: ``<cell>/coordinator/line/input_log``: the line's inputs, for record/replay (like INPUT_LOG).
+LINE_INPUT_LOG = INPUT_LOG
+#: ``<cell>/coordinator/line/episodes``: every change of a stop episode; the last 100 reach a
+#: late subscriber.
+LINE_EPISODES = _profile(100, latched=True)
+#: ``<cell>/coordinator/line/losses``: one message per window at each publication; the last set
+#: reaches a late subscriber.
+LINE_LOSSES = _profile(8, latched=True)
 #: ``<unit>/snapshot``: the engine state, published when a subscriber (a recorder) joins; the last
 #: one reaches late subscribers at once.
 SNAPSHOT = LATCHED

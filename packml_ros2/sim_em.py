@@ -25,9 +25,10 @@ from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
 
+from packml_interfaces.msg import Status
 from std_srvs.srv import SetBool
 
-from . import responses, run
+from . import qos, responses, run
 from .core import schema as sc
 from .core.config import load_cell
 from .core.numbers import ACTING, State, parse_state
@@ -35,7 +36,8 @@ from .core.schema import ConfigError, Node
 from .equipment_module import EquipmentModule, StateContext
 
 SIM_KEYS = {"durations", "cycle_time", "counter", "counter_index", "defect_rate", "defect_counter_index",
-            "consumed_per_cycle", "cycles_per_run", "lease", "faults", "seed"}  # fmt: skip
+            "consumed_per_cycle", "cycles_per_run", "lease", "faults", "seed", "fed_by", "buffer"}  # fmt: skip
+BUFFER_TICK = 0.1  # s between looks at the buffer of an EM fed by another unit
 FAULT_KEYS = {"kind", "alarm_id", "value", "category", "message"}
 FAULT_KINDS = ("alarm", "warning", "blocked", "starved", "repeat_complete")
 #: ``repeat_complete``: seconds after which a State Complete report is sent again.
@@ -65,6 +67,10 @@ class SimConfig:
     lease: float = 2.0  # heartbeats every lease/4; default: the unit's em_lease
     faults: Mapping[str, Fault] = field(default_factory=dict)
     seed: int | None = None
+    #: the unit upstream that feeds this EM: while this unit runs and that one does not, the
+    #: ``buffer`` (seconds of parts) empties; empty, the EM reports Starved until it runs again
+    fed_by: str = ""
+    buffer: float = 5.0
 
 
 def parse_sim(data: Mapping[str, Any], path: str = "sim", file: str = "<memory>",
@@ -110,6 +116,8 @@ def parse_sim(data: Mapping[str, Any], path: str = "sim", file: str = "<memory>"
         lease=n.get("lease", sc.number(positive=True), lease),
         faults=faults,
         seed=n.get("seed", sc.integer(), None),  # type: ignore[arg-type]
+        fed_by=n.get("fed_by", sc.name, ""),
+        buffer=n.get("buffer", sc.number(lo=0), 5.0),
     )
     if n.problems:
         raise ConfigError(file, n.problems)
@@ -126,6 +134,11 @@ class SimulatedEm(EquipmentModule):
             sim.seed if sim.seed is not None else sum(map(ord, f"{unit}/{name}"))
         )
         self.faults_on: set[str] = set()
+        self.buffer = sim.buffer  # seconds of parts left (fed_by)
+        self.upstream_runs = False
+        if sim.fed_by:
+            self.create_subscription(Status, f"/{cell}/{sim.fed_by}/status", self._on_upstream, qos.STATUS)  # fmt: skip
+            self.create_timer(BUFFER_TICK, self._drain)
         for fault in sim.faults.values():
             responses.create_service(
                 self, SetBool, f"~/fault/{fault.name}", partial(self._srv_fault, fault)
@@ -157,6 +170,27 @@ class SimulatedEm(EquipmentModule):
             if self.sim.defect_rate and self.random.random() < self.sim.defect_rate:
                 self.count("defective", 1, self.sim.defect_counter_index)
 
+    # -- fed by a unit upstream --------------------------------------------------------------------------------
+    def _on_upstream(self, msg: Status) -> None:
+        self.upstream_runs = msg.state_current == State.EXECUTE
+        if self.upstream_runs and self.buffer < self.sim.buffer:
+            self.buffer = self.sim.buffer  # parts come again
+            self._report_interlock()
+
+    def _drain(self) -> None:
+        """The buffer empties while this unit runs and the one upstream does not."""
+        if self.upstream_runs or self.state is not State.EXECUTE or self.buffer <= 0:
+            return
+        self.buffer -= BUFFER_TICK
+        if self.buffer <= 0:
+            self.get_logger().warning(f"starved: {self.sim.fed_by} sends no parts")
+            self._report_interlock()
+
+    def _report_interlock(self) -> None:
+        kinds = {self.sim.faults[f].kind for f in self.faults_on}
+        self.set_interlock(blocked="blocked" in kinds,
+                           starved="starved" in kinds or (bool(self.sim.fed_by) and self.buffer <= 0))  # fmt: skip
+
     # -- fault injection ----------------------------------------------------------------------------------------
     def report_complete(self, state: int | None = None, sequence: int | None = None) -> None:
         state = int(self.state if state is None else state)
@@ -180,9 +214,7 @@ class SimulatedEm(EquipmentModule):
             (self.faults_on.add if on else self.faults_on.discard)(fault.name)
         elif fault.kind in ("blocked", "starved"):
             (self.faults_on.add if on else self.faults_on.discard)(fault.name)
-            blocked = any(self.sim.faults[f].kind == "blocked" for f in self.faults_on)
-            starved = any(self.sim.faults[f].kind == "starved" for f in self.faults_on)
-            self.set_interlock(blocked=blocked, starved=starved)
+            self._report_interlock()
         elif on:
             self.faults_on.add(fault.name)
             self.raise_alarm(

@@ -36,6 +36,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+from . import line
 from .cdr import raw_stamp
 from .topics import (
     CELL_STATUS_TYPE,
@@ -99,6 +100,8 @@ class Recorder:
         for cell in self.cells:
             topic = f"/{cell.strip('/')}/coordinator/status"
             self._add(topic, "coordinator", CELL_STATUS_TYPE, store, False)
+            for topic, kind, type_name in line.topics(cell):  # its line's inputs and outputs
+                self._add(topic, kind, type_name, store, False)
 
     def _add(self, topic: str, kind: str, type_name: str, store: Any, output: bool) -> None:
         conn = self._io.call(
@@ -112,7 +115,7 @@ class Recorder:
         )
         self.counts[topic] = 0
         callback: Callable[[bytes, Any], None] = partial(
-            self._on_message, topic, conn, kind == "input_log", output
+            self._on_message, topic, conn, kind in ("input_log", "line_input_log"), output
         )
         self.node.create_subscription(
             msg_class(type_name), topic, callback, reader_qos(kind), raw=True

@@ -46,6 +46,9 @@ PUBLISHER_QOS: dict[str, QoSProfile] = {
     "em_reports": qos.EM_REPORTS,
     "snapshot": qos.SNAPSHOT,
     "coordinator": qos.CELL_STATUS,
+    "line_input_log": qos.LINE_INPUT_LOG,  # the line's topics: packml_ros2.bag.line
+    "line_episodes": qos.LINE_EPISODES,
+    "line_losses": qos.LINE_LOSSES,
 }
 #: Key of the recorder's notes in the bag's ``custom_data`` (metadata.yaml).
 CUSTOM_KEY = "packml"
@@ -185,7 +188,7 @@ def split_topic(topic: str) -> tuple[str, str] | None:
     """``/<cell>/<unit>/<name>`` -> (``/<cell>/<unit>``, name) for unit topics, else None."""
     prefix, _, name = topic.rpartition("/")
     if name in UNIT_TOPICS and prefix.count("/") >= 1 and prefix != "":
-        if prefix.rpartition("/")[2] == "coordinator":
+        if prefix.rpartition("/")[2] == "coordinator" or prefix.endswith("/coordinator/line"):
             return None
         return prefix, name
     return None

@@ -11,6 +11,7 @@
     packml hmi <cell.yaml>                   the operator HMI in a browser
     packml opcua <cell.yaml>                 the cell as OPC UA (OPC 30050) objects
     packml policy <cell.yaml>                the SROS2 permission policy of the cell
+    packml report [cell]                     the line's losses, OEE and stop episodes
 
 Exit codes: 0 done, 1 refused by the unit (the reason is printed), 2 usage or configuration
 error, 3 a unit or service did not answer.
@@ -24,7 +25,18 @@ import sys
 from collections.abc import Sequence
 
 #: Modules registering verbs, in help order; each has ``register(subparsers)``.
-VERB_MODULES = ("launch", "status", "control", "alarms", "watch", "bag", "hmi", "opcua", "policy")
+VERB_MODULES = (
+    "launch",
+    "status",
+    "control",
+    "alarms",
+    "watch",
+    "bag",
+    "hmi",
+    "opcua",
+    "policy",
+    "report",
+)
 
 EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_UNAVAILABLE = 0, 1, 2, 3
 

@@ -16,6 +16,7 @@ from typing import Any
 from . import schema as sc
 from .alarms import DEFAULT_REACTIONS, NUM_CATEGORIES, REACTIONS, AlarmDef
 from .counters import KINDS, CounterDef
+from .line.config import LINE_STORE, LineConfig, parse_line
 from .modes import GROUPS, ModeDef, default_modes, make_mode
 from .numbers import ACTING, MANDATORY, MAX_MODE, WAIT, Cmd, Mode, State, parse_state
 from .rules import MODELS, TransitionTable, build_table, corrected_disabled
@@ -182,6 +183,8 @@ class CellConfig:
     #: ``hmi:`` and ``opcua:`` blocks, validated by packml_ros2.hmi / packml_ros2.opcua
     hmi: Mapping[str, Any] = field(default_factory=dict)
     opcua: Mapping[str, Any] = field(default_factory=dict)
+    #: ``line:``: the units' order on the line, its output, shifts, the store of its losses
+    line: LineConfig = field(default_factory=LineConfig)
 
 
 # -- parsing ---------------------------------------------------------------------------------------------
@@ -616,7 +619,7 @@ def _coordinator(n: Node, units: Mapping[str, UnitConfig]) -> CoordinatorConfig:
 def parse_cell(data: Any, file: str = "<memory>", base_dir: Path | None = None) -> CellConfig:
     """Validate a cell document (already parsed YAML). Raises ConfigError listing every problem."""
     root = Node(data, "")
-    root.check_keys({"cell", "defaults", "units", "coordinator", "hmi", "opcua"})
+    root.check_keys({"cell", "defaults", "units", "coordinator", "hmi", "opcua", "line"})
     cell = root.get("cell", sc.name, "")
     if "cell" not in root.mapping():
         root.error("missing key 'cell' (the cell namespace, e.g. demo_cell)")
@@ -642,13 +645,17 @@ def parse_cell(data: Any, file: str = "<memory>", base_dir: Path | None = None) 
         lambda x: _coordinator(x, units),
         CoordinatorConfig(start_order=tuple(units), stop_order=tuple(reversed(list(units)))),
     )
+    stores = [u.persistence_path for u in units.values() if u.persistence_path]
+    line = parse_line(root.child("line", root.mapping().get("line")), cell, list(units),
+                      coord.interlocks, base_dir or Path.cwd(),
+                      str(Path(stores[0]).parent / LINE_STORE) if stores else None)  # fmt: skip
     root.problems.extend(plain_secrets(data))
     if root.problems:
         raise ConfigError(file, root.problems)
     extras = {k: dict(root.child(k, root.mapping().get(k)).mapping()) for k in ("hmi", "opcua")}
     if root.problems:
         raise ConfigError(file, root.problems)
-    return CellConfig(cell, units, coord, file, **extras)
+    return CellConfig(cell, units, coord, file, **extras, line=line)
 
 
 def load_cell(path: str | os.PathLike[str]) -> CellConfig:

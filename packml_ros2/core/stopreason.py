@@ -18,6 +18,19 @@ STOP_ID_REMOTE = 4006  # out of service: remote stop requested
 STOP_ID_SHUTDOWN = 1000  # machine internal, vendor defined: the unit's own process shut down
 
 
+def stopped_as_planned(mode: int, state: int) -> bool:
+    """Where a planned stop reason makes a planned stop: Production, stopped
+    (:data:`~.rules.PLANNED_STOP_STATES`)."""
+    return mode == Mode.PRODUCTION and state in PLANNED_STOP_STATES
+
+
+def planned_stop(planned_ids: tuple[int, int], reason_id: int, mode: int, state: int) -> bool:
+    """The OEE planned-stop rule: :func:`stopped_as_planned`, with a stop reason in
+    ``planned_stop_ids`` (OMAC "out of service" 4000..4999 by default)."""
+    lo, hi = planned_ids
+    return lo <= reason_id <= hi and stopped_as_planned(mode, state)
+
+
 class StopReasons:
     __slots__ = ("armed", "planned_ids", "planned_reason", "reason")
 
@@ -39,9 +52,8 @@ class StopReasons:
         self.planned_reason = event is not None and lo <= event.id <= hi
 
     def planned(self, mode: int, state: State) -> bool:
-        """Whether the unit is in a planned stop (OEE): Production, stopped, and the stop reason
-        is in ``planned_stop_ids`` (OMAC "out of service" 4000..4999 by default)."""
-        return self.planned_reason and mode == Mode.PRODUCTION and state in PLANNED_STOP_STATES
+        """Whether the unit is in a planned stop (OEE): :func:`planned_stop`."""
+        return self.planned_reason and stopped_as_planned(mode, state)
 
     @staticmethod
     def of_command(cmd: int, source: str, t: float) -> AlarmEvent:

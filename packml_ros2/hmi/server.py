@@ -47,6 +47,7 @@ from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException
 
 from ..core.reasons import Reason
+from . import line
 from .access import Principal, Refusal, level_refusal
 from .bridge import BAD_ARGUMENT, ActionError, Bridge, Event
 from .guard import HostGuard, Json, dumps, json_content, parse_object, read_body, refuse
@@ -288,6 +289,7 @@ def create_app(bridge: Bridge, allowed_hosts: Iterable[str] = ()) -> FastAPI:
         return Json({"accepted": True, "result": 0, "result_name": "ACCEPTED",
                      "message": f"{who.name} logged out" if who else "not logged in"})  # fmt: skip
 
+    line.add_routes(app, bridge, STATIC)  # the line page: hmi/line.py
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     return app
 

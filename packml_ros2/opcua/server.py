@@ -31,7 +31,7 @@ from asyncua import Server, ua
 
 from ..core.config import CellConfig, UnitConfig
 from ..presence import Seen
-from . import security
+from . import line, security
 from .available import unit_graph
 from .bridge import Methods, RosSide
 from .config import OpcUaConfig
@@ -162,6 +162,7 @@ class PackMLServer:
         self._pending: OrderedDict[tuple[str, str], Any] = OrderedDict()
         self._flushing: asyncio.Task[None] | None = None
         self.users: security.Users | None = None
+        self.line: line.LineFace | None = None
 
     async def start(self) -> None:
         config = self.config
@@ -211,6 +212,7 @@ class PackMLServer:
             )
             for method in nodes.methods.values():
                 security.executable_callbacks(server, method, methods.executable, config)
+        self.line = await line.LineFace.create(server, self.cell.cell)  # Objects/Lines/<cell>
         await server.start()
         self.ros = RosSide(
             self.cell.cell,
@@ -220,6 +222,7 @@ class PackMLServer:
             self._on_presence,
             self.cell.coordinator.unit_lease,
         )
+        self.line.attach(self.ros.node, asyncio.get_running_loop())
         self.ros.start()
 
     # -- ROS -> OPC UA ---------------------------------------------------------------------------------
@@ -325,6 +328,7 @@ class PackMLServer:
             f"OPC UA server for cell {config.cell} on {config.endpoint}",
             f"  units: {', '.join(config.units)} under Objects/PackMLObjects (OPC 30050 v1.01 "
             f"PackMLBaseObjectType; lost after {self.cell.coordinator.unit_lease:g} s without a sign of life)",
+            f"  the line: Objects/Lines/{config.cell} (OEE of the shift, the current stop episode)",
             f"  security policies: {policies}",
             f"  anonymous: {anonymous}; users for commands: {users}",
         ]  # fmt: skip

@@ -398,7 +398,7 @@ class Mirror:
                         int(cmd),
                         f"alarm:{cause.id}",
                         skipped,
-                        cause.label(),
+                        cause.message,  # like a unit: the alarm's message (its ID is in the source)
                     )
                 if may_wait and cmd in REACTIONS:
                     return None

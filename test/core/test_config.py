@@ -266,6 +266,9 @@ def test_reference_cell_loads() -> None:
     assert all(e.sim == {} for e in filler.equipment_modules)
     assert c.coordinator.start_order == ("capper", "filler")
     assert c.units["capper"].table.model == "2015"
+    assert c.line.order == ("filler", "capper", "wrapper") and c.line.output_unit == "wrapper"
+    assert [s.name for s in c.line.shifts] == ["early", "late", "night"]
+    assert c.line.shifts[0].breaks[0].name == "lunch" and c.line.timezone == "Europe/Berlin"
 
 
 def _keys(doc: Any, prefix: str = "") -> set[str]:
@@ -321,6 +324,15 @@ def test_reference_cell_shows_every_option() -> None:
         documented(lines, i, key)
     for key in coordinator:
         i = next(i for i, line in enumerate(lines) if i > start and re.match(rf"  {key}:", line))
+        documented(lines, i, key)
+    # the line block (issue 19): every key of its parser, each documented
+    line = {"order", "output_unit", "shifts", "timezone", "store", "publish_period"}
+    assert {f"line.{k}" for k in line} <= keys
+    assert {"line.shifts.early.days", "line.shifts.early.breaks[].name"} <= keys
+    start = lines.index("line:")
+    documented(lines, start, "line")
+    for key in line:
+        i = next(i for i, text in enumerate(lines) if i > start and re.match(rf"  {key}:", text))
         documented(lines, i, key)
 
 

@@ -130,7 +130,7 @@ def test_a_stop_made_by_the_plc_waits_for_its_cause_a_moment() -> None:
     assert m.update(ids("Stopping"), 1.0) == []
     reason = {"ID": 7, "Value": 2, "Message": "Guard door", "Category": 0, "Trigger": True}
     (t,) = m.update({"Admin/StopReason": reason}, 1.1)
-    assert (t.trigger, t.source, t.detail) == (Trigger.ALARM, "alarm:7", '7/2 "Guard door" (category 0)')  # fmt: skip
+    assert (t.trigger, t.source, t.detail) == (Trigger.ALARM, "alarm:7", "Guard door")  # fmt: skip
     # no cause within HOLD: a command given at the PLC itself
     m = mirror("Execute")
     assert m.update(ids("Holding"), 1.0) == []

@@ -29,7 +29,7 @@ from typing import Any
 import pytest
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from packml_interfaces.msg import CellStatus, Result, TransitionEvent
+from packml_interfaces.msg import CellStatus, LineEpisode, Result, TransitionEvent
 from packml_interfaces.srv import Command, SetAlarm
 from rclpy.node import Node
 from rclpy.serialization import deserialize_message
@@ -137,6 +137,10 @@ class Line:
         return next(u for u in status.units if u.name == name)
 
 
+def affected(episode: LineEpisode) -> set[tuple[str, str]]:
+    return {(d.unit, d.how) for d in episode.affected}
+
+
 def from_now(*units: UnitClient) -> None:
     """Waits on ``units`` look at what arrives from now on (as after a call through them)."""
     for unit in units:
@@ -189,6 +193,7 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     presence = Presence(ros.add(Node("presence_probe", namespace=f"/{cell}", context=ros.context)),
                         [f"/{cell}/wrapper"], LEASE)  # what the OPC UA server follows  # fmt: skip
     line = Line(ros, cell)
+    episodes = ros.subscribe(LineEpisode, f"/{cell}/coordinator/line/episodes", qos.LINE_EPISODES)
     hmi = Bridge(load_cell(path), context=ros.context, lease=LEASE).spin_in_background()
     request.addfinalizer(hmi.close)
     robot.ready(30)
@@ -268,6 +273,15 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     wrapper.wait_entered("EXECUTE")
     sent = [t.command for t in wrapper.transitions.messages if t.trigger == TransitionEvent.TRIGGER_INTERLOCK]  # fmt: skip
     assert sent == [Cmd.SUSPEND, Cmd.UNSUSPEND]  # each sent once
+    # stop episodes (issue 19): the PLC unit blocked is the root cause of the robot's suspension;
+    # the robot starved (upstream, nothing before it) is the root cause of the PLC's
+    blocked = episodes.wait_for(lambda e: e.id == 1 and not e.open, 10, "episode 1 closed")
+    assert (blocked.root_unit, blocked.bucket) == ("wrapper", "blocked"), blocked
+    assert affected(blocked) == {("robot", "propagated")}, blocked
+    starved = episodes.wait_for(lambda e: e.id == 2 and not e.open, 10, "episode 2 closed")
+    assert (starved.root_unit, starved.bucket) == ("robot", "starved"), starved
+    assert affected(starved) == {("robot", "starved"), ("wrapper", "propagated")}, starved
+    assert next(d for d in starved.affected if d.unit == "wrapper").cause_unit == "robot"
     from_now(wrapper)
     line.mark()
 
@@ -276,7 +290,7 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     stop = wrapper.transitions.wait_for(lambda t: t.to_state_name in ("STOPPING", "STOPPED"), 5,
                                         "the PLC stopping", wrapper._transitions_since)  # fmt: skip
     assert (stop.trigger, stop.command, stop.source) == (TransitionEvent.TRIGGER_ALARM, Cmd.STOP, "alarm:3001")  # fmt: skip
-    assert stop.detail == '3001/0 "Film break" (category 2)'
+    assert stop.detail == "Film break"  # as a unit's alarm: the message (the ID is in the source)
     status = wrapper.wait_status(lambda m: m.state_current_name == "STOPPED", 5, "wrapper stopped")
     assert (status.stop_reason_id, status.alarm_banner) == (3001, "3001/0 Film break")
     admin = wrapper.admin.wait_for(lambda a: a.stop_reason.id == 3001, 5, "the stop reason")
@@ -299,6 +313,12 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     line.wait(lambda m: states(m) == {"robot": "IDLE", "wrapper": "IDLE"}, "the line idle again")
     assert line.command(Cmd.START).accepted
     line.wait(lambda m: states(m) == {"robot": "EXECUTE", "wrapper": "EXECUTE"}, "running again")
+    # the PLC's fault stopped the line: its alarm is the root cause, the cell's Stop followed
+    fault = episodes.wait_for(lambda e: e.id == 3 and not e.open, 10, "episode 3 closed")
+    assert (fault.root_unit, fault.bucket, fault.reason, fault.source) == (
+        "wrapper", "unplanned_stop", "alarm 3001: Film break", "alarm:3001"), fault  # fmt: skip
+    assert fault.stop_reason_known and fault.stop_reason.id == 3001, fault
+    assert affected(fault) == {("wrapper", "internal"), ("robot", "cell")}, fault
 
     # -- the PLC process dies: lost within the lease everywhere, the line reacts ------------------------
     from_now(robot, wrapper)
@@ -340,6 +360,12 @@ def test_a_mixed_line_with_a_plc_unit_runs_faults_recovers_and_survives_the_plc_
     line.wait(lambda m: states(m) == {"robot": "IDLE", "wrapper": "IDLE"}, "idle after the restart")
     assert line.command(Cmd.START).accepted
     line.wait(lambda m: states(m) == {"robot": "EXECUTE", "wrapper": "EXECUTE"}, "running after the restart")  # fmt: skip
+    # the PLC lost: the root cause, the robot stopped by the coordinator's reaction to it
+    gone = episodes.wait_for(lambda e: e.id == 4 and not e.open, 10, "episode 4 closed")
+    assert (gone.root_unit, gone.bucket) == ("wrapper", "unplanned_stop"), gone
+    assert "lost" in gone.reason and "PLC" in gone.reason, gone
+    assert ("robot", "propagated") in affected(gone), gone
+    assert next(d for d in gone.affected if d.unit == "robot").cause_unit == "wrapper"
 
     # -- a PLC that goes silent (frozen: no FIN, only silence): the lease decides ------------------------
     diagnostics = ros.subscribe(DiagnosticArray, "/diagnostics", qos.DIAGNOSTICS)

@@ -1,0 +1,198 @@
+"""``packml report [cell]``: the line's losses, OEE and stop episodes, from the coordinator.
+
+packml report                       the current shift (lifetime without a shift calendar)
+packml report --shift previous      the shift before; --shift 2025-06-16 early: that one
+packml report --since 2h            the last two hours (also 30min, 90s, 2025-06-16T06:00)
+packml report --window lifetime     15min, 1h, reset (since reset_losses), lifetime
+packml report --format csv          the loss rows (they add up to each scope's elapsed time)
+packml report --format json         everything (windows and episodes) as JSON
+packml report --episodes 20         the 20 newest episodes in the table (default 10)
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime as dt
+import io
+import json
+import math
+import re
+import sys
+import time
+from typing import Any
+
+from .. import line_msgs
+from ..client import Unavailable, call_blocking, discover_cells
+from .main import EXIT_REFUSED, EXIT_UNAVAILABLE, EXIT_USAGE
+from .session import add_common, fail, session
+
+NS = 1_000_000_000
+_SPAN = re.compile(r"^(\d+(?:\.\d+)?)\s*(s|sec|min|m|h|d)$")
+_UNITS = {"s": 1, "sec": 1, "m": 60, "min": 60, "h": 3600, "d": 86400}
+BUCKET_NAMES = {
+    "running": "running", "planned_stop": "planned stop", "unplanned_stop": "unplanned stop",
+    "blocked": "blocked", "starved": "starved", "held": "held",
+}  # fmt: skip
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = subparsers.add_parser("report", help="the line's losses, OEE and stop episodes",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    p.add_argument("cell_name", nargs="?", metavar="cell", help="the cell (default: the only one running)")  # fmt: skip
+    which = p.add_mutually_exclusive_group()
+    which.add_argument("--shift", nargs="?", const="current", metavar="SHIFT",
+                       help="current (default), previous, or 'YYYY-MM-DD name'")  # fmt: skip
+    which.add_argument("--since", metavar="TIME", help="a span back from now (2h, 30min) or an ISO time")  # fmt: skip
+    which.add_argument("--window", choices=("15min", "1h", "reset", "lifetime"), help="a running window")  # fmt: skip
+    p.add_argument("--until", metavar="TIME", help="with --since: the end (ISO time; default now)")
+    p.add_argument("--format", choices=("table", "csv", "json"), default="table")
+    p.add_argument("--episodes", type=int, default=10, metavar="N", help="episodes listed (default 10)")  # fmt: skip
+    add_common(p)
+    p.set_defaults(func=report)
+
+
+def parse_time(text: str, now: float) -> float:
+    """Seconds since the epoch of ``2h``, ``30min``, ``90s`` (back from now) or an ISO time
+    (local time unless it names its zone)."""
+    m = _SPAN.match(text.strip().lower())
+    if m:
+        return now - float(m[1]) * _UNITS[m[2]]
+    try:
+        t = dt.datetime.fromisoformat(text.strip())
+    except ValueError:
+        raise ValueError(f"{text!r} is not a time: give 2h, 30min, 90s or 2025-06-16T06:00") from None  # fmt: skip
+    return t.timestamp()
+
+
+def report(args: argparse.Namespace) -> int:
+    from builtin_interfaces.msg import Time
+    from packml_interfaces.srv import QueryEpisodes, QueryLosses
+
+    now = time.time()
+    request = QueryLosses.Request()
+    try:
+        if args.since:
+            request.window = "since"
+            request.since = line_msgs.stamp(int(parse_time(args.since, now) * NS))
+            if args.until:
+                request.until = line_msgs.stamp(int(parse_time(args.until, now) * NS))
+        elif args.until:
+            return fail("--until needs --since", EXIT_USAGE)
+        elif args.window:
+            request.window = args.window
+        elif args.shift and args.shift != "current":
+            request.window = f"shift:{args.shift}"
+        else:
+            request.window = "shift"
+    except ValueError as exc:
+        return fail(str(exc), EXIT_USAGE)
+    with session(args) as s:
+        try:
+            cell = args.cell_name or args.cell
+            if not cell:
+                cells = discover_cells(s.node, s.timeout)
+                if len(cells) != 1:
+                    return fail("no cell running" if not cells else f"several cells are running ({', '.join(cells)}): name one", EXIT_USAGE if cells else EXIT_UNAVAILABLE)  # fmt: skip
+                cell = next(iter(cells))
+            base = f"/{cell}/coordinator/line"
+            losses = call_blocking(s.node.create_client(QueryLosses, f"{base}/query_losses"),
+                                   request, s.timeout, f"{base}/query_losses")  # fmt: skip
+            if not losses.accepted and request.window == "shift" and not args.shift:
+                request.window = "lifetime"  # no shift calendar (or no shift now)
+                losses = call_blocking(s.node.create_client(QueryLosses, f"{base}/query_losses"),
+                                       request, s.timeout, f"{base}/query_losses")  # fmt: skip
+            if not losses.accepted:
+                return fail(f"{cell}: {losses.message}", EXIT_REFUSED)
+            window = losses.windows[0]
+            ep_req = QueryEpisodes.Request(limit=max(1, min(args.episodes, 1000)))
+            ep_req.since = window.start if (window.start.sec or window.start.nanosec) else Time()
+            ep_req.until = window.end
+            episodes = call_blocking(s.node.create_client(QueryEpisodes, f"{base}/query_episodes"),
+                                     ep_req, s.timeout, f"{base}/query_episodes")  # fmt: skip
+        except Unavailable as exc:
+            return fail(f"{exc} (is the cell's coordinator running?)", EXIT_UNAVAILABLE)
+    data = line_msgs.losses_dict(window)
+    eps = [line_msgs.episode_dict(e) for e in episodes.episodes]
+    if args.format == "json":
+        print(json.dumps({"cell": cell, **data, "episodes": eps, "episodes_total": episodes.total}, indent=2))  # fmt: skip
+    elif args.format == "csv":
+        sys.stdout.write(to_csv(data))
+    else:
+        print(table(cell, data, eps, episodes.total))
+    return 0
+
+
+# -- output ----------------------------------------------------------------------------------------------
+def duration(seconds: float) -> str:
+    sign = "-" if seconds < 0 else ""
+    seconds = abs(seconds)
+    h, rest = divmod(seconds, 3600)
+    m, sec = divmod(rest, 60)
+    return f"{sign}{int(h)}:{int(m):02d}:{sec:04.1f}"
+
+
+def percent(x: float | None) -> str:
+    return "-" if x is None or math.isnan(x) else f"{100 * x:.1f}%"
+
+
+def clock(t: float | None) -> str:
+    return dt.datetime.fromtimestamp(t).strftime("%Y-%m-%d %H:%M:%S") if t else "-"
+
+
+def rows_of(scope: dict[str, Any]) -> list[tuple[str, str, float]]:
+    """(bucket, reason, seconds) rows of a scope: the stops by reason, then the running time as
+    speed loss, quality loss and productive time; they add up to its elapsed time."""
+    rows = [(b["bucket"], b["reason"], b["seconds"]) for b in scope["buckets"] if b["bucket"] != "running"]  # fmt: skip
+    rows += [("speed_loss", "", scope["speed_loss"]), ("quality_loss", "", scope["quality_loss"]),
+             ("productive", "", scope["productive"])]  # fmt: skip
+    return rows
+
+
+def to_csv(data: dict[str, Any]) -> str:
+    out = io.StringIO()
+    w = csv.writer(out)
+    w.writerow(["window", "start", "end", "scope", "bucket", "reason", "seconds"])
+    for scope in data["scopes"]:
+        for bucket, reason, seconds in rows_of(scope):
+            w.writerow([data["window"], data["start"] or "", data["end"], scope["scope"], bucket, reason, f"{seconds:.3f}"])  # fmt: skip
+        w.writerow([data["window"], data["start"] or "", data["end"], scope["scope"], "elapsed", "", f"{scope['elapsed']:.3f}"])  # fmt: skip
+    return out.getvalue()
+
+
+def _grid(rows: list[tuple[str, ...]], right: set[int]) -> list[str]:
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    return ["  ".join(c.rjust(widths[i]) if i in right else c.ljust(widths[i]) for i, c in enumerate(r)).rstrip() for r in rows]  # fmt: skip
+
+
+def table(cell: str, data: dict[str, Any], episodes: list[dict[str, Any]], total: int) -> str:
+    lines = [f"line {cell}: {data['window']} ({clock(data['start']) if data['start'] else 'since the first record'} .. {clock(data['end'])})"]  # fmt: skip
+    head = ("SCOPE", "ELAPSED", "PLANNED", "UNPLANNED", "BLOCKED", "STARVED", "HELD", "RUNNING",
+            "SPEED LOSS", "QUALITY LOSS", "PRODUCTIVE", "A", "P", "Q", "OEE")  # fmt: skip
+    rows = [head]
+    times = ("elapsed", "planned_stop", "unplanned_stop", "blocked", "starved", "held", "running",
+             "speed_loss", "quality_loss", "productive")  # fmt: skip
+    for s in data["scopes"]:
+        shares = [percent(s[k]) for k in ("availability", "performance", "quality", "oee")]
+        rows.append((s["scope"], *(duration(s[k]) for k in times), *shares))
+    lines += _grid(rows, set(range(1, len(head))))
+    line = data["scopes"][0]
+    lines += ["", "LOSSES OF THE LINE (they add up to its elapsed time)"]
+    loss_rows: list[tuple[str, ...]] = [("BUCKET", "REASON", "TIME", "SHARE")]
+    for bucket, reason, seconds in rows_of(line):
+        share = seconds / line["elapsed"] if line["elapsed"] else 0.0
+        loss_rows.append((BUCKET_NAMES.get(bucket, bucket.replace("_", " ")), reason or "-", duration(seconds), percent(share)))  # fmt: skip
+    loss_rows.append(("total", "", duration(sum(r[2] for r in rows_of(line))), percent(1.0 if line["elapsed"] else 0.0)))  # fmt: skip
+    loss_rows.append(("elapsed", "", duration(line["elapsed"]), ""))
+    lines += ["  " + x for x in _grid(loss_rows, {2, 3})]
+    lines += ["", f"STOP EPISODES ({len(episodes)} of {total}, newest first)"]
+    if episodes:
+        ep_rows: list[tuple[str, ...]] = [("#", "START", "DURATION", "ROOT CAUSE", "BUCKET", "REASON", "AFFECTED")]  # fmt: skip
+        for e in episodes:
+            affected = ", ".join(f"{a['unit']} ({a['how']})" for a in e["affected"])
+            dur = duration(e["duration"]) + (" open" if e["open"] else "")
+            ep_rows.append((str(e["id"]), clock(e["start"]), dur, e["root_unit"], BUCKET_NAMES.get(e["bucket"], e["bucket"]), e["reason"], affected))  # fmt: skip
+        lines += ["  " + x for x in _grid(ep_rows, {0, 2})]
+    else:
+        lines.append("  none")
+    return "\n".join(lines)

@@ -1,0 +1,240 @@
+"""Persistence of a line's performance: every fact, every episode and the open state, in SQLite.
+
+One file per cell (``line.store``, default ``~/.local/state/packml_ros2/<cell>/line.sqlite3``):
+
+- ``segments`` and ``counts``: the facts (:mod:`.ledger`), appended, never changed;
+- ``episodes``: one row per stop episode, replaced while it is open;
+- ``state``: the open state of :class:`~.performance.Performance` (what the units were doing
+  since when, the open episode), one row.
+
+Write-ahead: the facts, episodes and open state an input produced are written in **one
+transaction, committed before anything of that input is published or answered**. SQLite in WAL
+mode writes the commit to its log with one ``write()``: a coordinator killed at any moment
+(SIGKILL, a crash) loses nothing it published, and a restart continues from the last commit (the
+units' latched transitions tell what happened meanwhile). Without ``fsync`` (``synchronous =
+NORMAL``), a power loss can lose the last commits the OS had not written to disk yet.
+
+A second coordinator of the same cell cannot open the store (``<file>.lock``, as the units'
+stores); a file that is not a line store is moved aside (``<file>.unreadable-<UTC time>``) and
+the line starts with an empty one (:attr:`LineStore.problems` says so).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import sqlite3
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from ..persistence import StoreError, _lock, _move_aside
+from .episodes import Episode
+from .ledger import RECENT, Count, Fact, Ledger, Segment
+from .losses import Totals
+
+SCHEMA_VERSION = 1
+_TABLES = {"segments", "counts", "episodes", "state", "meta"}
+_FAR = 2**62
+_SCHEMA = (
+    "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
+    "CREATE TABLE IF NOT EXISTS segments (scope TEXT NOT NULL, start INTEGER NOT NULL,"
+    " end INTEGER NOT NULL, bucket TEXT NOT NULL, reason TEXT NOT NULL, shift TEXT NOT NULL)",
+    "CREATE INDEX IF NOT EXISTS segments_end ON segments (end)",
+    "CREATE INDEX IF NOT EXISTS segments_shift ON segments (shift)",
+    "CREATE TABLE IF NOT EXISTS counts (scope TEXT NOT NULL, t INTEGER NOT NULL,"
+    " processed INTEGER NOT NULL, defective INTEGER NOT NULL, net INTEGER NOT NULL,"
+    " good INTEGER NOT NULL, shift TEXT NOT NULL)",
+    "CREATE INDEX IF NOT EXISTS counts_t ON counts (t)",
+    "CREATE INDEX IF NOT EXISTS counts_shift ON counts (shift)",
+    "CREATE TABLE IF NOT EXISTS episodes (id INTEGER PRIMARY KEY, start INTEGER NOT NULL,"
+    " end INTEGER, root_unit TEXT NOT NULL, bucket TEXT NOT NULL, reason TEXT NOT NULL,"
+    " document TEXT NOT NULL)",
+    "CREATE INDEX IF NOT EXISTS episodes_start ON episodes (start)",
+    "CREATE TABLE IF NOT EXISTS state (key TEXT PRIMARY KEY, document TEXT NOT NULL)",
+)
+
+
+class LineStore:
+    """``LineStore(path, cell)``: open (lock, create, recover) the line store of ``cell``."""
+
+    def __init__(self, path: str | os.PathLike[str], cell: str) -> None:
+        self.path = Path(path)
+        self.cell = cell
+        self.problems: list[str] = []
+        self.commits = 0
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._lock = _lock(self.path, f"line of {cell}")
+        except (OSError, ValueError) as exc:
+            raise self._cannot_open(exc) from None
+        try:
+            self.db = self._open()
+        except (OSError, sqlite3.Error) as exc:
+            os.close(self._lock)
+            raise self._cannot_open(exc) from None
+
+    def _cannot_open(self, exc: BaseException) -> StoreError:
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc) or type(exc).__name__  # fmt: skip
+        return StoreError(f"{self.path}: cannot open the line store of {self.cell}: {why} "
+                          "(line.store of the cell file; store: false keeps it in memory)")  # fmt: skip
+
+    def _open(self) -> sqlite3.Connection:
+        db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+        try:
+            problem = _foreign(db)
+        except sqlite3.DatabaseError as exc:
+            problem = str(exc)
+        if problem:
+            with contextlib.suppress(Exception):
+                db.close()
+            aside = _move_aside(self.path, "-wal", "-shm")
+            self.problems.append(f"{self.path.name} is not a line store ({problem}): moved aside to {aside.name}; the line starts with an empty one")  # fmt: skip
+            db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+        db.execute("PRAGMA journal_mode=WAL")
+        db.execute("PRAGMA synchronous=NORMAL")
+        for statement in _SCHEMA:
+            db.execute(statement)
+        db.execute("INSERT OR IGNORE INTO meta (key, value) VALUES ('schema', ?)", (str(SCHEMA_VERSION),))  # fmt: skip
+        return db
+
+    # -- writing --------------------------------------------------------------------------------------
+    def commit(self, facts: Sequence[Fact], episodes: Sequence[tuple[Episode, str, str, str]],
+               state: Mapping[str, Any] | None) -> None:  # fmt: skip
+        """One input's facts, episodes ((episode, root unit, bucket, reason)) and open state, in
+        one transaction."""
+        db = self.db
+        db.execute("BEGIN")
+        try:
+            segs = [(f.scope, f.start, f.end, f.bucket, f.reason, f.shift) for f in facts if isinstance(f, Segment)]  # fmt: skip
+            if segs:
+                db.executemany("INSERT INTO segments VALUES (?, ?, ?, ?, ?, ?)", segs)
+            counts = [(f.scope, f.t, f.processed, f.defective, f.net, f.good, f.shift) for f in facts if isinstance(f, Count)]  # fmt: skip
+            if counts:
+                db.executemany("INSERT INTO counts VALUES (?, ?, ?, ?, ?, ?, ?)", counts)
+            for ep, unit, bucket, reason in episodes:
+                db.execute("INSERT OR REPLACE INTO episodes VALUES (?, ?, ?, ?, ?, ?, ?)",
+                           (ep.id, ep.start, ep.end, unit, bucket, reason, json.dumps(ep.to_dict())))  # fmt: skip
+            if state is not None:
+                db.execute("INSERT OR REPLACE INTO state VALUES ('performance', ?)", (json.dumps(state),))  # fmt: skip
+            db.execute("COMMIT")
+        except BaseException:
+            with contextlib.suppress(sqlite3.Error):
+                db.execute("ROLLBACK")
+            raise
+        self.commits += 1
+
+    # -- reading --------------------------------------------------------------------------------------
+    def state(self) -> dict[str, Any] | None:
+        row = self.db.execute("SELECT document FROM state WHERE key = 'performance'").fetchone()
+        if row is None:
+            return None
+        try:
+            doc = json.loads(row[0])
+        except json.JSONDecodeError as exc:
+            self.problems.append(f"the open state could not be read ({exc}): starting without it")
+            return None
+        return doc if isinstance(doc, dict) else None
+
+    def totals(self, a: int | None, b: int | None) -> dict[str, Totals]:
+        lo, hi = (-_FAR if a is None else a), (_FAR if b is None else b)
+        out: dict[str, Totals] = {}
+        for scope, bucket, reason, ns in self.db.execute(
+            "SELECT scope, bucket, reason, SUM(MIN(end, ?2) - MAX(start, ?1)) FROM segments"
+            " WHERE end > ?1 AND start < ?2 GROUP BY scope, bucket, reason", (lo, hi)):  # fmt: skip
+            out.setdefault(scope, Totals()).add_time(bucket, reason, int(ns))
+        for scope, p, d, net, good in self.db.execute(
+            "SELECT scope, SUM(processed), SUM(defective), SUM(net), SUM(good) FROM counts"
+            " WHERE t >= ?1 AND t < ?2 GROUP BY scope", (lo, hi)):  # fmt: skip
+            out.setdefault(scope, Totals()).add_count(int(p), int(d), int(net), int(good))
+        return out
+
+    def shift_totals(self, keys: Iterable[str] | None = None) -> dict[str, dict[str, Totals]]:
+        out: dict[str, dict[str, Totals]] = {}
+        wanted = None if keys is None else set(keys)
+        for shift, scope, bucket, reason, ns in self.db.execute(
+            "SELECT shift, scope, bucket, reason, SUM(end - start) FROM segments WHERE shift != ''"
+            " GROUP BY shift, scope, bucket, reason"):  # fmt: skip
+            if wanted is None or shift in wanted:
+                out.setdefault(shift, {}).setdefault(scope, Totals()).add_time(
+                    bucket, reason, int(ns)
+                )
+        for shift, scope, p, d, net, good in self.db.execute(
+            "SELECT shift, scope, SUM(processed), SUM(defective), SUM(net), SUM(good) FROM counts"
+            " WHERE shift != '' GROUP BY shift, scope"):  # fmt: skip
+            if wanted is None or shift in wanted:
+                out.setdefault(shift, {}).setdefault(scope, Totals()).add_count(int(p), int(d), int(net), int(good))  # fmt: skip
+        return out
+
+    def shift_keys(self) -> list[str]:
+        rows = self.db.execute("SELECT shift, MIN(start) FROM segments WHERE shift != '' GROUP BY shift ORDER BY 2")  # fmt: skip
+        return [r[0] for r in rows]
+
+    def restore_ledger(self, ledger: Ledger, reset_at: int | None) -> None:
+        """The ledger's running windows as the facts give them."""
+        latest = self.db.execute("SELECT MAX(m) FROM (SELECT MAX(end) AS m FROM segments UNION ALL SELECT MAX(t) FROM counts)").fetchone()[0]  # fmt: skip
+        ledger.lifetime = self.totals(None, None)
+        ledger.reset_at = reset_at
+        ledger.reset = self.totals(reset_at, None) if reset_at is not None else {s: t.copy() for s, t in ledger.lifetime.items()}  # fmt: skip
+        ledger.shifts = self.shift_totals()
+        ledger.latest = int(latest or 0)
+        horizon = ledger.latest - RECENT
+        recent: list[Fact] = [Segment(*r) for r in self.db.execute(
+            "SELECT scope, start, end, bucket, reason, shift FROM segments WHERE end >= ? ORDER BY rowid", (horizon,))]  # fmt: skip
+        recent += [Count(*r) for r in self.db.execute(
+            "SELECT scope, t, processed, defective, net, good, shift FROM counts WHERE t >= ? ORDER BY rowid", (horizon,))]  # fmt: skip
+        ledger.recent.clear()
+        ledger.recent.extend(sorted(recent, key=lambda f: f.end if isinstance(f, Segment) else f.t))
+
+    def episodes(self, since: int | None = None, until: int | None = None, unit: str | None = None,
+                 reason: str = "", bucket: str = "", open_only: bool = False,
+                 limit: int = 100) -> tuple[list[Episode], int]:  # fmt: skip
+        """Episodes newest first, filtered (see ``QueryEpisodes.srv``); and how many matched."""
+        where: list[str] = []
+        args: list[Any] = []
+        if since is not None:
+            where.append("(end IS NULL OR end >= ?)")
+            args.append(since)
+        if until is not None:
+            where.append("start < ?")
+            args.append(until)
+        if unit is not None:
+            where.append("root_unit = ?")
+            args.append(unit)
+        if reason:
+            where.append("instr(lower(reason), lower(?)) > 0")
+            args.append(reason)
+        if bucket:
+            where.append("bucket = ?")
+            args.append(bucket)
+        if open_only:
+            where.append("end IS NULL")
+        clause = f" WHERE {' AND '.join(where)}" if where else ""
+        total = int(self.db.execute(f"SELECT COUNT(*) FROM episodes{clause}", args).fetchone()[0])
+        rows = self.db.execute(f"SELECT document FROM episodes{clause} ORDER BY start DESC, id DESC LIMIT ?", [*args, limit])  # fmt: skip
+        return [Episode.from_dict(json.loads(r[0])) for r in rows], total
+
+    def recent_episodes(self, n: int) -> list[Episode]:
+        rows = self.db.execute("SELECT document FROM episodes WHERE end IS NOT NULL ORDER BY id DESC LIMIT ?", (n,))  # fmt: skip
+        return [Episode.from_dict(json.loads(r[0])) for r in rows][::-1]
+
+    def close(self) -> None:
+        if self._lock < 0:
+            return
+        self.db.close()
+        os.close(self._lock)
+        self._lock = -1
+
+
+def _foreign(db: sqlite3.Connection) -> str:
+    """Why the file is not a line store of this version ('' = it is, or it is empty)."""
+    tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+    if not tables:
+        return ""
+    if tables - _TABLES or "meta" not in tables:
+        return f"it holds the tables {', '.join(sorted(tables))}"
+    row = db.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone()
+    if row is None or row[0] != str(SCHEMA_VERSION):
+        return f"schema {row[0] if row else 'unknown'}, this version reads {SCHEMA_VERSION}"
+    return ""
