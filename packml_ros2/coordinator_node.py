@@ -56,6 +56,7 @@ from .core.line.cell import (
     Log,
     Resubscribe,
     aggregate_state,
+    interlock_failure,
 )
 from .core.line.line import Line
 from .core.line.sequence import POLL, START_LIKE, STOP_LIKE, Answer, Outcome, Run
@@ -220,11 +221,9 @@ class CoordinatorNode(Node):
         error = None
         if exc is not None:
             error = str(exc) or type(exc).__name__
-        elif not future.result().accepted and not (
-            # a clear of what the unit does not hold from us: nothing to do is done
-            not want and future.result().result == Result.NOTHING_TO_DO
-        ):
-            error = future.result().message
+        else:
+            a = future.result()
+            error = interlock_failure(want, a.accepted, a.result, a.message)
         with self._cond:
             if self._closed:
                 return

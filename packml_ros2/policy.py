@@ -71,12 +71,13 @@ def _of(node: Any, enclave: str) -> Endpoints:
 
 
 def _without_plc(plan: Plan) -> Plan:
-    """``plan`` with no persistence (a running cell holds its stores) and a PLC unit's bridge
-    built as a unit node: it serves and publishes the same names (and would connect to its
-    PLC)."""
+    """``plan`` with no persistence (a running cell holds its stores: the units' and the line's)
+    and a PLC unit's bridge built as a unit node: it serves and publishes the same names (and
+    would connect to its PLC)."""
     units = {n: dataclasses.replace(u, plc=None, persistence_path=None)
              for n, u in plan.cell.units.items()}  # fmt: skip
-    return dataclasses.replace(plan, cell=dataclasses.replace(plan.cell, units=units))
+    line = dataclasses.replace(plan.cell.line, store=None)
+    return dataclasses.replace(plan, cell=dataclasses.replace(plan.cell, units=units, line=line))
 
 
 @contextmanager

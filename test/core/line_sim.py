@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from packml_ros2.core import ACTING, Cmd, State, Unit, parse_cell
-from packml_ros2.core.line.cell import Call
+from packml_ros2.core.line.cell import Call, interlock_failure
 from packml_ros2.core.line.line import Line
 from packml_ros2.core.line.sequence import Answer, Outcome, Run
 from packml_ros2.core.line.store import LineStore
@@ -170,7 +170,7 @@ class SimLine:
                     u = self.units[e.unit]
                     a = self.drivers[e.unit].call(self.t, u.set_interlock, e.fields["active"],
                                                   e.fields["reason"], e.fields["source"])  # fmt: skip
-                    err = None if a.accepted else a.message
+                    err = interlock_failure(bool(e.fields["active"]), a.accepted, a.reason, a.message)  # fmt: skip
                     self._effects(self.line.interlock_done(e.unit, bool(e.fields["active"]), e.why, err))  # fmt: skip
                 else:
                     u = self.units[e.unit]

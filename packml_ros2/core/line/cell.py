@@ -34,6 +34,7 @@ from typing import Any, Protocol
 
 from ..config import CellConfig, UnitConfig
 from ..numbers import Cmd, State, names_of, state_name
+from ..reasons import Reason
 from ..rules import Rules, Trigger, rules_of
 
 #: Source of the unit commands the coordinator sends (the units' remote path).
@@ -110,6 +111,14 @@ def stamp_ns(stamp: Any) -> int:
 
 
 # -- effects -------------------------------------------------------------------------------------------
+def interlock_failure(want: bool, accepted: bool, result: int, message: str) -> str | None:
+    """Why a unit's answer to set_interlock is a failure to retry (None: done). Clearing an
+    interlock the unit does not hold from the coordinator (NOTHING_TO_DO) is done."""
+    if accepted or (not want and result == Reason.NOTHING_TO_DO):
+        return None
+    return message
+
+
 @dataclass(frozen=True)
 class Log:
     level: str  #: info | warning
