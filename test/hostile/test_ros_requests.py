@@ -20,7 +20,7 @@ from typing import Any
 
 import pytest
 import rclpy
-from packml_interfaces.msg import Descriptor, EmReport, Product, Result, UnitInput
+from packml_interfaces.msg import Descriptor, EmReport, Product, Result, TransitionEvent, UnitInput
 from packml_interfaces.srv import (
     AckAlarms,
     Command,
@@ -191,6 +191,10 @@ def test_thousands_of_hostile_service_requests_and_reports_change_nothing(
     em.start_heartbeats()
     unit.client.wait_status(lambda m: all(e.online for e in m.equipment_modules), what="EM online")
     before = unit.client.status.last
+    # the latched RESTART transition may arrive after the status under load: counted from after it
+    unit.client.transitions.wait_for(
+        lambda t: t.trigger == TransitionEvent.TRIGGER_RESTART, 10, "RESTART"
+    )
     statuses, transitions = len(unit.client.status), len(unit.client.transitions)
     alarms = len(unit.client.alarms)
     inputs = ros.subscribe(UnitInput, f"{unit.base}/input_log", qos.INPUT_LOG)
@@ -331,6 +335,10 @@ def test_hostile_cell_requests_at_the_coordinator_change_nothing(ros: Any, tmp_p
 
     cell = Cell(ros, tmp_path, {"filler": {}, "capper": {}}, {"start_order": ["filler", "capper"]})
     before = {n: c.status.last for n, c in cell.units.items()}
+    for c in cell.units.values():  # (the latched RESTART transitions first: see above)
+        c.transitions.wait_for(
+            lambda t: t.trigger == TransitionEvent.TRIGGER_RESTART, 10, "RESTART"
+        )
     marks = {n: (len(c.status), len(c.transitions)) for n, c in cell.units.items()}
     base = f"/{cell.name}/coordinator"
     rng = random.Random(SEED)
