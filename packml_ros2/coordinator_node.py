@@ -121,9 +121,8 @@ class CoordinatorNode(Node):
         serve = partial(responses.create_service, self, callback_group=self._group)
         serve(Command, "~/command", self._srv_command)
         serve(SetMode, "~/set_mode", self._srv_set_mode)
-        for cmd in Cmd:
-            if cmd:
-                serve(Trigger, f"~/{cmd.name.lower()}", partial(self._srv_trigger, cmd))
+        for verb, cmd in responses.TRIGGER_SHORTCUTS:
+            serve(Trigger, f"~/{verb}", partial(self._srv_trigger, cmd))
         serve(QueryEpisodes, "~/line/query_episodes", self._srv_episodes)
         serve(QueryLosses, "~/line/query_losses", self._srv_losses)
         serve(Trigger, "~/line/reset_losses", self._srv_reset_losses)

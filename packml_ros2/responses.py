@@ -32,6 +32,7 @@ from typing import Any
 from rclpy.node import Node
 
 from . import boundary, qos
+from .core.numbers import Cmd
 
 LOST_MESSAGE = "failed to send response (timeout)"
 RESEND_PERIOD_S = 0.05
@@ -156,6 +157,11 @@ def resender() -> Resender:
     window = resend_window()
     _install_hook()
     return Resender(window)
+
+
+#: The Trigger shortcut of each PackML command (``<node>/reset``, ``<node>/start``, ...): the
+#: names every node that takes commands serves (units, PLC bridges, the coordinator).
+TRIGGER_SHORTCUTS: tuple[tuple[str, Cmd], ...] = tuple((c.name.lower(), c) for c in Cmd if c)
 
 
 def create_service(node: Node, srv_type: Any, name: str, callback: Any, **kwargs: Any) -> Any:

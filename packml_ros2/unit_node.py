@@ -231,9 +231,8 @@ class UnitNode(Node):
             (SetEmActive, "set_em_active", self._srv_set_em_active),
             (SetInterlock, "set_interlock", self._srv_set_interlock),
         ]
-        for cmd in Cmd:
-            if cmd:
-                services.append((Trigger, cmd.name.lower(), partial(self._srv_trigger, cmd)))
+        for verb, cmd in responses.TRIGGER_SHORTCUTS:
+            services.append((Trigger, verb, partial(self._srv_trigger, cmd)))
         for srv_type, name, handler in services:
             responses.create_service(self, srv_type, f"~/{name}", handler)
 

@@ -454,9 +454,8 @@ class PlcUnitNode(Node):
         serve = partial(responses.create_service, self, callback_group=self._group)
         serve(Command, "~/command", self._srv_command)
         serve(SetMode, "~/set_mode", self._srv_set_mode)
-        for cmd in Cmd:
-            if cmd:
-                serve(TriggerSrv, f"~/{cmd.name.lower()}", partial(self._srv_trigger, cmd))
+        for verb, cmd in responses.TRIGGER_SHORTCUTS:
+            serve(TriggerSrv, f"~/{verb}", partial(self._srv_trigger, cmd))
         serve(SetMachSpeed, "~/set_mach_speed", self._srv_set_mach_speed)
         serve(SetUnitParameters, "~/set_unit_parameters", self._srv_set_parameters)
         serve(SetProduct, "~/set_product", self._srv_set_product)
