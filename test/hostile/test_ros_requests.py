@@ -191,12 +191,9 @@ def test_thousands_of_hostile_service_requests_and_reports_change_nothing(
     em.start_heartbeats()
     unit.client.wait_status(lambda m: all(e.online for e in m.equipment_modules), what="EM online")
     before = unit.client.status.last
-    # the latched RESTART transition may arrive after the status under load: counted from after it
-    unit.client.transitions.wait_for(
-        lambda t: t.trigger == TransitionEvent.TRIGGER_RESTART, 10, "RESTART"
-    )
-    statuses, transitions = len(unit.client.status), len(unit.client.transitions)
-    alarms = len(unit.client.alarms)
+    # what the unit published, counted by the unit itself: the status, the transition and the
+    # alarm list of one input may arrive in any order under load (a collector's count races them)
+    published = dict(unit.node._published)
     inputs = ros.subscribe(UnitInput, f"{unit.base}/input_log", qos.INPUT_LOG)
     first_input = unit.node._input_index
     capfd.readouterr()
@@ -268,13 +265,15 @@ def test_thousands_of_hostile_service_requests_and_reports_change_nothing(
     log = capfd.readouterr()
     em.stop_heartbeats()
     after = unit.client.status.last
-    assert len(unit.client.status) == statuses, "a refused request changed the status"
-    assert len(unit.client.transitions) == transitions
+    changed = {
+        t: unit.node._published[t] - published[t] for t in ("status", "transitions", "alarms")
+    }
+    changed = {t: n for t, n in changed.items() if n}
+    assert not changed, f"a refused request or report published {changed}"
     assert (after.state_current, after.unit_mode_current, after.mach_speed) == (
         before.state_current, before.unit_mode_current, before.mach_speed)  # fmt: skip
     assert [e.name for e in after.equipment_modules] == ["nozzle"]
     assert not after.remote_commands_enabled
-    assert len(unit.client.alarms) == alarms, "a refused request or report changed the alarms"
     growth = rss_after - rss_before
     assert growth < MAX_RSS_GROWTH_MB, f"RSS grew {growth:.1f} MB"
     size = len(log.out) + len(log.err)
@@ -335,7 +334,7 @@ def test_hostile_cell_requests_at_the_coordinator_change_nothing(ros: Any, tmp_p
 
     cell = Cell(ros, tmp_path, {"filler": {}, "capper": {}}, {"start_order": ["filler", "capper"]})
     before = {n: c.status.last for n, c in cell.units.items()}
-    for c in cell.units.values():  # (the latched RESTART transitions first: see above)
+    for c in cell.units.values():  # the latched RESTART transition may arrive after the status
         c.transitions.wait_for(
             lambda t: t.trigger == TransitionEvent.TRIGGER_RESTART, 10, "RESTART"
         )
