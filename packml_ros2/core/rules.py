@@ -311,7 +311,9 @@ def source_of(kind: str, name: str = "") -> str:
 
 
 #: Which inputs the remote lock guards: every input that changes the unit (commands by the
-#: ``remote`` guard below, the rest by :func:`locked_refusal`). Reading (query_alarms) is free.
+#: ``remote`` guard below, the rest by :func:`locked_refusal`). Reading (query_alarms) is free;
+#: so is a source clearing its own interlock (``interlock`` is setting one:
+#: :func:`.interlocks.interlock_refusal`).
 LOCKED_INPUTS: tuple[str, ...] = (
     "command", "mode", "alarm", "alarm.ack", "alarm.reset", "times.reset", "counters.reset",
     "speed", "parameters", "products", "em.active", "interlock",

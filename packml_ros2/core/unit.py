@@ -34,7 +34,7 @@ from .counters import Counters
 from .deadlines import Deadlines
 from .durable import Durable, document
 from .equipment import Equipment, EquipmentModule
-from .interlocks import STOP_ID_BLOCKED, STOP_ID_STARVED, Interlocks, external_refusal
+from .interlocks import STOP_ID_BLOCKED, STOP_ID_STARVED, Interlocks, interlock_refusal
 from .limits import speed_refusal
 from .modes import ModeDef
 from .numbers import Cmd, Mode, State, command_name, state_name
@@ -838,9 +838,7 @@ class Unit:
         self._enter()
         source = source or OPERATOR
         self._record(inputlog.INTERLOCK, active, reason, source)
-        answer = self._locked("interlock", source) or self._set_interlock(
-            bool(active), reason, source
-        )
+        answer = self._set_interlock(bool(active), reason, source)
         self._leave()
         return answer
 
@@ -848,7 +846,7 @@ class Unit:
         key = f"ext:{source}"
         name = self.config.name
         held = [k[4:] for k in self.interlocks.active if k.startswith("ext:")]
-        refused = external_refusal(held, active, source, name)
+        refused = interlock_refusal(held, active, source, self.remote_enabled, name)
         if refused is not None:
             return refused
         if active:

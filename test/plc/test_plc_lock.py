@@ -109,3 +109,15 @@ def test_a_locked_plc_unit_refuses_every_remote_request_and_only_a_local_source_
     assert resp.accepted, resp
     line = plc.lines.get(timeout=10)
     assert line.get("name") in ("RESETTING", "IDLE"), line
+
+    # an interlock the coordinator set is released by it after the unit was switched to local
+    # (the lock guards setting one, as on a ROS unit: core.interlocks.interlock_refusal)
+    held = wrapper.call(SetInterlock, "set_interlock", active=True, reason="packer blocked", source="coordinator")  # fmt: skip
+    assert held.accepted, held
+    assert wrapper.call(SetRemoteCommands, "set_remote_commands", enabled=False, source="operator").accepted  # fmt: skip
+    again = wrapper.call(SetInterlock, "set_interlock", active=True, reason="again", source="coordinator")  # fmt: skip
+    assert again.result == Result.REMOTE_DISABLED, again
+    other = wrapper.call(SetInterlock, "set_interlock", active=False, source="remote:mes")
+    assert other.result == Result.NOTHING_TO_DO, other
+    cleared = wrapper.call(SetInterlock, "set_interlock", active=False, source="coordinator")
+    assert cleared.accepted and "cleared" in cleared.message, cleared
