@@ -1,6 +1,7 @@
 """Issue 15: corrupted stores. Every store on disk the product opens, damaged as a full disk, a
 crash, another program or an attacker leaves it: a unit's admin store (SQLite snapshot, journal,
-lock: core.persistence) and a line's store (SQLite: core.line.store). Seeded and bounded: every
+lock: core.persistence), a line's store (SQLite: core.line.store) and the self-signed OPC UA
+certificate (opcua.server.own_certificate). Seeded and bounded: every
 mutation by name, then random bit flips, byte runs and truncations.
 
 For each: the unit (the line) starts, or refuses with one line naming the file and why (a
@@ -414,3 +415,58 @@ def test_unit_node_and_coordinator_log_a_corrupted_store_or_exit_in_one_line(
         lines = result.stderr.strip().splitlines()
         assert result.returncode == 2 and len(lines) == 1, result.stderr
         assert lines[0].startswith(f"{who}: {tmp_path}") and "is a directory" in lines[0], lines
+
+
+# -- the self-signed certificate an OPC UA server or a PLC bridge made before --------------------------
+CERT_MUTATIONS: dict[str, Mutate] = {
+    "certificate: garbage": lambda d, r: garbage(d / "server_cert.der", r),
+    "certificate: truncated": lambda d, r: truncated(d / "server_cert.der", r),
+    "certificate: zero length": lambda d, r: zero_length(d / "server_cert.der", r),
+    "certificate: bit flips": lambda d, r: bit_flips(d / "server_cert.der", r),
+    "certificate: a directory": lambda d, r: directory(d / "server_cert.der", r),
+    "certificate: a symlink to /dev/zero": lambda d, r: dev_zero(d / "server_cert.der", r),
+    "certificate: huge": lambda d, r: (d / "server_cert.der").write_bytes(b"0" * HUGE),
+    "key: garbage": lambda d, r: garbage(d / "server_key.pem", r),
+    "key: of another pair": lambda d, r: (d / "server_key.pem").write_bytes(
+        (d.parent / "other" / "server_key.pem").read_bytes()
+    ),
+    "key: missing": lambda d, r: (d / "server_key.pem").unlink(),
+}
+
+
+def test_a_damaged_certificate_is_moved_aside_and_made_again(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    import asyncio
+
+    from asyncua.crypto import uacrypto
+
+    from packml_ros2.opcua.server import own_certificate
+
+    def make(folder: Path) -> tuple[Path, Path]:
+        return asyncio.run(own_certificate(folder, "urn:packml_ros2:t", "t", "127.0.0.1"))
+
+    pristine, other = tmp_path / "pristine", tmp_path / "other"
+    make(pristine)
+    make(other)
+    kept = (pristine / "server_cert.der").read_bytes()
+    assert (
+        make(pristine) and (pristine / "server_cert.der").read_bytes() == kept
+    )  # a good pair stays
+    rng = random.Random(SEED)
+    for n, (what, mutate) in enumerate(CERT_MUTATIONS.items()):
+        d = tmp_path / f"case{n}"
+        shutil.copytree(pristine, d, symlinks=True)
+        mutate(d, rng)
+        caplog.clear()
+        got = opened(what, d, lambda d=d: make(d))
+        assert got is not None, what
+        cert = asyncio.run(uacrypto.load_certificate(d / "server_cert.der"))
+        key = asyncio.run(uacrypto.load_private_key(d / "server_key.pem"))
+        assert cert.public_key().public_numbers() == key.public_key().public_numbers(), what
+        if what != "key: missing":  # (one of the pair made, then killed: made again silently)
+            assert any(".unreadable-" in p.name for p in d.iterdir()), what
+            assert "moved aside" in caplog.text and "\n" not in caplog.text.strip(), (
+                what,
+                caplog.text,
+            )
