@@ -316,13 +316,51 @@ class Unit:
         entry = self._accepted_mode[self.state].get(cmd)
         if entry is not None and not entry[5] & bits:  # (Accepted.watch)
             # The fast path: the table accepts and no guard of this command watches anything set.
-            final, skipped, answer, number, trigger, _, flags = entry
+            final, skipped, answer, number, trigger, _, flags, run = entry
             if self.mode_change_in_process:  # (only Stop and Abort watch no mode change)
                 self._abandon_mode_change(f"{command_name(cmd)} from {source}")
             if remote:
                 self._note_remote(number, source)
             self.cntrl_cmd = number
-            if not self._transition(final, trigger, number, source, skipped, "", None, True, flags):
+            # A unit without EMs follows the State Completes that come at once as compiled
+            # (rules.Run: what _transition's loop does, unrolled) when nothing else that loop
+            # looks at is set: a queued command, an interlock's suspension, an alarm list to
+            # publish, alarms or first-outs an entry action would reset.
+            alarms = self.alarms
+            if (
+                run is not None
+                and not self.equipment.modules
+                and not self._internal
+                and not self.interlocks.suspended
+                and alarms.version == self.publication.alarms_seen
+                and not (run[3] and (alarms.current or alarms.first_out_by_category))
+            ):
+                steps, to, between, entered = run
+                t, mode, seq, out = self._t, self.mode, self.sequence + 1, self._out.append
+                out(("transition", _new_tuple(Transition, (t, seq, self.state, final, mode, mode,
+                                                           trigger, number, source, skipped,
+                                                           ""))))  # fmt: skip
+                for frm, nxt, step_trigger, step_skipped in steps:
+                    seq += 1
+                    out(("transition", _new_tuple(Transition, (t, seq, frm, nxt, mode, mode,
+                                                               step_trigger, 0, "unit",
+                                                               step_skipped, ""))))  # fmt: skip
+                stops = self.stops
+                if entered & _REARM:
+                    stops.armed = True  # all the entry actions do: no alarm or first-out to reset
+                self.sequence = seq
+                self.state = to
+                self.entered_at = t
+                self.times.enter_states(
+                    t, final, to, between, stops.planned_reason and stops.planned(mode, to)
+                )
+                if self.equipment.aggregating:  # (a run ends where the unit waits)
+                    self.equipment.begin(to, seq)
+                more = self.interlocks.busy
+            else:
+                more = self._transition(final, trigger, number, source, skipped, "", None, True,
+                                        flags)  # fmt: skip
+            if not more:
                 # Nothing for _settle and nothing changed after the last transition, whose
                 # status is published with it: that is the baseline, and stays so until the
                 # next input begins (which takes the key then, see Publication.status_key).
@@ -1073,7 +1111,8 @@ class Unit:
         """Enter ``to`` (``entry``: its :class:`~.rules.Entry` actions as compiled, -1 to look them
         up). With ``follow``, then take State Complete as long as it is immediate (nothing to
         wait for: no EM owes it, no dwell, nothing queued, no mode change): exactly what
-        :meth:`_settle` would do next, in one loop. Only for a request alone in its step: in a
+        :meth:`_settle` would do next, in one loop (:meth:`command` follows a compiled
+        :class:`~.rules.Run` itself where it can). Only for a request alone in its step: in a
         :meth:`step`, the other requests are judged in the state the first one reached.
 
         Returns, with ``follow``, whether :meth:`_settle` may have something left (a queued
