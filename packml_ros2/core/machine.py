@@ -152,6 +152,8 @@ _NOT_QUIET = ~(_REARM | _RESET_ALARMS | _CLEAR_FIRST_OUT)
 
 _REPORT_OK = Answer(True, Reason.ACCEPTED, "State Complete accepted")
 _new_tuple = tuple.__new__
+#: At most this many rounds of _settle (each applies a queued command or a State Complete).
+_SETTLE_BOUND = range(1000)
 #: Handlers of deadlines, by kind (methods of Unit).
 _HANDLERS = ("timeout", "dwell", "mode_timeout", "status", "lamp_off", "admin_change", "save",
              "admin")  # fmt: skip
@@ -729,7 +731,6 @@ class UnitMachine:
         interlocks = self.interlocks
         alarms = self.alarms
         timed = self._timed
-        sc_steps = self._sc[mode]
         # Equipment.begin decides who owes State Complete. Without an EM nobody does
         # (AT_ONCE_WITHOUT_EMS); it only needs to know whether the state the unit stops in
         # aggregates (the first EM to register brings it up to date: see em_seen).
@@ -742,9 +743,7 @@ class UnitMachine:
                 entry |= int(ENTRY.get(s, 0))
         # The interlock's claim on the suspension is judged at every entry while it holds one.
         special = trigger is _T_INTERLOCK or interlocks.suspended
-        # Nothing in this loop queues a command or starts a mode change, and only entry actions
-        # change the alarm list: these are judged once, and after entry actions.
-        queued = self._internal or self.mode_change_in_process
+        # Only entry actions change the alarm list: it is judged once, and after entry actions.
         alarms_changed = alarms.version != self.publication.alarms_seen
         # The machine's fields are written when the loop is done (nothing in it reads them).
         frm, seq = self.state, self.sequence
@@ -780,10 +779,10 @@ class UnitMachine:
             if not (follow and due):
                 more = False
                 break
-            if queued:
+            if self._internal or self.mode_change_in_process:  # (nothing in this loop sets them)
                 more = True
                 break
-            final, skipped, trigger, enabled, entry = sc_steps[to]  # type: ignore[misc]
+            final, skipped, trigger, enabled, entry = self._sc[mode][to]  # type: ignore[misc]
             if not enabled:
                 more = True  # _settle refuses it (and says so)
                 break
@@ -862,7 +861,7 @@ class UnitMachine:
         commands (alarm reactions, EM loss, interlocks) by priority, then State Complete."""
         eq = self.equipment
         interlocks = self.interlocks
-        for _ in range(1000):
+        for _ in _SETTLE_BOUND:
             if self._internal:
                 queue = sorted(self._internal, key=lambda r: command_priority(r.cmd))
                 self._internal = []
