@@ -119,7 +119,8 @@ class CoordinatorNode(Node):
         self.pub_episodes = self.create_publisher(LineEpisode, "~/line/episodes", qos.LINE_EPISODES)  # fmt: skip
         self.pub_losses = self.create_publisher(LineLosses, "~/line/losses", qos.LINE_LOSSES)
         self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics,
-                                 qos.DIAGNOSTICS, callback_group=self._group)  # fmt: skip
+                                 qos.DIAGNOSTICS, callback_group=self._group,
+                                 event_callbacks=qos.quiet_events())  # fmt: skip
         serve = partial(responses.create_service, self, callback_group=self._group)
         serve(Command, "~/command", self._srv_command)
         serve(SetMode, "~/set_mode", self._srv_set_mode)
