@@ -194,14 +194,21 @@ class UnitProxy:
 
     def wait_admin(self, timeout: float = 10.0) -> Admin:
         """Block (not in an executor thread) until the unit's admin data has arrived."""
+        return self._wait_latched("admin", "admin data", timeout)  # type: ignore[no-any-return]
+
+    def wait_alarms(self, timeout: float = 10.0) -> AlarmList:
+        """Block (not in an executor thread) until the unit's (latched) alarm list has arrived."""
+        return self._wait_latched("alarms", "alarm list", timeout)  # type: ignore[no-any-return]
+
+    def _wait_latched(self, attr: str, what: str, timeout: float) -> Any:
         deadline = time.monotonic() + timeout
         with self._cond:
-            while self.admin is None:
+            while getattr(self, attr) is None:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
-                    raise Unavailable(f"{self.path}: no admin data within {timeout:g} s")
+                    raise Unavailable(f"{self.path}: no {what} within {timeout:g} s")
                 self._cond.wait(remaining)
-            return self.admin
+            return getattr(self, attr)
 
     # -- services ----------------------------------------------------------------------------------------
     def client(self, service: str) -> Any:

@@ -48,14 +48,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
 
 
 def alarms(args: argparse.Namespace) -> int:
-    with session(args, topics=("status",)) as s:
+    # the current list is on the units' latched alarms topic: no service round trip (only the
+    # history, and a list longer than the topic holds, ask query_alarms)
+    latched = args.action == "list" and not args.history
+    with session(args, topics=("alarms",) if latched else ()) as s:
         try:
             units: list[UnitProxy] = (
                 [s.unit(args.unit)] if args.unit else list(s.cell().units.values())
             )
             if not units:
                 return fail("no unit found", EXIT_UNAVAILABLE)
-            handler = {"list": _list, "ack": _ack, "reset": _reset}[args.action]
+            handler = (
+                _listed if latched else {"list": _list, "ack": _ack, "reset": _reset}[args.action]
+            )
             # every unit at once (one service round trip, not one per unit), printed in order
             with ThreadPoolExecutor(max_workers=len(units)) as pool:
                 answers = list(pool.map(lambda u: handler(u, args, s.timeout), units))
@@ -76,16 +81,46 @@ def _when(a: Alarm) -> str:
     )
 
 
+def _time(a: Alarm) -> tuple[int, int]:
+    return a.stamp.sec, a.stamp.nanosec
+
+
+#: the orders of query_alarms (core.alarms.AlarmManager.query), on the messages of the topic
+ORDERS = {
+    "time": _time,
+    "category": lambda a: (a.category, *_time(a)),
+    "newest": lambda a: tuple(-t for t in _time(a)),
+}
+
+
+def _listed(u: UnitProxy, args: argparse.Namespace, timeout: float) -> tuple[str, int]:
+    """The current alarms and warnings from the unit's latched ``alarms`` topic, filtered and
+    ordered as ``query_alarms`` would; a list that overflowed the topic is asked for instead."""
+    msg = u.wait_alarms(timeout)
+    if msg.alarm_overflow or msg.warning_overflow:
+        return _list(u, args, timeout)
+    listed = [
+        a
+        for a in [*msg.alarms, *msg.warnings]
+        if (not args.active or a.trigger) and (args.category is None or a.category == args.category)
+    ]
+    return _lines(u.name, sorted(listed, key=ORDERS[args.sort]), "alarms"), EXIT_OK
+
+
 def _list(u: UnitProxy, args: argparse.Namespace, timeout: float) -> tuple[str, int]:
     resp = u.call_sync(
         "query_alarms", timeout, active_only=args.active, filter_category=args.category is not None,
         category=args.category or 0, include_warnings=True, history=args.history,
         sort=SORTS["newest" if args.history and args.sort == "time" else args.sort],
     )  # fmt: skip
-    if not resp.alarms:
-        return f"{u.name}: no {'history' if args.history else 'alarms'}", EXIT_OK
-    lines = [f"{u.name}:"]
-    for a in resp.alarms:
+    return _lines(u.name, resp.alarms, "history" if args.history else "alarms"), EXIT_OK
+
+
+def _lines(unit: str, alarms: list[Alarm], what: str) -> str:
+    if not alarms:
+        return f"{unit}: no {what}"
+    lines = [f"{unit}:"]
+    for a in alarms:
         kind = {
             Alarm.KIND_WARNING: "warning",
             Alarm.KIND_EVENT: "event",
@@ -100,7 +135,7 @@ def _list(u: UnitProxy, args: argparse.Namespace, timeout: float) -> tuple[str, 
         lines.append(
             f"  {_when(a)}  {a.id:>5}/{a.value:<3} cat {a.category}  {kind:<7} {state:<7} {a.message}{where}"
         )
-    return "\n".join(lines), EXIT_OK
+    return "\n".join(lines)
 
 
 def _ack(u: UnitProxy, args: argparse.Namespace, timeout: float) -> tuple[str, int]:

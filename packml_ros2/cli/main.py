@@ -24,24 +24,26 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-#: Modules registering verbs, in help order; each has ``register(subparsers)``.
-VERB_MODULES = (
-    "launch",
-    "status",
-    "control",
-    "alarms",
-    "watch",
-    "bag",
-    "hmi",
-    "opcua",
-    "policy",
-    "report",
-)
+#: Modules registering verbs, in help order; each has ``register(subparsers)``; and its verbs.
+VERB_MODULES = {
+    "launch": ("launch",),
+    "status": ("status",),
+    "control": ("cmd", "mode", "fault"),
+    "alarms": ("alarms",),
+    "watch": ("watch",),
+    "bag": ("record", "replay"),
+    "hmi": ("hmi",),
+    "opcua": ("opcua",),
+    "policy": ("policy",),
+    "report": ("report",),
+}
 
 EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_UNAVAILABLE = 0, 1, 2, 3
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(verb: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every verb, or with ``verb`` only of the module that registers it (a verb
+    does not import what the others need: ``packml status`` starts sooner)."""
     parser = argparse.ArgumentParser(
         prog="packml",
         description="Run and operate PackML (ISA-TR88.00.02) cells on ROS 2.",
@@ -49,7 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     subparsers = parser.add_subparsers(dest="verb", metavar="<verb>")
-    for name in VERB_MODULES:
+    owners = [m for m, verbs in VERB_MODULES.items() if verb in verbs]
+    for name in owners or VERB_MODULES:
         try:
             module = importlib.import_module(f"packml_ros2.cli.{name}")
         except ModuleNotFoundError as exc:
@@ -61,8 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    given = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(given[0] if given else None)
+    args = parser.parse_args(given)
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE if args.verb is None and argv else EXIT_OK

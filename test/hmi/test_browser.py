@@ -21,6 +21,7 @@ within 200 ms."""
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import re
 import signal
@@ -328,6 +329,27 @@ def confirm(page: Any, answer: bool) -> str:
     return text
 
 
+def fits(page: Any) -> None:
+    """The header is one row, and no table needs sideways scrolling in its card (at 1024x768 the
+    nav wrapped to two rows when units were lost, and the EM table's last column was cut off)."""
+    boxes = page.eval_on_selector_all(
+        ".top .nav a, .top .access, .top .conn",
+        "els => els.map(e => { const r = e.getBoundingClientRect(); "
+        "return [e.textContent.trim(), r.left, (r.top + r.bottom) / 2, r.right]; })",
+    )  # fmt: skip
+    middles = [middle for _, _, middle, _ in boxes]
+    assert max(middles) - min(middles) < 4, f"the header wraps: {boxes}"
+    for (a, _, _, right), (b, left, _, _) in itertools.pairwise(boxes):
+        assert right <= left + 1, f"{a!r} overlaps {b!r}: {boxes}"
+    assert boxes[-1][3] <= page.viewport_size["width"], boxes
+    cut = page.eval_on_selector_all(
+        ".screen:not([hidden]) .table-wrap",
+        "els => els.filter(e => e.scrollWidth > e.clientWidth + 1)"
+        ".map(e => [e.parentElement.querySelector('h2')?.textContent, e.scrollWidth, e.clientWidth])",
+    )  # fmt: skip
+    assert not cut, f"tables cut off: {cut}"
+
+
 def in_view(page: Any, selector: str, size: dict[str, int]) -> None:
     """Every element ``selector`` matches is entirely on screen, without scrolling."""
     assert page.evaluate("[window.scrollX, window.scrollY]") == [0, 0]
@@ -483,6 +505,7 @@ def test_a_panel_shows_state_diagram_commands_and_mode_without_scrolling(env: En
         in_view(page, "#banner-state, #banner-mode, #diagram, #u-cmds button, #u-modes button, "
                       "#u-feedback, #access-state, #lock-btn", size)  # fmt: skip
         assert page.evaluate("document.documentElement.scrollWidth") <= size["width"]
+        fits(page)
     if size is PANEL:
         env.shot(page, "hmi-unit-1024x768", full_page=False)
     no_problems(page)
@@ -830,6 +853,7 @@ def test_a_dead_cell_is_shown_dead_on_every_screen_within_its_lease(env: Env) ->
         expect(unit.locator("#diagram path.edge.possible")).to_have_count(0)
         expect(unit.locator("#nav a.lost")).to_have_count(2)
         env.shot(unit, "hmi-lost-1024x768", full_page=False)
+        fits(unit)
         big = pages["unit-big"]
         expect(big.locator("#banner-alarm")).to_contain_text("COMMUNICATION LOST since")
         expect(big.locator("#u-lost")).to_be_visible()

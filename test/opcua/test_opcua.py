@@ -870,3 +870,37 @@ def test_hostile_method_calls_are_refused_with_a_reason_and_change_nothing(
     now = filler.status.last
     assert (now.sequence, now.unit_mode_current, now.mach_speed) == (
         before.sequence, before.unit_mode_current, before.mach_speed)  # fmt: skip
+
+
+def test_values_are_waiting_for_initial_data_until_a_unit_has_published(
+    tmp_path: Path, cell: Cell
+) -> None:
+    """An OPC UA face started before its cell: every live value of a unit, and the line's, is
+    Bad_WaitingForInitialData (not a made-up 0 or Stopped) until the unit publishes; then Good."""
+    path, name = write_cell(tmp_path, {"filler": {}}, coordinator={"enabled": False})
+    port = free_port()
+    doc = yaml.safe_load(path.read_text())
+    doc["opcua"] = {"port": port, "state_dir": str(tmp_path / "state")}
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    procs = Processes(tmp_path)
+    try:
+        server = procs.module("opcua_early", "packml_ros2.cli.main", "opcua", str(path))
+        wait_until(lambda: "OPC UA server for cell" in server.output() or not server.running(),
+                   60, 0.05, "the OPC UA server")  # fmt: skip
+        assert server.running(), server.output()
+        url = f"opc.tcp://127.0.0.1:{port}/"
+        unit, line = "P:PackMLObjects/U:filler", f"U:Lines/U:{name}"
+        paths = [f"{unit}/P:Status/U:StateCurrent", f"{unit}/P:Status/P:UnitModeCurrent",
+                 f"{unit}/P:Admin/P:MachDesignSpeed", f"{line}/U:OEE", f"{line}/U:Window"]  # fmt: skip
+        early = cell.client.job(url, [{"op": "read", "path": p} for p in paths])
+        assert [r.get("status") for r in early] == ["BadWaitingForInitialData"] * len(paths), early
+
+        start_unit_process(procs, path, "filler")
+        state, mode = cell.client.job(url, [
+            {"op": "wait", "path": paths[0], "until": "s === 'Good'", "timeout": 30000},
+            {"op": "read", "path": paths[1]},
+        ], timeout=60)  # fmt: skip
+        assert state["value"] == 2 and mode["status"] == "Good", (state, mode)
+    finally:
+        failures = procs.close()
+        assert not failures, failures

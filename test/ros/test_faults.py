@@ -307,3 +307,33 @@ def test_ems_composed_in_one_process_work_together_and_are_lost_together(
         lambda s: not any(e.online for e in s.equipment_modules), 5, "every EM lost"
     )
     assert status.state_current_name == "ABORTED"
+
+
+def test_a_flaky_link_repeats_state_complete_and_the_unit_ignores_the_repeat(
+    ros, processes, tmp_path: Path
+) -> None:
+    """The simulator's ``repeat_complete`` fault (sim_em.REPEAT_AFTER): every State Complete of
+    the EM arrives a second time, after the unit has moved on; the unit counts it as stale and
+    stays where it is."""
+    from std_srvs.srv import SetBool
+
+    from packml_ros2.sim_em import REPEAT_AFTER
+
+    ems = {"gripper": _em(faults={"flaky": {"kind": "repeat_complete"}}, lease=5.0)}
+    cell_file, cell = write_cell(tmp_path, {"u": {"equipment_modules": ems}})
+    start_unit_process(processes, cell_file, "u")
+    start_em_process(processes, cell_file, "u", "gripper")
+    client = UnitClient(ros, cell, "u")
+    client.ready()
+    client.wait_status(lambda s: _online(s, "gripper"), 15, "gripper online")
+    fault = f"/{cell}/u/gripper/fault/flaky"
+    assert ros.call(SetBool, fault, SetBool.Request(data=True)).success
+
+    assert client.trigger("reset").success
+    idle = client.wait_state("IDLE")
+    stale = client.wait_status(lambda s: s.equipment_modules[0].stale_reports == 1,
+                               REPEAT_AFTER + 5, "the repeated State Complete counted stale")  # fmt: skip
+    assert stale.state_current == State.IDLE and stale.sequence == idle.sequence
+
+    off = ros.call(SetBool, fault, SetBool.Request(data=False))
+    assert off.success and off.message == "flaky off (repeat_complete)", off.message

@@ -884,6 +884,7 @@
     hmi.connected = ok;
     $("#conn-lamp").className = `lamp ${ok ? "on-ok" : "on-fault blink"}`;
     $("#conn-text").textContent = ok ? "live" : "reconnecting";
+    $("#conn").classList.toggle("down", !ok);  // (a panel shows the word only when it is news)
   }
 
   function heard() {
