@@ -8,11 +8,15 @@ journal). Prints JSON.
 The full cycle is the one packmlpy can run: Idle -> Starting -> Execute -> Completing -> Complete
 -> Resetting -> Idle (6 transitions). packmlpy completes acting states on its own; our unit has no
 EMs, so it completes acting states at once too, and Execute is left with the Complete command.
-The floor is what no engine of this cycle can beat in Python: a function per command, one dict
-look-up of (state, command) in the same TR88 table, State Complete followed by dict look-ups, a
-counter; no modes, guards, times, records or EMs. Everything runs in this process, interleaved,
-repeats alternating, so machine noise hits all alike; a ratio is the median of the repeats' ratios
-(each repeat times the engines back to back).
+The floor is what no engine of this cycle can beat in Python (:class:`FloorMachine`): a method
+per command, one dict look-up of (state, command) in the same TR88 table, State Complete followed
+by dict look-ups, and what makes the same transitions observable: a sequence number and a record
+per transition in an output queue, drained; no modes, guards, times, EMs or alarms. It is driven
+by the same loop as ours (:func:`cycle_loop`: the clock moved, the outputs drained every cycle).
+``floor_lookups_only`` is the floor of earlier runs (the look-ups and a counter, no clock, no
+record, no drain), kept for comparison. Everything runs in this process, interleaved, repeats
+alternating, so machine noise hits all alike; a ratio is the median of the repeats' ratios (each
+repeat times the engines back to back).
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Protocol
 
 from packml_ros2.core import Cmd, State, Store, Unit, unit_config
 from packml_ros2.core.alarms import AlarmDef
@@ -46,6 +51,34 @@ def settable_clock() -> tuple[list[float], Callable[[], float]]:
     return now, functools.partial(operator.getitem, now, 0)
 
 
+class Machine(Protocol):
+    state: State
+    sequence: int
+
+    def command(self, cmd: Cmd) -> object: ...
+    def drain(self) -> object: ...
+
+
+def cycle_loop(machine: Machine, now: list[float]) -> Callable[[int], int]:
+    """The full cycle ``cycles`` times on ``machine`` (ours or the floor: the same loop), the
+    clock 1 ms further each cycle, the outputs drained; returns the transitions made."""
+
+    def run(cycles: int) -> int:
+        before = machine.sequence
+        command, drain = machine.command, machine.drain
+        start, complete, reset = Cmd.START, Cmd.COMPLETE, Cmd.RESET
+        for _ in range(cycles):
+            now[0] += 0.001
+            command(start)  # Idle -> Starting -> Execute
+            command(complete)  # Execute -> Completing -> Complete
+            command(reset)  # Complete -> Resetting -> Idle
+            drain()
+        assert machine.state is State.IDLE
+        return machine.sequence - before
+
+    return run
+
+
 def ours_cycle_runner(store_folder: str | None = None) -> Callable[[int], int]:
     """Our unit without EMs; with ``store_folder``, with persistence there (every command
     journals its changes before it answers)."""
@@ -55,26 +88,64 @@ def ours_cycle_runner(store_folder: str | None = None) -> Callable[[int], int]:
     unit.command(Cmd.RESET)  # Stopped -> Resetting -> Idle
     assert unit.state is State.IDLE
 
-    def run(cycles: int) -> int:
-        before = unit.sequence
-        command, drain = unit.command, unit.drain
-        start, complete, reset = Cmd.START, Cmd.COMPLETE, Cmd.RESET
-        for _ in range(cycles):
-            now[0] += 0.001
-            command(start)  # Idle -> Starting -> Execute
-            command(complete)  # Execute -> Completing -> Complete
-            command(reset)  # Complete -> Resetting -> Idle
-            drain()
-        assert unit.state is State.IDLE
-        return unit.sequence - before
+    return cycle_loop(unit, now)
 
-    return run
+
+class FloorMachine:
+    """The bare dict-table state machine (the floor): a method per command, one dict look-up of
+    (state, command) in the same TR88 table, State Complete followed by dict look-ups, and for
+    each transition what makes it observable at all: a sequence number and a record (time,
+    sequence, from, to, command) in an output queue taken by ``drain``, as ours does. No modes,
+    guards, times, EMs, alarms or persistence."""
+
+    __slots__ = ("_clock", "_out", "sequence", "state")
+
+    def __init__(self, clock: Callable[[], float]) -> None:
+        self._clock = clock
+        self._out: list[tuple[float, int, State, State, int]] = []
+        self.state = State.IDLE
+        self.sequence = 0
+
+    def command(self, cmd: Cmd) -> bool:
+        to = FLOOR_TABLE.get((self.state, cmd))
+        if to is None:
+            return False
+        t, seq, frm, out = self._clock(), self.sequence, self.state, self._out.append
+        while True:
+            seq += 1
+            out((t, seq, frm, to, cmd))
+            after = FLOOR_STATE_COMPLETE.get(to)
+            if after is None:
+                break
+            frm, to, cmd = to, after, Cmd.UNDEFINED
+        self.state, self.sequence = to, seq
+        return True
+
+    def drain(self) -> list[tuple[float, int, State, State, int]]:
+        out, self._out = self._out, []
+        return out
+
+
+FLOOR_TABLE: dict[tuple[State, Cmd], State] = dict(build_table().commands)
+#: State Complete of the states that complete at once (without EMs); Execute waits for Complete.
+FLOOR_STATE_COMPLETE: dict[State, State] = {
+    s: to for s, to in STATE_COMPLETE.items() if s is not State.EXECUTE
+}
 
 
 def floor_cycle_runner() -> Callable[[int], int]:
-    """The bare dict-table state machine (see the module docstring)."""
-    table = {(s, c): to for (s, c), to in build_table().commands.items()}
-    state_complete = {s: to for s, to in STATE_COMPLETE.items() if s is not State.EXECUTE}
+    """The floor (:class:`FloorMachine`), driven by the same loop as ours (clock, drain)."""
+    now, clock = settable_clock()
+    machine = FloorMachine(clock)
+
+    return cycle_loop(machine, now)
+
+
+def lookup_floor_cycle_runner() -> Callable[[int], int]:
+    """The floor of earlier runs, kept for comparison: the look-ups alone, no clock, no
+    sequence, no record of a transition (nothing an observer could see)."""
+    table = FLOOR_TABLE
+    state_complete = FLOOR_STATE_COMPLETE
     machine = {"state": State.IDLE, "transitions": 0}
 
     def command(cmd: Cmd) -> bool:
@@ -212,6 +283,7 @@ def main() -> int:
     runners: dict[str, Callable[[int], int]] = {
         "packml_ros2": ours_cycle_runner(),
         "floor": floor_cycle_runner(),
+        "floor_lookups_only": lookup_floor_cycle_runner(),
     }
     theirs = packmlpy_cycle_runner()
     if theirs is not None:
@@ -238,6 +310,9 @@ def main() -> int:
     result["ratio_packml_ros2_over_floor"], by_repeat = ratio("packml_ros2", "floor")
     result["ratio_over_floor_by_repeat"] = by_repeat
     result["target_ratio_over_floor"] = 2
+    result["ratio_packml_ros2_over_floor_lookups_only"], _ = ratio(
+        "packml_ros2", "floor_lookups_only"
+    )
     if "packmlpy" in samples:
         speedup, by_repeat = ratio("packmlpy", "packml_ros2")
         result["ratio_packml_ros2_over_packmlpy"] = round(speedup, 1)

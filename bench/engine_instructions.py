@@ -4,7 +4,7 @@ difference of a few percent. Prints JSON.
 
     python bench/engine_instructions.py [--cycles 10000]
 
-Runs bench/engine.py's cycles (without EMs, and with 8 EMs and 32 alarms) under valgrind twice,
+Runs bench/engine.py's cycles (without EMs, the floor, and with 8 EMs and 32 alarms) under valgrind twice,
 for 2,000 and 2,000 + ``cycles`` cycles, and divides the difference of the counts by the extra
 transitions: start-up and imports cancel out. Needs valgrind (``apt install valgrind``); about
 a minute.
@@ -25,6 +25,7 @@ HERE = Path(__file__).resolve().parent
 BASE_CYCLES = 2_000
 RUNNERS = {
     "packml_ros2": "ours_cycle_runner",
+    "floor": "floor_cycle_runner",
     "packml_ros2_8_ems_32_alarms": "ours_with_ems_runner",
 }
 TRANSITIONS_PER_CYCLE = 6
@@ -71,6 +72,8 @@ def main() -> int:
         result[name] = {
             "instructions_per_transition": round(extra / (args.cycles * TRANSITIONS_PER_CYCLE))
         }
+    ours, floor = (result[name]["instructions_per_transition"] for name in ("packml_ros2", "floor"))  # type: ignore[index]
+    result["ratio_packml_ros2_over_floor"] = round(ours / floor, 2)
     json.dump(result, sys.stdout, indent=2)
     print()
     return 0

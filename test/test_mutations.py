@@ -23,6 +23,7 @@ from packml_ros2.core import (
     counters,
     equipment,
     interlocks,
+    machine,
     publication,
     rules,
     stopreason,
@@ -38,10 +39,11 @@ Patch = pytest.MonkeyPatch
 
 
 def _entry(patch: Patch, state: State, flags: Entry) -> None:
-    """ENTRY[state] = flags, where the engine reads it (rules compile it; unit reads it too)."""
+    """ENTRY[state] = flags, where the engine reads it (rules compile it; the machine reads it
+    too)."""
     table = {**rules.ENTRY, state: flags}
     patch.setattr(rules, "ENTRY", table)
-    patch.setattr(unit, "ENTRY", table)
+    patch.setattr(machine, "ENTRY", table)
 
 
 def _wrap(patch: Patch, cls: Any, name: str, make: Callable[[Any], Any]) -> None:
@@ -187,7 +189,7 @@ def _ack_not_stamped(original: Any) -> Any:
 #: name -> how to apply it (to a MonkeyPatch).
 MUTATIONS: dict[str, Callable[[Patch], None]] = {
     "mode-change-not-allowed flag shortened to 2.5 s":
-        lambda p: p.setattr(unit, "MODE_CHANGE_NOT_ALLOWED_SECONDS", 2.5),
+        lambda p: p.setattr(machine, "MODE_CHANGE_NOT_ALLOWED_SECONDS", 2.5),
     "first-out not cleared on Starting": lambda p: _entry(p, S.STARTING, Entry.REARM),
     "stale EM reports counted twice": lambda p: _wrap(p, equipment.Equipment, "report", _stale_twice),
     "alarm history in reverse order":

@@ -636,6 +636,24 @@ class Accepted(NamedTuple):
     trigger: Trigger  #: SKIP when states were skipped, else COMMAND
     watch: int  #: Watch bits of the guards that apply to the command
     entry: int  #: Entry flags of the skipped and final states
+    run: Run | None = None  #: the State Completes that follow at once without EMs
+
+
+#: One State Complete of a :class:`Run`: (from, to, trigger, skipped).
+RunStep = tuple[State, State, Trigger, tuple[State, ...]]
+
+
+class Run(NamedTuple):
+    """What follows an accepted command at once in a unit without EMs: the State Completes of
+    the states that complete immediately (:data:`AT_ONCE_WITHOUT_EMS`), up to the state that
+    waits. Compiled from the same :class:`ScStep` entries; None (no run: the engine's general
+    loop decides) where a state on the way is timed (timeout, minimum dwell), where State
+    Complete leads into a disabled state, or where an entry action records a StopReason."""
+
+    steps: tuple[RunStep, ...]  #: the State Completes, in order
+    final: State  #: where the unit waits
+    between: tuple[State, ...]  #: states entered after the command's and before ``final``
+    entry: int  #: Entry flags of every state entered (re-arm, alarm and first-out resets only)
 
 
 class ScStep(NamedTuple):
@@ -663,6 +681,10 @@ class ConfigLike(Protocol):
     def modes(self) -> Mapping[int, Any]: ...
     @property
     def interlock_reaction(self) -> int: ...
+    @property
+    def timeouts(self) -> Mapping[State, float]: ...
+    @property
+    def min_dwell(self) -> Mapping[State, float]: ...
 
 
 class Rules:
@@ -680,8 +702,11 @@ class Rules:
     :meth:`mode_change_refusal`, :meth:`chain`, :meth:`reach`."""
 
     def __init__(self, table: TransitionTable, modes: Mapping[int, Any],
-                 interlock_reaction: int = C.SUSPEND) -> None:  # fmt: skip
+                 interlock_reaction: int = C.SUSPEND,
+                 timed: frozenset[State] = frozenset()) -> None:  # fmt: skip
         self.table = table
+        #: States with a timeout or a minimum dwell: no :class:`Run` goes through them.
+        self.timed = timed
         self.modes = dict(modes)
         #: The guards in force: the interlock guard only where interlocks act.
         self.guards: tuple[Guard, ...] = tuple(
@@ -728,9 +753,34 @@ class Rules:
             trigger = Trigger.SKIP if skipped else Trigger.STATE_COMPLETE
             steps[state] = ScStep(final, skipped, trigger, final not in disabled,
                                   _entry_of(skipped, final))  # fmt: skip
+        for by_cmd in accepted:
+            for key, a in by_cmd.items():
+                by_cmd[key] = a._replace(run=self._run(a.final, a.entry, steps))
         self.accepted[number] = accepted
         self.refused[number] = refused
         self.sc[number] = steps
+
+    def _run(self, state: State, entry: int, sc: list[ScStep | None]) -> Run | None:
+        """The :class:`Run` after entering ``state`` (with ``entry`` flags) by a command."""
+        steps: list[RunStep] = []
+        between: list[State] = []
+        first = state
+        while True:
+            if state in self.timed:
+                return None
+            if state not in AT_ONCE_WITHOUT_EMS:
+                break
+            step = sc[state]
+            if step is None or not step.enabled:
+                return None
+            if state is not first:
+                between.append(state)
+            steps.append((state, step.final, step.trigger, step.skipped))
+            entry |= step.entry
+            state = step.final
+        if entry & Entry.STOP:
+            return None
+        return Run(tuple(steps), state, tuple(between), entry)
 
     # -- the table's verdict ------------------------------------------------------------------------
     def table_verdict(self, state: State, mode: int, cmd: int) -> Verdict:
@@ -884,7 +934,8 @@ def rules_of(config: ConfigLike) -> Rules:
     key = id(config)
     rules = _compiled.get(key)
     if rules is None:
-        rules = Rules(config.table, config.modes, config.interlock_reaction)
+        timed = frozenset(config.timeouts) | frozenset(config.min_dwell)
+        rules = Rules(config.table, config.modes, config.interlock_reaction, timed)
         _compiled[key] = rules
         weakref.finalize(config, _compiled.pop, key, None)
     return rules
@@ -920,6 +971,7 @@ __all__ = [
     "Entry",
     "Guard",
     "Rules",
+    "Run",
     "ScStep",
     "SourceKind",
     "TransitionTable",

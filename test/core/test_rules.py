@@ -4,9 +4,13 @@ against the spec's table as test/core/helpers.py encodes it independently."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
+from typing import Any
 
 import pytest
+from hypothesis import HealthCheck, example, given, settings
+from hypothesis import strategies as st
 
 from packml_ros2.core import Cmd as C
 from packml_ros2.core import Mode, Reason, State, Unit
@@ -126,3 +130,103 @@ def test_the_readmes_rule_book_example_runs_verbatim(monkeypatch: pytest.MonkeyP
     exec(compile(block, "README.md", "exec"), names)
     r = names["r"]
     assert r.command_target(C.RESET) is S.IDLE  # type: ignore[attr-defined]
+
+
+# -- the compiled runs (rules.Run): the command fast path of a unit without EMs ----------------------
+RUN_UNIT = {
+    **USER,
+    "alarms": [{"id": 7, "message": "jam", "category": 3, "reaction": "stop"},
+               {"id": 8, "message": "door", "category": 6}],
+    "timeouts": {"Holding": 30},
+    "persistence": False,
+}  # fmt: skip
+INPUTS = st.one_of(
+    st.tuples(st.just("cmd"), st.sampled_from([int(c) for c in C if c])),
+    st.tuples(st.just("mode"), st.sampled_from([1, 2, 3, 4])),
+    st.tuples(st.just("alarm"), st.sampled_from([7, 8]), st.booleans()),
+    st.tuples(st.just("reset_alarms")),
+    st.tuples(st.just("interlock"), st.booleans()),
+    st.tuples(st.just("wait"), st.sampled_from([0.01, 1.0, 40.0])),
+)
+
+
+def _apply(unit: Unit, clock: FakeClock, step: tuple[Any, ...]) -> object:
+    kind, *args = step
+    clock.advance(0.001)
+    if kind == "cmd":
+        return unit.command(args[0])
+    if kind == "mode":
+        return unit.set_mode(args[0])
+    if kind == "alarm":
+        return unit.set_alarm(args[0], 0, args[1])
+    if kind == "reset_alarms":
+        return unit.reset_alarms()
+    if kind == "interlock":
+        return unit.set_interlock(args[0], "downstream")
+    clock.advance(args[0])
+    unit.advance()
+    return None
+
+
+def _plain(x: Any) -> Any:
+    """``x`` comparable by value (alarm events compare by identity)."""
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return (type(x).__name__, _plain(dataclasses.astuple(x)))
+    if isinstance(x, tuple | list):
+        return tuple(_plain(v) for v in x)
+    return x
+
+
+R, STOP, START, HOLD, UNHOLD = (
+    ("cmd", int(c)) for c in (C.RESET, C.STOP, C.START, C.HOLD, C.UNHOLD)
+)
+
+
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(INPUTS, min_size=1, max_size=40))
+@example([R, STOP, R, START, ("cmd", int(C.COMPLETE)), R])  # a run re-arms the stop reason
+@example([R, START, ("interlock", True), ("wait", 1.0), ("interlock", False), HOLD, UNHOLD])
+@example(
+    [
+        R,
+        ("alarm", 8, True),
+        ("alarm", 8, False),
+        START,
+        ("cmd", int(C.COMPLETE)),
+        ("alarm", 8, True),
+        ("alarm", 8, False),
+        R,
+    ]
+)  # entry actions with something to reset
+@example([R, START, ("interlock", True), ("cmd", int(C.COMPLETE)), ("interlock", False), R])
+@example([("mode", 4), R, START, ("cmd", int(C.COMPLETE)), R])  # skip-through
+@example([R, START, HOLD, ("wait", 40.0), UNHOLD])  # a timed state: no run
+def test_a_compiled_run_does_what_the_general_loop_does(steps: list[tuple[Any, ...]]) -> None:
+    """The fast path follows a command through the State Completes that come at once as
+    compiled (Accepted.run); a unit whose rules compile no run takes the general loop
+    (Unit._transition). Same answers, outputs, status and admin after every input."""
+    clocks = FakeClock(), FakeClock()
+    fast = Unit(cell_unit(RUN_UNIT), clock=clocks[0])
+    general_config = cell_unit(RUN_UNIT)
+    rules = rules_of(general_config)
+    for by_state in rules.accepted.values():
+        for by_cmd in by_state:
+            for cmd, entry in by_cmd.items():
+                by_cmd[cmd] = entry._replace(run=None)
+    general = Unit(general_config, clock=clocks[1])
+    assert any(e.run for by_state in rules_of(fast.config).accepted.values()
+               for by_cmd in by_state for e in by_cmd.values())  # fmt: skip
+    for step in steps:
+        answers = [
+            _apply(unit, clock, step) for unit, clock in zip((fast, general), clocks, strict=True)
+        ]
+        assert answers[0] == answers[1], step
+        assert _plain(fast.drain()) == _plain(general.drain()), step
+        assert _plain(fast.status()) == _plain(general.status()), step
+        assert _plain(fast.admin()) == _plain(general.admin()), step
+        assert (fast.state, fast.sequence, fast.stops.armed, fast.interlocks.suspended) == (
+            general.state,
+            general.sequence,
+            general.stops.armed,
+            general.interlocks.suspended,
+        ), step
