@@ -355,3 +355,23 @@ def test_the_coordinator_releases_its_own_interlock_on_a_unit_switched_to_local(
     answer = filler.set_interlock(True, "x", "coordinator")
     assert answer.reason is Reason.REMOTE_DISABLED
     assert filler.set_interlock(False, "", "remote:mes").reason is Reason.NOTHING_TO_DO
+
+
+def test_the_coordinator_wakes_only_when_something_is_due() -> None:
+    """No polling (issue 18): the line's one wake-up is armed for ``Line.next_due`` after every
+    event, as the node does. At rest it wakes for the leases (renewed by the units' diagnostics
+    every second) and the losses' publication every ``publish_period`` (5 s), not every 0.1 s;
+    a unit gone silent is lost ``unit_lease`` (3 s) after its last sign of life, not later."""
+    sim = SimLine(cell_doc(), [])
+    sim.run_until(60)
+    assert 12 <= len(sim.published) <= 13  # losses at 0 s, then every 5 s
+    assert sim.ticks <= 40  # the leases' checks (every 3 s) and the publications: no polling
+    sim.silent.add("packer")  # its last diagnostics arrived at 60 s
+    sim.run_until(62.99)
+    assert sim.line.cell.units["packer"].online
+    sim.run_until(63.01)
+    assert sim.line.cell.units["packer"].lost and sim.line.cell.units["filler"].online
+    assert any("unit packer lost: no status or diagnostics for 3 s" in line for line in sim.log)
+    ticks = sim.ticks
+    sim.run_until(120)  # one unit lost: only the other's lease and the publications remain
+    assert sim.ticks - ticks <= 35

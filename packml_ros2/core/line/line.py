@@ -25,11 +25,13 @@ from .cell import Call, Cell, CellView, Effect
 from .episodes import Episode, Root
 from .ledger import ROLLING, Fact, History, Ledger, MemoryHistory, add_clipped
 from .losses import DOWN, LINE, PLANNED, Summary, Totals, summarize
-from .performance import Performance
+from .performance import AHEAD_WAIT, Performance
 from .sequence import AbortRun, CommandRun, ModeRun, Outcome, Run, Runs
 from .store import LineStore
 
 NS = 1_000_000_000
+#: s added to a time due on the wall clock, converted to the monotonic one (rounding)
+WALL_SLACK = 1e-6
 MEMORY_FACTS = 200_000  # facts a line without a store keeps for its queries
 MAX_WINDOWS = 200  # windows one query may ask for (trend, shifts)
 MAX_EPISODES = 1000
@@ -183,9 +185,19 @@ class Line:
         effects = self.cell.tick(self.monotonic())
         self._presence()
         now = self.wall()
-        if any(t.ahead is not None and now - t.ahead[1] >= 2 * NS for t in self.perf.trackers.values()):  # fmt: skip
+        if any(t.ahead is not None and now - t.ahead[1] >= AHEAD_WAIT for t in self.perf.trackers.values()):  # fmt: skip
             self._input(inputs.TICK, "", {}, now)
         return effects
+
+    def next_due(self) -> float:
+        """When :meth:`tick` or :meth:`losses_due` has something to do next (monotonic seconds;
+        ``-inf``: at once, ``inf``: nothing): the cell's leases and retries
+        (:meth:`Cell.next_due`), the next losses publication, a status ahead of its transitions."""
+        mono, wall = self.monotonic(), self.wall()
+        due = self.cell.next_due(mono)
+        at = [self._published + int(self.config.line.publish_period * NS)]
+        at += [t.ahead[1] + AHEAD_WAIT for t in self.perf.trackers.values() if t.ahead is not None]
+        return min(due, mono + (min(at) - wall) / NS + WALL_SLACK)
 
     def losses_due(self) -> tuple[int, list[LossesView]]:
         """Every ``line.publish_period``: a tick, its time and the windows to publish (else [])."""
