@@ -100,7 +100,11 @@ class CoordinatorNode(Node):
         self.config = cell.coordinator
         self._cond = threading.Condition(threading.RLock())
         self._group = ReentrantCallbackGroup()
-        store = LineStore(cell.line.store, cell.cell) if cell.line.store else None
+        try:
+            store = LineStore(cell.line.store, cell.cell) if cell.line.store else None
+        except StoreError:  # (StoreLocked too): no half-made node stays behind
+            Node.destroy_node(self)
+            raise
         self.line = Line(cell, time.monotonic, self._wall, store)
         for problem in store.problems if store else ():
             self.get_logger().warning(f"line store: {problem}")

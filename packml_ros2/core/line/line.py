@@ -11,12 +11,14 @@ epoch: the units' stamps, shifts).
 from __future__ import annotations
 
 import json
+import sqlite3
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from ..config import CellConfig
 from ..numbers import Cmd
+from ..persistence import one_line
 from ..reasons import Reason
 from . import inputs
 from .cell import Call, Cell, CellView, Effect
@@ -131,17 +133,26 @@ class Line:
         self._digests: dict[tuple[str, str], Any] = {}
         self._online = dict.fromkeys(cell.units, False)
         self._published = 0  # wall ns of the last losses publication
-        state = None
-        if store is not None:
+        state = self._restore(store) if store is not None else None
+        now = wall()
+        keep = [i.key for i in (self.calendar.instance_at(now), self.calendar.previous(now)) if i]
+        self._record(inputs.START, "", {"schema": inputs.SCHEMA, "state": state,
+                                        "ledger": self.perf.ledger.base(keep)}, now)  # fmt: skip
+
+    def _restore(self, store: LineStore) -> dict[str, Any] | None:
+        """The open state and the ledger from the store; a store whose content does not restore
+        is moved aside and the line starts with an empty one (``store.problems`` says so)."""
+        try:
             state = store.state()
             if state is not None:
                 self.perf.restore(state, store.recent_episodes(50))
             reset_at = state.get("reset_at") if state else None
             store.restore_ledger(self.perf.ledger, None if reset_at is None else int(reset_at))
-        now = wall()
-        keep = [i.key for i in (self.calendar.instance_at(now), self.calendar.previous(now)) if i]
-        self._record(inputs.START, "", {"schema": inputs.SCHEMA, "state": state,
-                                        "ledger": self.perf.ledger.base(keep)}, now)  # fmt: skip
+            return state
+        except (ValueError, TypeError, KeyError, AttributeError, IndexError, sqlite3.Error) as exc:
+            store.start_over(f"could not be restored ({type(exc).__name__}: {one_line(exc, 120)})")
+        self.perf = Performance(self.config.line, self.config.units, Ledger(store))
+        return None
 
     @property
     def calendar(self) -> Any:
