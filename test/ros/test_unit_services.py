@@ -808,8 +808,10 @@ class SimClock:
         wait_until(lambda: self.pub.get_subscription_count() >= 1, what="/clock subscribed")
 
     def set(self, seconds: int) -> Admin:
-        """Publish /clock = ``seconds`` until the unit's admin carries that time."""
-        deadline = time.monotonic() + 5.0
+        """Publish /clock = ``seconds`` until the unit's admin carries that time. (A jump of 100 s
+        fires 20 periodic admins at once; under load the last of that burst can need the
+        writer's reliable repair, a heartbeat period of Fast DDS: seconds, hence the margin.)"""
+        deadline = time.monotonic() + 15.0
         while True:
             self.pub.publish(Clock(clock=Time(sec=seconds)))
             try:
