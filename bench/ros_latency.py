@@ -25,6 +25,7 @@ from pathlib import Path
 
 import yaml
 
+from packml_ros2 import qos
 from packml_ros2.testing.environment import allocate_domain, localhost_environment
 from packml_ros2.testing.processes import Processes
 
@@ -155,6 +156,16 @@ class Client:
         self._subs[topic] = self.node.create_subscription(
             msg_type or self._status_type, topic, on_status, self._qos
         )
+
+    def log(self, topic: str, msg_type: object) -> list[tuple[object, float]]:
+        """Keep every message of ``topic`` with its arrival time (the list returned; clear it)."""
+        arrivals: list[tuple[object, float]] = []
+
+        def on_msg(msg: object) -> None:
+            arrivals.append((msg, time.perf_counter()))
+
+        self._subs[topic] = self.node.create_subscription(msg_type, topic, on_msg, qos.EM_REPORTS)
+        return arrivals
 
     def wait(self, topic: str, predicate, timeout: float = 10.0) -> tuple[object, float]:  # type: ignore[no-untyped-def]
         deadline = time.monotonic() + timeout
@@ -310,6 +321,11 @@ def measure_unit(
         if i >= 10:
             to_execute.append(t1 - t0)
             to_stopped.append(t3 - t2)
+    hops = (
+        measure_hops(client, cell, topic, (start, stop, reset), max(cycles // 2, 10))
+        if ems
+        else None
+    )
     result: dict[str, object] = {
         "idle_to_execute": summary_ms(to_execute),
         "stop_to_stopped": summary_ms(to_stopped),
@@ -317,9 +333,41 @@ def measure_unit(
     }
     if em_procs:
         result["em_rss_mb"] = rss_mb(em_procs[0].pid)
+    if hops is not None:
+        result["hops_idle_to_execute"] = hops
     for proc in [*em_procs, unit]:
         proc.stop()
     return result
+
+
+def measure_hops(client: Client, cell: str, topic: str, triggers, cycles: int) -> dict[str, object]:  # type: ignore[no-untyped-def]
+    """Where a ``start`` with EMs spends its time, from the EMs' State Complete reports seen by
+    this client too (a separate pass: one more subscriber of the reports): the call until the
+    first report of Starting (the command, the status to every EM, its reaction), until the last
+    one (the spread of the EMs' replies), and from the last report until the unit's status shows
+    Execute (the unit takes the reports and publishes)."""
+    from packml_interfaces.msg import EmReport
+
+    start, stop, reset = triggers
+    reports = client.log(f"/{cell}/unit/em_reports", EmReport)
+    first, spread, last = [], [], []
+    for i in range(cycles + 3):
+        reports.clear()
+        t0 = client.call(start)
+        _, t1 = client.wait(topic, lambda m: m.state_current_name == "EXECUTE")
+        done = [
+            t for m, t in list(reports) if m.kind == EmReport.KIND_STATE_COMPLETE and m.state == 3
+        ]  # type: ignore[attr-defined]
+        client.call(stop)
+        client.wait(topic, lambda m: m.state_current_name == "STOPPED")
+        client.call(reset)
+        client.wait(topic, lambda m: m.state_current_name == "IDLE")
+        if i >= 3 and done:
+            first.append(min(done) - t0)
+            spread.append(max(done) - min(done))
+            last.append(t1 - max(done))
+    return {"call_to_first_report": summary_ms(first), "first_to_last_report": summary_ms(spread),
+            "last_report_to_execute_status": summary_ms(last)}  # fmt: skip
 
 
 def measure_back_to_back(

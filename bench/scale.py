@@ -46,6 +46,8 @@ run.init()
 sys.exit(run.spin([Node("scale_floor")]))
 """
 HZ = os.sysconf("SC_CLK_TCK")
+#: who asks (the source grammar of the services: the operator at the machine, by name)
+BENCH_SOURCE = "operator:bench"
 
 
 def cpu_seconds(pid: int) -> float:
@@ -139,7 +141,7 @@ def cell_latency(service, commands: dict[str, int], cycles: int) -> dict[str, fl
 
     def call_timed(c: str) -> float:
         t0 = time.perf_counter()
-        answer = call(service, Command.Request(command=commands[c], source="bench"))
+        answer = call(service, Command.Request(command=commands[c], source=BENCH_SOURCE))
         if not answer.accepted:
             raise RuntimeError(f"coordinator {c}: {answer.message}")
         return time.perf_counter() - t0
@@ -174,7 +176,7 @@ def demo_cell(client: Client, workdir: Path, idle: float) -> dict[str, object]:
         if not service.wait_for_service(timeout_sec=30):
             raise TimeoutError(f"{name}: coordinator command service not available")
         for command in (Command.Request.RESET, Command.Request.START):
-            answer = call(service, Command.Request(command=command, source="bench"))
+            answer = call(service, Command.Request(command=command, source=BENCH_SOURCE))
             if not answer.accepted:
                 raise RuntimeError(f"demo cell: {answer.message}")
         time.sleep(1)

@@ -133,8 +133,9 @@ class UnitProxy:
     def _subscribe(self, topic: str) -> Any:
         msg_type, callback, profile = self._topics[topic]
         return self.node.create_subscription(
-            msg_type, f"{self.path}/{topic}", callback, profile, callback_group=self._group
-        )
+            msg_type, f"{self.path}/{topic}", callback, profile, callback_group=self._group,
+            event_callbacks=qos.quiet_events(),
+        )  # fmt: skip
 
     def resubscribe(self, *topics: str) -> None:
         """Subscribe again to latched topics (``status``, ``admin``, ``alarms``, ``transitions``;
@@ -278,8 +279,9 @@ class CellProxy:
         for unit in units:
             self.add(unit)
         self._cell_sub = node.create_subscription(
-            CellStatus, f"/{cell}/coordinator/status", self._on_cell, qos.CELL_STATUS
-        )
+            CellStatus, f"/{cell}/coordinator/status", self._on_cell, qos.CELL_STATUS,
+            event_callbacks=qos.quiet_events(),
+        )  # fmt: skip
 
     def _on_cell(self, msg: CellStatus) -> None:
         self.cell_status = msg

@@ -21,6 +21,7 @@ Run: ``coordinator <cell.yaml>`` or ``python -m packml_ros2.coordinator_node <ce
 
 from __future__ import annotations
 
+import math
 import sys
 import threading
 import time
@@ -82,7 +83,8 @@ __all__ = [
 TARGET: dict[Cmd, State] = {
     c: t for c in Cmd if c and (t := rules_of(unit_config()).command_target(c)) is not None
 }
-TICK = 0.1  # s: lease checks, interlock retries, the losses' publication
+#: s: a call the coordinator could not send (the unit's service not discovered yet) is tried again
+CALL_RETRY = 0.1
 THREADS = 8  # executor threads of main(): sequences block one each, callbacks need the rest
 STOP_GIVE_UP = 5.0  # s past step_timeout a STOP waits for a running sequence to end
 
@@ -98,7 +100,11 @@ class CoordinatorNode(Node):
         self.config = cell.coordinator
         self._cond = threading.Condition(threading.RLock())
         self._group = ReentrantCallbackGroup()
-        store = LineStore(cell.line.store, cell.cell) if cell.line.store else None
+        try:
+            store = LineStore(cell.line.store, cell.cell) if cell.line.store else None
+        except StoreError:  # (StoreLocked too): no half-made node stays behind
+            Node.destroy_node(self)
+            raise
         self.line = Line(cell, time.monotonic, self._wall, store)
         for problem in store.problems if store else ():
             self.get_logger().warning(f"line store: {problem}")
@@ -117,7 +123,8 @@ class CoordinatorNode(Node):
         self.pub_episodes = self.create_publisher(LineEpisode, "~/line/episodes", qos.LINE_EPISODES)  # fmt: skip
         self.pub_losses = self.create_publisher(LineLosses, "~/line/losses", qos.LINE_LOSSES)
         self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics,
-                                 qos.DIAGNOSTICS, callback_group=self._group)  # fmt: skip
+                                 qos.DIAGNOSTICS, callback_group=self._group,
+                                 event_callbacks=qos.quiet_events())  # fmt: skip
         serve = partial(responses.create_service, self, callback_group=self._group)
         serve(Command, "~/command", self._srv_command)
         serve(SetMode, "~/set_mode", self._srv_set_mode)
@@ -126,7 +133,12 @@ class CoordinatorNode(Node):
         serve(QueryEpisodes, "~/line/query_episodes", self._srv_episodes)
         serve(QueryLosses, "~/line/query_losses", self._srv_losses)
         serve(Trigger, "~/line/reset_losses", self._srv_reset_losses)
-        self._timer = self.create_timer(TICK, self._on_tick, callback_group=self._group)
+        # No polling: one timer, armed for the next thing due (Line.next_due: a lease, a retry,
+        # the losses' publication) after every callback (_arm, in _flush).
+        self._timer = self.create_timer(3600.0, self._on_tick, callback_group=self._group)
+        self._timer.cancel()
+        self._due = math.inf
+        self._retry_calls = False  # a call was not sent: try again after CALL_RETRY
         if self.config.unit_lease <= 1.0:
             self.get_logger().warning(
                 f"unit_lease {self.config.unit_lease:g} s is not longer than the units' 1 s "
@@ -174,11 +186,16 @@ class CoordinatorNode(Node):
             if changed:
                 self._cond.notify_all()
                 self._flush()
+            else:
+                self._arm()  # (a lost unit's diagnostics ask for a new subscription)
 
     def _on_tick(self) -> None:
         with self._cond:
+            self._timer.cancel()
+            self._due = math.inf  # fired: _arm sets it again
             if self._closed:
                 return
+            self._retry_calls = False
             effects = self.line.tick()
             again = [e.unit for e in effects if isinstance(e, Resubscribe)]
             self._apply(effects)
@@ -206,7 +223,8 @@ class CoordinatorNode(Node):
             elif isinstance(e, Call):
                 proxy = self._proxies[e.unit]
                 if not proxy.client(e.service).service_is_ready():
-                    continue  # not discovered yet (or gone): the next tick tries again
+                    self._retry_calls = True  # not discovered yet (or gone): try again soon
+                    continue
                 if e.purpose == "interlock":
                     self.line.interlock_sending(e)
                     future = proxy.call(e.service, **e.fields)
@@ -243,6 +261,22 @@ class CoordinatorNode(Node):
         for view in episodes:
             self.pub_episodes.publish(line_msgs.episode_msg(view, self.cell.cell))
         self._publish()
+        self._arm()
+
+    def _arm(self) -> None:
+        """Arm the timer for the next thing due (nothing: no timer runs; lock held)."""
+        if self._closed:
+            return
+        now = time.monotonic()
+        due = self.line.next_due()
+        if self._retry_calls:
+            due = min(due, now + CALL_RETRY)
+        due = max(due, now)
+        if due >= self._due:
+            return  # armed for sooner: when it fires, it arms for what is due then
+        self._due = due
+        self._timer.timer_period_ns = max(int((due - now) * 1e9), 1)
+        self._timer.reset()
 
     def _summary(self, u: Any) -> UnitSummary:
         out = UnitSummary(name=u.name, online=u.online, health=u.health)

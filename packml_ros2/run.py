@@ -149,18 +149,27 @@ def spin(
     return 0
 
 
-def _spin_loop(executor: Executor) -> None:
+#: s: the main loop looks at Ctrl-C / SIGTERM at least this often (Python runs its signal
+#: handlers in the main thread, between the executor's waits)
+SIGNAL_LATENCY = 0.2
+#: s: the blocking nodes' executor waits at most this long without news; it rebuilds its wait
+#: set of every entity at each wake-up (what an idle coordinator costs): the main loop wakes it
+#: when it ends (Executor.shutdown triggers its guard condition)
+SIDE_WAIT = 5.0
+
+
+def _spin_loop(executor: Executor, timeout: float = SIGNAL_LATENCY) -> None:
     """spin_once in a loop, not spin(): the EventsExecutor's spin() does not return on shutdown
     (see the notes); this loop does, for every executor."""
     while rclpy.ok() and not _shutdown.event.is_set():
-        executor.spin_once(timeout_sec=0.2)
+        executor.spin_once(timeout_sec=timeout)
 
 
 def _spin_side(executor: Executor) -> None:
     """The blocking nodes' executor, in its thread, until the main loop ends."""
     # the context or the executor shut down: the main loop takes it from there
     with contextlib.suppress(ExternalShutdownException, ShutdownException):
-        _spin_loop(executor)
+        _spin_loop(executor, SIDE_WAIT)
 
 
 def _drain(executor: Executor, timeout: float) -> None:

@@ -37,7 +37,7 @@ from .equipment_module import EquipmentModule, StateContext
 
 SIM_KEYS = {"durations", "cycle_time", "counter", "counter_index", "defect_rate", "defect_counter_index",
             "consumed_per_cycle", "cycles_per_run", "lease", "faults", "seed", "fed_by", "buffer"}  # fmt: skip
-BUFFER_TICK = 0.1  # s between looks at the buffer of an EM fed by another unit
+BUFFER_TICK = 0.1  # s between looks at the buffer of an EM fed by another unit, while it drains
 FAULT_KEYS = {"kind", "alarm_id", "value", "category", "message"}
 FAULT_KINDS = ("alarm", "warning", "blocked", "starved", "repeat_complete")
 #: ``repeat_complete``: seconds after which a State Complete report is sent again.
@@ -136,9 +136,11 @@ class SimulatedEm(EquipmentModule):
         self.faults_on: set[str] = set()
         self.buffer = sim.buffer  # seconds of parts left (fed_by)
         self.upstream_runs = False
+        self._drain_timer = None
         if sim.fed_by:
             self.create_subscription(Status, f"/{cell}/{sim.fed_by}/status", self._on_upstream, qos.STATUS)  # fmt: skip
-            self.create_timer(BUFFER_TICK, self._drain)
+            self._drain_timer = self.create_timer(BUFFER_TICK, self._drain)
+            self._drain_timer.cancel()  # runs only while the buffer drains (_watch_buffer)
         for fault in sim.faults.values():
             responses.create_service(
                 self, SetBool, f"~/fault/{fault.name}", partial(self._srv_fault, fault)
@@ -171,20 +173,40 @@ class SimulatedEm(EquipmentModule):
                 self.count("defective", 1, self.sim.defect_counter_index)
 
     # -- fed by a unit upstream --------------------------------------------------------------------------------
+    def _on_status(self, msg: Status) -> None:
+        super()._on_status(msg)
+        self._watch_buffer()
+
     def _on_upstream(self, msg: Status) -> None:
         self.upstream_runs = msg.state_current == State.EXECUTE
         if self.upstream_runs and self.buffer < self.sim.buffer:
             self.buffer = self.sim.buffer  # parts come again
             self._report_interlock()
+        self._watch_buffer()
+
+    def _draining(self) -> bool:
+        """The buffer empties while this unit runs and the one upstream does not."""
+        return not self.upstream_runs and self.state is State.EXECUTE and self.buffer > 0
+
+    def _watch_buffer(self) -> None:
+        """The buffer's timer runs only while it drains (an idle cell wakes nobody)."""
+        timer = self._drain_timer
+        if timer is None:
+            return
+        if not self._draining():
+            timer.cancel()
+        elif timer.is_canceled():
+            timer.reset()
 
     def _drain(self) -> None:
-        """The buffer empties while this unit runs and the one upstream does not."""
-        if self.upstream_runs or self.state is not State.EXECUTE or self.buffer <= 0:
+        if not self._draining():
+            self._watch_buffer()
             return
         self.buffer -= BUFFER_TICK
         if self.buffer <= 0:
             self.get_logger().warning(f"starved: {self.sim.fed_by} sends no parts")
             self._report_interlock()
+            self._watch_buffer()
 
     def _report_interlock(self) -> None:
         kinds = {self.sim.faults[f].kind for f in self.faults_on}

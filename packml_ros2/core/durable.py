@@ -15,6 +15,7 @@ from typing import Any, Protocol
 
 from .alarms import AlarmEvent, AlarmManager
 from .counters import Counters
+from .persistence import one_line
 from .stopreason import StopReasons
 from .times import ModeStateTimes
 
@@ -131,6 +132,6 @@ class Durable:
                 self.stops.set(AlarmEvent.from_dict(data["stop_reason"]))
             out.mach_speed = float(data.get("mach_speed", 0.0))
         except (TypeError, ValueError, KeyError) as exc:
-            problems.append(f"the stored admin data could not be restored ({exc}): the unit starts without it")  # fmt: skip
+            problems.append(f"the stored admin data could not be restored ({one_line(exc)}): the unit starts without it")  # fmt: skip
         self.alarms.take_changed()
         return out

@@ -14,7 +14,7 @@ from collections.abc import Collection
 
 from .numbers import Cmd, State
 from .reasons import Answer, Reason
-from .rules import INTERLOCK_RESUME, INTERLOCK_SUSPEND, Alert, Watch
+from .rules import INTERLOCK_RESUME, INTERLOCK_SUSPEND, Alert, Watch, locked_refusal
 
 #: OMAC stop-reason IDs (Beckhoff E_AlarmID ranges) of interlock stops.
 STOP_ID_BLOCKED = 3002  # downstream: discharge blocked
@@ -44,6 +44,20 @@ def external_refusal(held: Collection[str], active: bool, source: str,
             "only its own",
         )
     return None
+
+
+def interlock_refusal(held: Collection[str], active: bool, source: str, remote_enabled: bool,
+                      unit: str) -> Answer | None:  # fmt: skip
+    """Why ``set_interlock`` from ``source`` is refused, by a unit and a PLC bridge alike (None:
+    it is taken). The remote lock guards *setting* one; *clearing* never asks for anything: a
+    source releases its own hold (the coordinator, once downstream is free again, even after the
+    operator switched the unit to local: else a hold nobody at the machine may clear would keep
+    the unit suspended), and clearing what it does not hold is NOTHING_TO_DO."""
+    if active:
+        locked = locked_refusal("interlock", source, remote_enabled, unit)
+        if locked is not None:
+            return locked
+    return external_refusal(held, active, source, unit)
 
 
 class Interlocks:

@@ -38,7 +38,7 @@ from .counters import Counters
 from .deadlines import Deadlines
 from .durable import Durable, document
 from .equipment import Equipment
-from .interlocks import STOP_ID_BLOCKED, STOP_ID_STARVED, Interlocks, external_refusal
+from .interlocks import STOP_ID_BLOCKED, STOP_ID_STARVED, Interlocks, interlock_refusal
 from .modes import ModeDef
 from .numbers import Cmd, State, command_name, state_name
 from .packtags import build_admin
@@ -486,9 +486,7 @@ class UnitMachine:
         self._enter()
         source = source or OPERATOR
         self._record(inputlog.INTERLOCK, active, reason, source)
-        answer = self._locked("interlock", source) or self._set_interlock(
-            bool(active), reason, source
-        )
+        answer = self._set_interlock(bool(active), reason, source)
         self._leave()
         return answer
 
@@ -496,7 +494,7 @@ class UnitMachine:
         key = f"ext:{source}"
         name = self.config.name
         held = [k[4:] for k in self.interlocks.active if k.startswith("ext:")]
-        refused = external_refusal(held, active, source, name)
+        refused = interlock_refusal(held, active, source, self.remote_enabled, name)
         if refused is not None:
             return refused
         if active:

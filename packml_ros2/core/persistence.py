@@ -27,12 +27,15 @@ empty), and :attr:`Store.problems` says what happened (the unit logs it and rais
 from __future__ import annotations
 
 import contextlib
+import copy
 import errno
 import fcntl
 import json
+import math
 import os
 import socket
 import sqlite3
+import stat
 import time
 import zlib
 from collections.abc import Iterable, Mapping
@@ -41,6 +44,12 @@ from typing import Any
 
 SCHEMA_VERSION = 1
 TABLE = "unit_admin"
+#: Bounds of what a unit reads from its files (memory stays bounded whatever is on the disk): a
+#: snapshot document (the alarm history's ring, the counters, the times: well under a megabyte)
+#: and the journal (the changes of one ``persistence.period``).
+DOCUMENT_MAX = 16 * 2**20
+JOURNAL_MAX = 64 * 2**20
+INT32_MAX = 2**31 - 1
 
 
 class StoreError(RuntimeError):
@@ -53,8 +62,46 @@ class StoreLocked(StoreError):
 
 def _why(exc: BaseException) -> str:
     if isinstance(exc, OSError):
-        return exc.strerror or type(exc).__name__
+        why = exc.strerror or type(exc).__name__
+        return f"{Path(exc.filename).name}: {why}" if isinstance(exc.filename, str) else why
     return str(exc) or type(exc).__name__
+
+
+def one_line(text: object, limit: int = 200) -> str:
+    """``text`` (an exception, SQLite's report) on one line of at most ``limit`` characters."""
+    flat = " ".join(str(text).split())
+    return flat if len(flat) <= limit else flat[: limit - 3] + "..."
+
+
+def not_a_file(path: Path) -> OSError | None:
+    """Why ``path`` (which a store opens as a file) cannot be one: a directory, a device, a pipe
+    (``/dev/zero`` would feed a reader forever), or None (a regular file, or nothing yet)."""
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        return None
+    except OSError as exc:
+        return exc
+    if stat.S_ISREG(mode):
+        return None
+    what = "a directory" if stat.S_ISDIR(mode) else "not a regular file"
+    return OSError(errno.EINVAL, f"is {what}", str(path))
+
+
+def strict_json(text: str) -> Any:
+    """JSON as Python writes it, without NaN or Infinity (no stored number is ever one)."""
+    return json.loads(text, parse_constant=_no_constant, parse_float=_finite)
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a number a store holds")
+
+
+def _finite(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"{text[:20]} is not a finite number")
+    return value
 
 
 class Store:
@@ -75,6 +122,9 @@ class Store:
         self.appends = 0
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            for where in (self.path, _lock_path(self.path)):
+                if (problem := not_a_file(where)) is not None:
+                    raise problem
             for where in (self.path.parent, self.path):  # (root passes access(): sqlite decides)
                 if where.exists() and not os.access(where, os.W_OK):
                     raise PermissionError(13, f"{where} is not writable")
@@ -125,7 +175,7 @@ class Store:
                 db.close()
             aside = _move_aside(self.path, "-wal", "-shm")
             self.problems.append(
-                f"{self.path.name} could not be read ({exc}): moved aside to {aside.name}; the "
+                f"{self.path.name} could not be read ({one_line(exc)}): moved aside to {aside.name}; the "
                 "unit starts with the admin data its journal holds, if any"
             )
             self._db = _configured(
@@ -140,7 +190,7 @@ class Store:
         if damage is not None:
             aside = _move_aside(journal)
             self.problems.append(
-                f"{journal.name} is damaged ({damage}): the {len(records)} records before the "
+                f"{journal.name} is damaged ({one_line(damage)}): the {len(records)} records before the "
                 f"damage were kept, the file moved aside to {aside.name}"
             )
             _write_journal(journal, records)
@@ -149,7 +199,7 @@ class Store:
         except (ValueError, KeyError, TypeError) as exc:
             aside = _move_aside(journal)
             self.problems.append(
-                f"{journal.name} does not apply to the snapshot ({exc}): moved aside to {aside.name}"
+                f"{journal.name} does not apply to the snapshot ({one_line(exc)}): moved aside to {aside.name}"
             )
         n = max((int(r["n"]) for r in records), default=0)
         if document is not None:
@@ -200,9 +250,13 @@ def _journal(path: Path) -> Path:
     return path.with_name(path.name + ".journal")
 
 
+def _lock_path(path: Path) -> Path:
+    return path.with_name(path.name + ".lock")
+
+
 def _lock(path: Path, unit: str) -> int:
     """Hold ``path.lock`` (released when the process ends, however it ends)."""
-    lock_path = path.with_name(path.name + ".lock")
+    lock_path = _lock_path(path)
     fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -237,15 +291,27 @@ def _row(db: sqlite3.Connection, unit: str, where: str) -> dict[str, Any] | None
         raise ValueError(f"not a PackML store: it holds the tables {', '.join(sorted(tables))}")
     if not tables:
         return None
-    row = db.execute(f"SELECT schema, document FROM {TABLE} WHERE unit = ?", (unit,)).fetchone()
+    damage = db.execute("PRAGMA quick_check(1)").fetchone()[0]
+    if damage != "ok":
+        raise ValueError(f"damaged: {one_line(damage)}")
+    row = db.execute(
+        f"SELECT schema, typeof(document), length(CAST(document AS BLOB)) FROM {TABLE} WHERE unit = ?",
+        (unit,),
+    ).fetchone()
     if row is None:
         return None
-    schema, text = row
+    schema, kind, size = row
     if schema != SCHEMA_VERSION:
         raise ValueError(f"unit {unit!r} was saved with schema {schema}, this version reads {SCHEMA_VERSION}")  # fmt: skip
+    if (
+        kind != "text" or size > DOCUMENT_MAX
+    ):  # (read only when it can be one: memory stays bounded)
+        what = f"{size} bytes, more than {DOCUMENT_MAX}" if kind == "text" else f"of SQLite type {kind}"  # fmt: skip
+        raise ValueError(f"the document of unit {unit!r} is {what}")
+    text = db.execute(f"SELECT document FROM {TABLE} WHERE unit = ?", (unit,)).fetchone()[0]
     try:
-        document = json.loads(text)
-    except (TypeError, json.JSONDecodeError) as exc:
+        document = strict_json(text)
+    except (TypeError, ValueError) as exc:
         raise ValueError(f"the document of unit {unit!r} is not JSON ({exc})") from None
     problem = document_problem(document)
     if problem:
@@ -259,11 +325,19 @@ def _line(record: Mapping[str, Any]) -> str:
 
 
 def _read_journal(path: Path) -> tuple[list[dict[str, Any]], str | None]:
-    """The journal's records up to the first damaged one, and what the damage is (None)."""
+    """The journal's records up to the first damaged one, and what the damage is (None); at
+    most :data:`JOURNAL_MAX` bytes of it are read."""
+    if (problem := not_a_file(path)) is not None:
+        return [], problem.strerror
     try:
-        data = path.read_bytes()
+        with path.open("rb") as f:
+            data = f.read(min(os.fstat(f.fileno()).st_size, JOURNAL_MAX + 1))  # (a regular file)
     except FileNotFoundError:
         return [], None
+    cut = None
+    if len(data) > JOURNAL_MAX:
+        data = data[: data.rfind(b"\n", 0, JOURNAL_MAX) + 1]
+        cut = f"longer than {JOURNAL_MAX} bytes, the rest was not read"
     records: list[dict[str, Any]] = []
     for number, raw in enumerate(data.split(b"\n"), 1):
         if not raw:
@@ -272,13 +346,13 @@ def _read_journal(path: Path) -> tuple[list[dict[str, Any]], str | None]:
         try:
             if int(crc, 16) != zlib.crc32(text):
                 raise ValueError("checksum")
-            record = json.loads(text)
+            record = strict_json(text.decode())
             if not isinstance(record, dict) or not isinstance(record.get("n"), int):
                 raise ValueError("not a record")
-        except ValueError as exc:
+        except ValueError as exc:  # (UnicodeDecodeError too)
             return records, f"line {number}: {exc}"
         records.append(record)
-    return records, None
+    return records, cut
 
 
 def _write_journal(path: Path, records: list[dict[str, Any]]) -> None:
@@ -309,7 +383,9 @@ def _replay(
     records = [r for r in records if int(r["n"]) > after]
     if not records:
         return document
-    out: dict[str, Any] = dict(document) if document is not None else {}
+    out: dict[str, Any] = (
+        copy.deepcopy(document) if document is not None else {}
+    )  # (a record that does not apply leaves the snapshot as it was)
     for record in records:
         if "set" in record:
             out.update(record["set"])
@@ -340,7 +416,12 @@ _EVENT_TYPES: Mapping[str, tuple[type, ...]] = {
 
 def _numbers_by_index(x: Any) -> bool:
     return isinstance(x, dict) and all(
-        isinstance(k, str) and k.isdigit() and isinstance(v, _NUMBER) and not isinstance(v, bool)
+        isinstance(k, str)
+        and k.isdigit()
+        and len(k) < 6
+        and isinstance(v, _NUMBER)
+        and not isinstance(v, bool)
+        and v >= 0
         for k, v in x.items()
     )
 
@@ -350,7 +431,9 @@ def _event_problem(e: Any) -> str | None:
         return "an event is not a mapping"
     for key, types in _EVENT_TYPES.items():
         if not isinstance(e.get(key), types) or isinstance(e.get(key), bool):
-            return f"event field {key!r} is {e.get(key)!r}"
+            return f"event field {key!r} is {e.get(key)!r}"[:200]
+        if types == (int,) and not -INT32_MAX - 1 <= e[key] <= INT32_MAX:
+            return f"event field {key!r} is out of the int32 range"
     if not 0 <= e["kind"] <= 3:
         return f"event kind {e['kind']} is not 0..3"
     return None
@@ -360,8 +443,9 @@ def document_problem(d: Any) -> str | None:
     """What is wrong with a stored document (types and shapes), or None."""
     if not isinstance(d, dict):
         return "not a mapping"
-    if not isinstance(d.get("sequence", 0), int) or isinstance(d.get("sequence", 0), bool):
-        return f"sequence is {d.get('sequence')!r}"
+    sequence = d.get("sequence", 0)
+    if not isinstance(sequence, int) or isinstance(sequence, bool) or not 0 <= sequence < 2**32:
+        return f"sequence is {sequence!r} (not a uint32)"[:200]
     times = d.get("times", {})
     if not isinstance(times, dict):
         return "times is not a mapping"
@@ -374,15 +458,17 @@ def document_problem(d: Any) -> str | None:
     counters = d.get("counters", {})
     if not isinstance(counters, dict) or not all(
         isinstance(v, list)
-        and all(isinstance(p, list) and len(p) == 2 and all(isinstance(x, int) and x >= 0 for x in p)
-                for p in v)
+        and all(isinstance(p, list) and len(p) == 2
+                and all(isinstance(x, int) and 0 <= x <= INT32_MAX for x in p) for p in v)
         for v in counters.values()
     ):  # fmt: skip
         return "counters are not lists of [Count, AccCount]"
     alarms = d.get("alarms", {})
     if not isinstance(alarms, dict) or not isinstance(alarms.get("history", []), list):
         return "alarms.history is not a list"
-    if not isinstance(alarms.get("history_dropped", 0), int):
+    if not isinstance(alarms.get("history_dropped", 0), int) or isinstance(
+        alarms.get("history_dropped", 0), bool
+    ):
         return "alarms.history_dropped is not a number"
     for e in alarms.get("history", []):
         problem = _event_problem(e)

@@ -288,10 +288,17 @@ def source_refusal(source: str) -> str | None:
         shown = source if len(source) <= 40 and source.isprintable() else f"{source[:40]!r}..."
         return (f"source {shown!r} is not one of {', '.join(CALLER_KINDS)} (as kind or "
                 "kind:name, lower case; empty = operator)")  # fmt: skip
-    if colon and not (0 < len(name) <= MAX_SOURCE_NAME and _NAME_CHARS.issuperset(name)):
-        return (f"the name in source {kind}:... must be 1..{MAX_SOURCE_NAME} of A-Z a-z 0-9 _ . "
-                "@ -")  # fmt: skip
+    if colon and not is_source_name(name):
+        return f"the name in source {kind}:... must be {SOURCE_NAME_GRAMMAR}"
     return None
+
+
+SOURCE_NAME_GRAMMAR = f"1..{MAX_SOURCE_NAME} of A-Z a-z 0-9 _ . @ -"
+
+
+def is_source_name(name: str) -> bool:
+    """Whether ``name`` fits the name part of a source (a user name a face sends as it is)."""
+    return 0 < len(name) <= MAX_SOURCE_NAME and _NAME_CHARS.issuperset(name)
 
 
 def source_of(kind: str, name: str = "") -> str:
@@ -304,7 +311,9 @@ def source_of(kind: str, name: str = "") -> str:
 
 
 #: Which inputs the remote lock guards: every input that changes the unit (commands by the
-#: ``remote`` guard below, the rest by :func:`locked_refusal`). Reading (query_alarms) is free.
+#: ``remote`` guard below, the rest by :func:`locked_refusal`). Reading (query_alarms) is free;
+#: so is a source clearing its own interlock (``interlock`` is setting one:
+#: :func:`.interlocks.interlock_refusal`).
 LOCKED_INPUTS: tuple[str, ...] = (
     "command", "mode", "alarm", "alarm.ack", "alarm.reset", "times.reset", "counters.reset",
     "speed", "parameters", "products", "em.active", "interlock",

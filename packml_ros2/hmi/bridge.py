@@ -343,6 +343,9 @@ def config_dict(cell: CellConfig, title: str = "", access: Access | None = None)
         "levels": list(LEVELS),
         "unit_action_level": dict(UNIT_ACTION_LEVEL),
         "cell_action_level": dict(CELL_ACTION_LEVEL),
+        # the source the shared reasons of disabled controls are judged for (hmi:<user> with
+        # logins: the rule book judges every hmi: user alike); each page names its own user
+        "why_source": command_source(access.viewer),
         "logout_after": access.sessions.idle,
         "lease": cell.coordinator.unit_lease,
         "coordinator": cell.coordinator.enabled,
@@ -380,7 +383,7 @@ class Bridge:
         self.access = Access(token or None, users=users, logout_after=logout_after)
         self.config = config_dict(cell, title, self.access)
         #: the source the reasons of disabled controls are judged for: the one of the actions
-        self._why_source = command_source(self.access.viewer)
+        self._why_source: str = self.config["why_source"]
         self.lease = cell.coordinator.unit_lease if lease is None else lease
         self._modes = {name: sorted(m for m in u.modes if m < 32) for name, u in cell.units.items()}
         self._own_context = context is None

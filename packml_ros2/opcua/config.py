@@ -36,6 +36,7 @@ from typing import Any
 from ..core import schema as sc
 from ..core import secrets as secret_sources
 from ..core.config import DEFAULT_STATE_DIR, CellConfig
+from ..core.rules import SOURCE_NAME_GRAMMAR, is_source_name
 from ..core.schema import ConfigError, Node, invalid
 from ..core.secrets import HASH_PREFIX, check_hash, check_password, hash_password
 
@@ -55,6 +56,7 @@ POLICIES = {
     "aes256sha256rsapss_signandencrypt": "Aes256Sha256RsaPss_SignAndEncrypt",
 }
 DEFAULT_POLICIES = ("NoSecurity", "Basic256Sha256_Sign", "Basic256Sha256_SignAndEncrypt")
+ANONYMOUS = "anonymous"  #: the user name of anonymous sessions (opcua:anonymous)
 KEYS = {
     "host", "port", "units", "allow_anonymous", "allow_anonymous_write", "users",
     "user_certificates", "security_policies", "certificate", "private_key",
@@ -164,6 +166,11 @@ def parse_opcua(cell: CellConfig, base: Path | None = None) -> OpcUaConfig:
             )
     users = {name: n.parse(lambda x: _password(x, base), "") for name, n in root.items_at("users")}
     certs = {name: n.parse(existing, Path()) for name, n in root.items_at("user_certificates")}
+    for key in ("users", "user_certificates"):  # each is the source opcua:<user> as it is
+        for name, n in root.items_at(key):
+            if not is_source_name(name) or name == ANONYMOUS:
+                why = "anonymous sessions' name" if name == ANONYMOUS else SOURCE_NAME_GRAMMAR
+                n.error(f"{sc.shown(name)} is not a user name ({why}: every action is recorded as opcua:<user>)")  # fmt: skip
     policies = tuple(n.parse(_policy, "") for n in root.list_at("security_policies"))
     if "security_policies" in root.mapping() and not policies:
         root.child("security_policies", None).error("at least one policy is needed (e.g. None)")

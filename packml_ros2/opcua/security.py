@@ -34,7 +34,7 @@ from asyncua.server import uaprocessor
 from asyncua.ua.ua_binary import nodeid_from_binary, struct_from_binary, struct_to_binary
 
 from ..core.rules import source_of
-from .config import OpcUaConfig, check_password
+from .config import ANONYMOUS, OpcUaConfig, check_password
 
 _logger = logging.getLogger(__name__)
 
@@ -131,7 +131,7 @@ def command_source(user: str) -> str:
     session, ``opcua:anonymous`` for an anonymous one allowed to write (the rule book's grammar,
     :func:`packml_ros2.core.rules.source_of`: a remote source). Units record it with every
     transition, and their remote lock refuses it while ``remote_commands_enabled`` is false."""
-    return source_of("opcua", user or "anonymous")
+    return source_of("opcua", user or ANONYMOUS)
 
 
 def executable_callbacks(

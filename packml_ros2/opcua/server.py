@@ -30,6 +30,7 @@ from typing import Any
 from asyncua import Server, ua
 
 from ..core.config import CellConfig, UnitConfig
+from ..core.persistence import _move_aside, _why, not_a_file, one_line
 from ..presence import Seen
 from . import line, security
 from .available import unit_graph
@@ -51,6 +52,7 @@ from .mapping import (
 from .model import AddressSpace, UnitNodes, variable_paths
 
 _logger = logging.getLogger(__name__)
+PAIR_MAX = 1 << 20  #: bytes of a certificate or key file made before (they are a few kB)
 
 
 def to_ua(value: Any) -> Any:
@@ -91,13 +93,30 @@ async def own_certificate(folder: Path, app_uri: str, name: str, host: str) -> t
     from cryptography.x509.oid import ExtendedKeyUsageOID
 
     cert_file, key_file = folder / "server_cert.der", folder / "server_key.pem"
-    if cert_file.is_file() and key_file.is_file():
-        cert = await uacrypto.load_certificate(cert_file)
-        uris = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
-        if app_uri in uris.get_values_for_type(
-            x509.UniformResourceIdentifier
-        ) and cert.not_valid_after_utc > dt.datetime.now(dt.UTC) + dt.timedelta(days=7):
-            return cert_file, key_file
+    if cert_file.exists() or key_file.exists():
+        try:  # files on disk are hostile input too: a bad pair is moved aside and made again
+            for f in (cert_file, key_file):
+                if (problem := not_a_file(f)) is not None:
+                    raise problem
+                if f.exists() and f.stat().st_size > PAIR_MAX:
+                    raise ValueError(f"{f.name} is larger than {PAIR_MAX} bytes")
+            if not (cert_file.exists() and key_file.exists()):  # (one made, then killed)
+                raise FileNotFoundError(2, "one of the pair is missing")
+            cert = await uacrypto.load_certificate(cert_file)
+            key = await uacrypto.load_private_key(key_file)
+            if cert.public_key().public_numbers() != key.public_key().public_numbers():
+                raise ValueError("the key is not the certificate's")
+            uris = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+            if app_uri in uris.get_values_for_type(
+                x509.UniformResourceIdentifier
+            ) and cert.not_valid_after_utc > dt.datetime.now(dt.UTC) + dt.timedelta(days=7):
+                return cert_file, key_file
+        except (OSError, ValueError, TypeError, x509.ExtensionNotFound) as exc:
+            moved = [_move_aside(f).name for f in (cert_file, key_file) if f.exists() or f.is_symlink()]  # fmt: skip
+            _logger.warning(
+                "%s: the certificate made before cannot be used (%s): moved aside (%s), a new "
+                "one is made", folder, one_line(_why(exc)), ", ".join(moved),
+            )  # fmt: skip
     folder.mkdir(parents=True, exist_ok=True)
     key = cert_gen.generate_private_key()
     names: list[x509.GeneralName] = [

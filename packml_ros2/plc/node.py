@@ -71,7 +71,7 @@ from .. import convert, qos, responses, run
 from ..core import CellConfig, Cmd, UnitConfig, load_cell, state_name
 from ..core import config as cfg
 from ..core.alarms import AlarmEvent
-from ..core.interlocks import external_refusal
+from ..core.interlocks import interlock_refusal
 from ..core.numbers import NUM_STATES, Mode, State, command_name
 from ..core.packtags import EmView, RemoteInterfaceView, StatusView, compute_oee
 from ..core.reasons import Reason
@@ -700,9 +700,9 @@ class PlcUnitNode(Node):
     ) -> SetInterlock.Response:
         source = req.source or "operator"
         with self._lock:
-            refused = locked_refusal(
-                "interlock", source, self.remote_enabled, self.config.name
-            ) or external_refusal(self._interlocks, req.active, source, self.config.name)
+            refused = interlock_refusal(
+                self._interlocks, req.active, source, self.remote_enabled, self.config.name
+            )
             if refused is not None:
                 resp.accepted, resp.result, resp.message = (
                     False,

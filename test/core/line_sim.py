@@ -13,6 +13,7 @@ import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 from packml_ros2.core import ACTING, Cmd, State, Unit, parse_cell
@@ -41,7 +42,9 @@ class SimEm:
 
 class SimLine:
     def __init__(self, doc: dict[str, Any], ems: list[SimEm], store: str | None = None,
-                 tick: float = 0.5) -> None:  # fmt: skip
+                 tick: float | None = None) -> None:  # fmt: skip
+        """``tick``: the line's tick every so many seconds; None: as the node does it, one
+        wake-up armed for :meth:`Line.next_due` after every event (``ticks`` counts them)."""
         self.t = T0
         self.cell = parse_cell(doc)
         self.events: list[tuple[float, int, Callable[[], None]]] = []
@@ -62,12 +65,16 @@ class SimLine:
                          LineStore(store, self.cell.cell) if store else None)  # fmt: skip
         self.runs: list[tuple[int, Run, list[Outcome]]] = []
         self.tick = tick
+        self.ticks = 0
+        self.silent: set[str] = set()  # units whose diagnostics no longer arrive
+        self._tick_at = math.inf  # armed mode: when the wake-up armed is due
         self.published: list[Any] = []  # LossesView lists at each publication
         for unit, em in self.ems:
             self.drivers[unit].call(self.t, self.units[unit].em_seen, em, True)
         for driver in self.drivers.values():
             driver.flush()
-        self._every(tick, self._tick)
+        if tick is not None:
+            self._every(tick, self._tick)
         self._every(1.0, self._diagnostics)  # a unit's /diagnostics every second: its sign of life
 
     # -- time ---------------------------------------------------------------------------------------
@@ -98,6 +105,8 @@ class SimLine:
                 _, _, fn = heapq.heappop(self.events)
                 fn()
             self._poll_runs()
+            if self.tick is None:
+                self._arm()
         self.t = end
 
     @property
@@ -180,11 +189,27 @@ class SimLine:
 
     def _diagnostics(self) -> None:
         for name in self.units:
+            if name in self.silent:
+                continue
             _, effects = self.line.on_diagnostics(name, False, "")
             self._effects(effects)
         self.take()
 
+    def _arm(self) -> None:
+        """The node's timer: armed for the next thing due when that is sooner than the armed one."""
+        due = max(self.line.next_due(), self.t)
+        if due < self._tick_at:
+            self._tick_at = due
+            heapq.heappush(self.events, (due, next(self._order), partial(self._armed_tick, due)))
+
+    def _armed_tick(self, at: float) -> None:
+        if at != self._tick_at:
+            return  # superseded by a sooner one (that one fired and armed again)
+        self._tick_at = math.inf
+        self._tick()
+
     def _tick(self) -> None:
+        self.ticks += 1
         self._effects(self.line.tick())
         _, views = self.line.losses_due()
         if views:

@@ -21,7 +21,7 @@ from typing import Any
 
 import pytest
 
-from packml_ros2.core import Cmd, State
+from packml_ros2.core import Cmd, Reason, State
 from packml_ros2.core.line import inputs
 from packml_ros2.core.line.ledger import Ledger
 from packml_ros2.core.line.losses import BLOCKED, PLANNED, RUNNING, STARVED, UNPLANNED, summarize
@@ -328,3 +328,50 @@ def test_summaries_of_nothing_are_zero() -> None:
 
     x = summarize("", Totals(), 60.0)
     assert (x.elapsed, x.availability, x.oee, x.performance) == (0, 0.0, 0.0, 0.0)
+
+
+def test_the_coordinator_releases_its_own_interlock_on_a_unit_switched_to_local() -> None:
+    """Issue 15: the remote lock guards setting an interlock, not releasing one's own. The filler
+    is suspended by the coordinator (packer blocked), then switched to local at the machine; once
+    the packer is free the coordinator clears its interlock and the filler runs again (before, the
+    clear was refused with REMOTE_DISABLED and retried forever: the filler stayed suspended by a
+    hold nobody at the machine may clear). A new interlock on the locked filler is refused."""
+    sim = started(cell_doc())
+    filler = sim.units["filler"]
+    sim.at(20.5, lambda: sim.interlock("packer", "loader", blocked=True))
+    sim.at(25, lambda: sim.drivers["filler"].call(sim.t, filler.set_remote_enabled, False))
+    sim.at(30, lambda: sim.interlock("packer", "loader", blocked=False))
+    sim.run_until(32)
+    assert filler.state is State.EXECUTE and not filler.interlock_active, filler.state
+    moves = [m for _, unit, topic, m in sim.messages if unit == "filler" and topic == "transitions"]
+    resumed = [m for m in moves if m.from_state_name == "SUSPENDED"]
+    assert resumed[-1].source == "interlock"  # the interlock's own Unsuspend
+    assert "Log(level='info', text='interlock cleared on filler')" in sim.log
+    assert not [line for line in sim.log if "level='info'" not in line], sim.log
+
+    sim.at(33, lambda: sim.interlock("packer", "loader", blocked=True))  # blocked again
+    sim.run_until(36)
+    assert filler.state is State.EXECUTE and not filler.interlock_active  # the lock holds
+    answer = filler.set_interlock(True, "x", "coordinator")
+    assert answer.reason is Reason.REMOTE_DISABLED
+    assert filler.set_interlock(False, "", "remote:mes").reason is Reason.NOTHING_TO_DO
+
+
+def test_the_coordinator_wakes_only_when_something_is_due() -> None:
+    """No polling (issue 18): the line's one wake-up is armed for ``Line.next_due`` after every
+    event, as the node does. At rest it wakes for the leases (renewed by the units' diagnostics
+    every second) and the losses' publication every ``publish_period`` (5 s), not every 0.1 s;
+    a unit gone silent is lost ``unit_lease`` (3 s) after its last sign of life, not later."""
+    sim = SimLine(cell_doc(), [])
+    sim.run_until(60)
+    assert 12 <= len(sim.published) <= 13  # losses at 0 s, then every 5 s
+    assert sim.ticks <= 40  # the leases' checks (every 3 s) and the publications: no polling
+    sim.silent.add("packer")  # its last diagnostics arrived at 60 s
+    sim.run_until(62.99)
+    assert sim.line.cell.units["packer"].online
+    sim.run_until(63.01)
+    assert sim.line.cell.units["packer"].lost and sim.line.cell.units["filler"].online
+    assert any("unit packer lost: no status or diagnostics for 3 s" in line for line in sim.log)
+    ticks = sim.ticks
+    sim.run_until(120)  # one unit lost: only the other's lease and the publications remain
+    assert sim.ticks - ticks <= 35

@@ -29,6 +29,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +37,7 @@ import httpx
 import pytest
 import yaml
 from packml_interfaces.msg import Status
-from packml_interfaces.srv import SetAlarm
+from packml_interfaces.srv import SetAlarm, SetRemoteCommands
 
 from packml_ros2 import qos
 from packml_ros2.core import load_cell
@@ -696,6 +697,16 @@ def test_user_levels_decide_who_may_do_what(env: Env) -> None:
 
     # anna, operator: commands yes; modes and resets of records no (page and server)
     log_in(page, "anna")
+    expect(page.locator("#u-cmds button[data-cmd=RESET]")).to_be_enabled()
+    # the reasons every page shares are judged for hmi:<user>; each page names its own user
+    lock = partial(env.call_unit, "robot_cell", SetRemoteCommands, "set_remote_commands", source="operator")  # fmt: skip
+    assert lock(enabled=False).accepted
+    try:
+        expect(page.locator("#u-cmds button[data-cmd=RESET]")).to_have_attribute(
+            "data-why", re.compile(r"^RESET from hmi:anna refused: remote commands are disabled")
+        )
+    finally:
+        assert lock(enabled=True).accepted
     expect(page.locator("#u-cmds button[data-cmd=RESET]")).to_be_enabled()
     assert "needs the maintenance level (anna is operator)" in why(
         page.locator("#u-modes button[data-mode='3']")

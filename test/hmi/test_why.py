@@ -178,3 +178,48 @@ def test_a_status_the_configuration_does_not_know_is_answered_not_raised(
     assert set(reasons["commands"]) <= {c.name for c in Cmd if c} and reasons["commands"]
     assert all("does not have" in r["text"] for r in reasons["commands"].values())
     assert all("does not have" in text for text in reasons["modes"].values())
+
+
+def test_the_shared_reasons_are_each_users_own_once_the_page_names_its_user() -> None:
+    """Issue 15: every browser gets the same reasons, judged for the viewer (hmi:<user> with
+    logins); the page puts its user's name for the viewer's (app.js ownReasons). Sound because the
+    rule book judges every hmi: user alike: for each user, in each situation (locked, an alarm,
+    a mode change, running), the viewer's reasons so named are exactly that user's, and the
+    levels are the page's own (CFG.unit_action_level against its user's level)."""
+    from packml_ros2.core import parse_cell
+    from packml_ros2.hmi.access import Access
+    from packml_ros2.hmi.bridge import config_dict
+    from packml_ros2.hmi.settings import User
+
+    users = {n: User(n, "operator", "x") for n in ("anna", "ben.k@line-3")}
+    cell = parse_cell({"cell": "c", "units": {"u": UNIT_DOC}})
+    viewer = config_dict(cell, "", Access(None, users=users))["why_source"]
+    assert viewer == "hmi:<user>"
+
+    def named(reasons: dict[str, Any], user: str) -> dict[str, Any]:
+        own = lambda t: t.replace(viewer, f"hmi:{user}")  # noqa: E731 (what app.js does)
+        return {"commands": {c: {**v, "text": own(v["text"])} for c, v in reasons["commands"].items()},
+                "modes": {m: own(t) for m, t in reasons["modes"].items()}}  # fmt: skip
+
+    situations = []
+    locked, _ = start({**UNIT_DOC, "remote_commands_enabled": False})
+    situations.append(locked)
+    alarmed, _ = start()
+    to_execute(alarmed)
+    assert alarmed.set_alarm(201).accepted
+    situations.append(alarmed)
+    changing, _ = start()
+    assert changing.set_mode(2).accepted
+    situations.append(changing)
+    running, _ = start()
+    to_execute(running)
+    situations.append(running)
+    names_seen = 0
+    for unit in situations:
+        status, alarms = seen_by_the_hmi(unit)
+        shared = why.reasons(unit.config, status, alarms, viewer)
+        for user in users:
+            own = why.reasons(unit.config, status, alarms, command_source(Principal(user)))
+            assert named(shared, user) == own, (user, unit.state)
+            names_seen += str(own).count(f"hmi:{user}")
+    assert names_seen > 0  # the locked unit's sentences name the user

@@ -500,3 +500,24 @@ def test_security_warnings_and_trusted_client_certificates(
             await validate(stranger, None)
 
     asyncio.run(check())
+
+
+def test_user_names_are_recorded_as_they_are_or_refused_at_their_key(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every OPC UA action reaches a unit as opcua:<user>: a user name outside the source
+    grammar (or the anonymous sessions' name) is a configuration error, not a user whose every
+    action is recorded under another name."""
+    monkeypatch.setenv("PACKML_TEST_PW", "long enough password")
+    (tmp_path / "c.der").write_bytes(b"-")
+    pw = "env:PACKML_TEST_PW"
+    bad = {"users": {"mes operator": pw, "josé": pw, "x" * 65: pw, "anonymous": pw, "mes@line-3.x": pw},
+           "user_certificates": {"a/b": "c.der", "scada_1": "c.der"}}  # fmt: skip
+    with pytest.raises(ConfigError) as err:
+        parse_opcua(load_cell(_cell(tmp_path, bad)))
+    paths = dict(err.value.problems)
+    for key in ("users.mes operator", "users.josé", f"users.{'x' * 65}", "users.anonymous",
+                "user_certificates.a/b"):  # fmt: skip
+        assert "is not a user name" in paths.pop(f"opcua.{key}"), key
+    assert "anonymous sessions" in str(err.value)
+    assert paths == {}  # mes@line-3.x and scada_1 are names

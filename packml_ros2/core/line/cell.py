@@ -28,6 +28,7 @@ coordinator's own among them (propagating those would cascade).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -42,6 +43,8 @@ SOURCE = "remote:coordinator"
 #: Source of the interlocks it sets (``<unit>/set_interlock``).
 INTERLOCK_SOURCE = "coordinator"
 INTERLOCK_RETRY = 0.5  # s between attempts when set_interlock failed
+#: s: a lease is checked this long after it ends (a unit is lost when silent for *more* than it)
+LEASE_SLACK = 0.001
 TRANSITIONS_KEPT = 200
 #: Aggregate cell state when the units disagree: the first of these that any online unit is in.
 SEVERITY: tuple[State, ...] = (
@@ -340,6 +343,29 @@ class Cell:
                 unit.lost = True
                 effects.append(Log("warning", f"unit {unit.name} not seen within {lease:g} s of the coordinator's start"))  # fmt: skip
         return effects + self.reconcile_interlocks(now)
+
+    def next_due(self, now: float) -> float:
+        """When :meth:`tick` has something to do next (monotonic seconds; ``-inf``: at once,
+        ``inf``: nothing): a subscription due again, the lease of an online unit, the start lease
+        of a unit not seen yet, an interlock retry. The node arms one timer for it (no polling);
+        each of these is done, or moves on, when it is due, so the timer never spins."""
+        if self.closed:
+            return math.inf
+        lease, due = self.coordinator.unit_lease, math.inf
+        for unit in self.units.values():
+            if unit.resubscribe_due:
+                return -math.inf
+            if unit.online:
+                due = min(due, unit.last_seen + lease + LEASE_SLACK)
+            elif not unit.lost:
+                due = min(due, self.started + lease + LEASE_SLACK)
+            if (
+                unit.interlock_error
+                and not unit.interlock_pending
+                and unit.interlock_retry_at > now
+            ):
+                due = min(due, unit.interlock_retry_at)
+        return due
 
     def newly_lost(self) -> list[str]:
         return [u.name for u in self.units.values() if u.lost]

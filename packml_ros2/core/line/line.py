@@ -11,23 +11,27 @@ epoch: the units' stamps, shifts).
 from __future__ import annotations
 
 import json
+import sqlite3
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from ..config import CellConfig
 from ..numbers import Cmd
+from ..persistence import one_line
 from ..reasons import Reason
 from . import inputs
 from .cell import Call, Cell, CellView, Effect
 from .episodes import Episode, Root
 from .ledger import ROLLING, Fact, History, Ledger, MemoryHistory, add_clipped
 from .losses import DOWN, LINE, PLANNED, Summary, Totals, summarize
-from .performance import Performance
+from .performance import AHEAD_WAIT, Performance
 from .sequence import AbortRun, CommandRun, ModeRun, Outcome, Run, Runs
 from .store import LineStore
 
 NS = 1_000_000_000
+#: s added to a time due on the wall clock, converted to the monotonic one (rounding)
+WALL_SLACK = 1e-6
 MEMORY_FACTS = 200_000  # facts a line without a store keeps for its queries
 MAX_WINDOWS = 200  # windows one query may ask for (trend, shifts)
 MAX_EPISODES = 1000
@@ -129,17 +133,26 @@ class Line:
         self._digests: dict[tuple[str, str], Any] = {}
         self._online = dict.fromkeys(cell.units, False)
         self._published = 0  # wall ns of the last losses publication
-        state = None
-        if store is not None:
+        state = self._restore(store) if store is not None else None
+        now = wall()
+        keep = [i.key for i in (self.calendar.instance_at(now), self.calendar.previous(now)) if i]
+        self._record(inputs.START, "", {"schema": inputs.SCHEMA, "state": state,
+                                        "ledger": self.perf.ledger.base(keep)}, now)  # fmt: skip
+
+    def _restore(self, store: LineStore) -> dict[str, Any] | None:
+        """The open state and the ledger from the store; a store whose content does not restore
+        is moved aside and the line starts with an empty one (``store.problems`` says so)."""
+        try:
             state = store.state()
             if state is not None:
                 self.perf.restore(state, store.recent_episodes(50))
             reset_at = state.get("reset_at") if state else None
             store.restore_ledger(self.perf.ledger, None if reset_at is None else int(reset_at))
-        now = wall()
-        keep = [i.key for i in (self.calendar.instance_at(now), self.calendar.previous(now)) if i]
-        self._record(inputs.START, "", {"schema": inputs.SCHEMA, "state": state,
-                                        "ledger": self.perf.ledger.base(keep)}, now)  # fmt: skip
+            return state
+        except (ValueError, TypeError, KeyError, AttributeError, IndexError, sqlite3.Error) as exc:
+            store.start_over(f"could not be restored ({type(exc).__name__}: {one_line(exc, 120)})")
+        self.perf = Performance(self.config.line, self.config.units, Ledger(store))
+        return None
 
     @property
     def calendar(self) -> Any:
@@ -172,9 +185,19 @@ class Line:
         effects = self.cell.tick(self.monotonic())
         self._presence()
         now = self.wall()
-        if any(t.ahead is not None and now - t.ahead[1] >= 2 * NS for t in self.perf.trackers.values()):  # fmt: skip
+        if any(t.ahead is not None and now - t.ahead[1] >= AHEAD_WAIT for t in self.perf.trackers.values()):  # fmt: skip
             self._input(inputs.TICK, "", {}, now)
         return effects
+
+    def next_due(self) -> float:
+        """When :meth:`tick` or :meth:`losses_due` has something to do next (monotonic seconds;
+        ``-inf``: at once, ``inf``: nothing): the cell's leases and retries
+        (:meth:`Cell.next_due`), the next losses publication, a status ahead of its transitions."""
+        mono, wall = self.monotonic(), self.wall()
+        due = self.cell.next_due(mono)
+        at = [self._published + int(self.config.line.publish_period * NS)]
+        at += [t.ahead[1] + AHEAD_WAIT for t in self.perf.trackers.values() if t.ahead is not None]
+        return min(due, mono + (min(at) - wall) / NS + WALL_SLACK)
 
     def losses_due(self) -> tuple[int, list[LossesView]]:
         """Every ``line.publish_period``: a tick, its time and the windows to publish (else [])."""

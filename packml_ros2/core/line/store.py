@@ -29,7 +29,16 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from ..persistence import StoreError, _lock, _move_aside
+from ..persistence import (
+    StoreError,
+    _lock,
+    _lock_path,
+    _move_aside,
+    _why,
+    not_a_file,
+    one_line,
+    strict_json,
+)
 from .episodes import Episode
 from .ledger import RECENT, Count, Fact, Ledger, Segment
 from .losses import Totals
@@ -37,6 +46,9 @@ from .losses import Totals
 SCHEMA_VERSION = 1
 _TABLES = {"segments", "counts", "episodes", "state", "meta"}
 _FAR = 2**62
+TEXT_MAX = (
+    2**20
+)  #: bytes of a stored text (a reason, an episode, the open state): memory stays bounded
 _SCHEMA = (
     "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
     "CREATE TABLE IF NOT EXISTS segments (scope TEXT NOT NULL, start INTEGER NOT NULL,"
@@ -66,6 +78,9 @@ class LineStore:
         self.commits = 0
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            for where in (self.path, _lock_path(self.path)):
+                if (problem := not_a_file(where)) is not None:
+                    raise problem
             self._lock = _lock(self.path, f"line of {cell}")
         except (OSError, ValueError) as exc:
             raise self._cannot_open(exc) from None
@@ -76,8 +91,7 @@ class LineStore:
             raise self._cannot_open(exc) from None
 
     def _cannot_open(self, exc: BaseException) -> StoreError:
-        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc) or type(exc).__name__  # fmt: skip
-        return StoreError(f"{self.path}: cannot open the line store of {self.cell}: {why} "
+        return StoreError(f"{self.path}: cannot open the line store of {self.cell}: {_why(exc)} "
                           "(line.store of the cell file; store: false keeps it in memory)")  # fmt: skip
 
     def _open(self) -> sqlite3.Connection:
@@ -85,19 +99,30 @@ class LineStore:
         try:
             problem = _foreign(db)
         except sqlite3.DatabaseError as exc:
-            problem = str(exc)
+            problem = one_line(exc)
         if problem:
             with contextlib.suppress(Exception):
                 db.close()
-            aside = _move_aside(self.path, "-wal", "-shm")
-            self.problems.append(f"{self.path.name} is not a line store ({problem}): moved aside to {aside.name}; the line starts with an empty one")  # fmt: skip
-            db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+            db = self._aside(f"is not a line store ({problem})")
         db.execute("PRAGMA journal_mode=WAL")
         db.execute("PRAGMA synchronous=NORMAL")
         for statement in _SCHEMA:
             db.execute(statement)
         db.execute("INSERT OR IGNORE INTO meta (key, value) VALUES ('schema', ?)", (str(SCHEMA_VERSION),))  # fmt: skip
         return db
+
+    def _aside(self, why: str) -> sqlite3.Connection:
+        aside = _move_aside(self.path, "-wal", "-shm")
+        self.problems.append(f"{self.path.name} {why}: moved aside to {aside.name}; the line starts with an empty one")  # fmt: skip
+        return sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+
+    def start_over(self, why: str) -> None:
+        """Move the store aside and continue with an empty one (what it holds cannot be used:
+        ``why``, a sentence, goes to :attr:`problems`)."""
+        self.db.close()
+        self.db = self._aside(why)
+        self.db.close()
+        self.db = self._open()
 
     # -- writing --------------------------------------------------------------------------------------
     def commit(self, facts: Sequence[Fact], episodes: Sequence[tuple[Episode, str, str, str]],
@@ -127,15 +152,14 @@ class LineStore:
 
     # -- reading --------------------------------------------------------------------------------------
     def state(self) -> dict[str, Any] | None:
+        """The open state; ValueError when it is not one (the line moves the store aside)."""
         row = self.db.execute("SELECT document FROM state WHERE key = 'performance'").fetchone()
         if row is None:
             return None
-        try:
-            doc = json.loads(row[0])
-        except json.JSONDecodeError as exc:
-            self.problems.append(f"the open state could not be read ({exc}): starting without it")
-            return None
-        return doc if isinstance(doc, dict) else None
+        doc = _document(row[0])
+        if not isinstance(doc, dict):
+            raise ValueError("the open state is not a JSON object")
+        return doc
 
     def totals(self, a: int | None, b: int | None) -> dict[str, Totals]:
         lo, hi = (-_FAR if a is None else a), (_FAR if b is None else b)
@@ -213,11 +237,11 @@ class LineStore:
         clause = f" WHERE {' AND '.join(where)}" if where else ""
         total = int(self.db.execute(f"SELECT COUNT(*) FROM episodes{clause}", args).fetchone()[0])
         rows = self.db.execute(f"SELECT document FROM episodes{clause} ORDER BY start DESC, id DESC LIMIT ?", [*args, limit])  # fmt: skip
-        return [Episode.from_dict(json.loads(r[0])) for r in rows], total
+        return _episodes(rows), total
 
     def recent_episodes(self, n: int) -> list[Episode]:
         rows = self.db.execute("SELECT document FROM episodes WHERE end IS NOT NULL ORDER BY id DESC LIMIT ?", (n,))  # fmt: skip
-        return [Episode.from_dict(json.loads(r[0])) for r in rows][::-1]
+        return _episodes(rows)[::-1]
 
     def close(self) -> None:
         if self._lock < 0:
@@ -227,14 +251,74 @@ class LineStore:
         self._lock = -1
 
 
+def _document(text: Any) -> Any:
+    """A stored JSON document, or None when it is not one."""
+    try:
+        return strict_json(text)
+    except (TypeError, ValueError):
+        return None
+
+
+def _episodes(rows: Iterable[tuple[Any, ...]]) -> list[Episode]:
+    """The episodes of ``rows`` (a document each); the checks at opening make a bad one rare (a
+    damage since), which is left out rather than failing every query."""
+    out = []
+    for (text,) in rows:
+        with contextlib.suppress(TypeError, ValueError, KeyError, AttributeError):
+            d = _document(text)
+            if isinstance(d, dict):
+                out.append(Episode.from_dict(d))
+    return out
+
+
+def _columns() -> dict[str, list[tuple[str, str, int]]]:
+    """Each table's (column, declared type, not null), as :data:`_SCHEMA` declares them."""
+    db = sqlite3.connect(":memory:")
+    for statement in _SCHEMA:
+        db.execute(statement)
+    out = {t: [(c[1], c[2], c[3]) for c in db.execute(f"PRAGMA table_info({t})")] for t in _TABLES}
+    db.close()
+    return out
+
+
+_COLUMNS = _columns()
+_SQL_TYPES = {"INTEGER": "integer", "TEXT": "text"}
+
+
+def _bad_row(table: str) -> str:
+    """A query of the first row of ``table`` whose values are not of its declared types (a
+    text longer than :data:`TEXT_MAX` counts as one)."""
+    checks = []
+    for name, kind, notnull in _COLUMNS[table]:
+        allowed = f"'{_SQL_TYPES[kind]}'" + ("" if notnull else ", 'null'")
+        checks.append(f"typeof({name}) NOT IN ({allowed})")
+        if kind == "TEXT":
+            checks.append(f"length(CAST({name} AS BLOB)) > {TEXT_MAX}")
+    return f"SELECT rowid FROM {table} WHERE {' OR '.join(checks)} LIMIT 1"
+
+
+_BAD_ROWS = {t: _bad_row(t) for t in sorted(_TABLES)}
+
+
 def _foreign(db: sqlite3.Connection) -> str:
-    """Why the file is not a line store of this version ('' = it is, or it is empty)."""
+    """Why the file is not a line store of this version ('' = it is, or it is empty): its tables,
+    their columns, the schema, and the type of every stored value (one scan of each table)."""
     tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
     if not tables:
         return ""
+    damage = db.execute("PRAGMA quick_check(1)").fetchone()[0]
+    if damage != "ok":
+        return f"damaged: {one_line(damage)}"
     if tables - _TABLES or "meta" not in tables:
         return f"it holds the tables {', '.join(sorted(tables))}"
     row = db.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone()
     if row is None or row[0] != str(SCHEMA_VERSION):
-        return f"schema {row[0] if row else 'unknown'}, this version reads {SCHEMA_VERSION}"
+        return f"schema {str(row[0])[:20] if row else 'unknown'}, this version reads {SCHEMA_VERSION}"  # fmt: skip
+    for table in sorted(tables):
+        columns = [(c[1], c[2], c[3]) for c in db.execute(f"PRAGMA table_info({table})")]
+        if columns != _COLUMNS[table]:
+            return f"the table {table} has other columns"
+        bad = db.execute(_BAD_ROWS[table]).fetchone()
+        if bad is not None:
+            return f"row {bad[0]} of the table {table} holds a value of another type or size"
     return ""

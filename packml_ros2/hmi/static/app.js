@@ -118,6 +118,17 @@
   const levelNeeded = (unit, action) => (unit ? CFG.unit_action_level : CFG.cell_action_level)[action] || CFG.levels[CFG.levels.length - 1];
   const levelOk = (needed) => CFG.levels.indexOf(me.level) >= CFG.levels.indexOf(needed);
 
+  /** A unit's reasons (why: every browser gets the same, judged for CFG.why_source, hmi:<user>
+   * with logins: the rule book judges every hmi: user alike) in this page's words: its user. */
+  function ownReasons(r) {
+    if (!(CFG.login === "users" && me.user)) return r;
+    const own = (text) => String(text).split(CFG.why_source).join(`hmi:${me.user}`);
+    return {
+      commands: Object.fromEntries(Object.entries(r.commands).map(([c, v]) => [c, { ...v, text: own(v.text) }])),
+      modes: Object.fromEntries(Object.entries(r.modes).map(([m, text]) => [m, own(text)])),
+    };
+  }
+
   /** Why ``action`` on ``unit`` (null: the cell) cannot be sent from this page now ("": it can). */
   function blocked(unit, action) {
     if (!conn.ok) return serverLost();
@@ -612,7 +623,7 @@
     const lost = isLost(name);
     const live = !lost && conn.ok;
     const valid = new Set(s?.commands_valid_names || []);
-    const reasons = x.why || { commands: {}, modes: {} };
+    const reasons = ownReasons(x.why || { commands: {}, modes: {} });
     D.update($("#diagram"), u, s, live, group);
     const mode = s ? u.modes.find((m) => m.number === s.mode) : null;
     $("#u-model-sub").textContent = `TR88-${u.model}${s ? ` · ${s.mode_name} · ${mode ? mode.disabled_states.length : 0} disabled` : ""}`;
@@ -636,8 +647,10 @@
     const refusedByGuard = [];
     for (const b of $$("#u-cmds button")) {
       const c = b.dataset.cmd;
-      const own = valid.has(c) ? "" : reasons.commands[c]?.text || `${c} is not valid now`;
-      b.className = `btn cmd${valid.has(c) && live ? ` valid ${CMD_CLASS[c]}` : ""}${pending.has(`${name}/command/${JSON.stringify({ command: c })}`) ? " pending" : ""}`;
+      // a command the unit lists as valid is still refused to this page by the remote lock
+      const usable = valid.has(c) && reasons.commands[c]?.reason !== "REMOTE_DISABLED";
+      const own = usable ? "" : reasons.commands[c]?.text || `${c} is not valid now`;
+      b.className = `btn cmd${usable && live ? ` valid ${CMD_CLASS[c]}` : ""}${pending.has(`${name}/command/${JSON.stringify({ command: c })}`) ? " pending" : ""}`;
       setButton(b, base || own);
       const reason = reasons.commands[c]?.reason;
       if (!base && reason && reason !== "COMMAND_NOT_ALLOWED" && reason !== "STATE_DISABLED") refusedByGuard.push(`${c}: ${reasons.commands[c].text}`);
