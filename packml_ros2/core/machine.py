@@ -2,7 +2,8 @@
 book (:mod:`.rules`) declares, from commands, mode requests and State Complete, and owns the
 evaluation (deadlines, settling, publication, persistence) every input goes through. The other
 inputs are concerns of their own, composed into :class:`~.unit.Unit`: the EMs' (:mod:`.em_inputs`),
-alarms (:mod:`.alarm_inputs`), the Admin and Command tags (:mod:`.tag_inputs`).
+alarms (:mod:`.alarm_inputs`), the Admin and Command tags (:mod:`.tag_inputs`); so are what falls
+due on its own (:mod:`.deadline_handlers`) and the views built on request (:mod:`.unit_views`).
 
 A unit is pure Python: it takes its clock as a parameter and never looks at wall time itself.
 Every input (a command, a mode request, an EM report, an alarm...) first advances the engine to the
@@ -36,11 +37,11 @@ from .config import Descriptor, Product, UnitConfig
 from .counters import Counters
 from .deadlines import Deadlines
 from .durable import Durable, document
-from .equipment import Equipment, EquipmentModule
+from .equipment import Equipment
 from .interlocks import STOP_ID_BLOCKED, STOP_ID_STARVED, Interlocks, interlock_refusal
 from .modes import ModeDef
 from .numbers import Cmd, State, command_name, state_name
-from .packtags import AdminView, StatusView, build_admin, build_status
+from .packtags import build_admin
 from .persistence import Store
 from .publication import Publication as _Publication
 from .publication import StatusMark
@@ -154,7 +155,7 @@ _REPORT_OK = Answer(True, Reason.ACCEPTED, "State Complete accepted")
 _new_tuple = tuple.__new__
 #: At most this many rounds of _settle (each applies a queued command or a State Complete).
 _SETTLE_BOUND = range(1000)
-#: Handlers of deadlines, by kind (methods of Unit).
+#: Handlers of deadlines, by kind (``_on_<kind>`` of Unit: core/deadline_handlers.py).
 _HANDLERS = ("timeout", "dwell", "mode_timeout", "status", "lamp_off", "admin_change", "save",
              "admin")  # fmt: skip
 
@@ -540,22 +541,9 @@ class UnitMachine:
         out, self._out = self._out, []
         return out
 
-    def status_at(self, mark: StatusMark | Transition) -> StatusView:
-        """The status at a drained transition or mark: its state, sequence and time, the other
-        fields as they are now."""
-        if isinstance(mark, Transition):
-            return build_status(self, mark.time, mark.to_state, mark.sequence)
-        return build_status(self, mark.time, State(mark.state), mark.sequence)
-
     @property
     def now(self) -> float:
         return self._t
-
-    def status(self) -> StatusView:
-        return build_status(self, self._t, self.state, self.sequence)
-
-    def admin(self, at: float | None = None) -> AdminView:
-        return build_admin(self, self._t if at is None else at)
 
     def valid_commands(self, state: State | None = None) -> tuple[Cmd, ...]:
         """Commands an operator could issue now (cached per state, mode and situation)."""
@@ -582,16 +570,8 @@ class UnitMachine:
         return self.rules.settles_in(state)
 
     @property
-    def interlock_active(self) -> bool:
-        return bool(self.interlocks.active)
-
-    @property
     def mode_change_not_allowed(self) -> bool:
         return self._t < self.mode_change_not_allowed_until
-
-    def missing_ems(self) -> list[EquipmentModule]:
-        """Active EMs that are offline and whose loss is not ignored."""
-        return self.equipment.missing()
 
     # -- what the guards read (rules.Situation) ----------------------------------------------------------
     def missing_names(self) -> list[str]:
@@ -1024,64 +1004,6 @@ class UnitMachine:
         while now >= deadlines.next_due:
             self._fire()
         self._t = max(self._t, now)
-
-    def _on_timeout(self, data: tuple[State, int]) -> None:
-        state, seq = data
-        if (self.state, self.sequence) != (state, seq):
-            return
-        missing = sorted(self.equipment.pending) or ["minimum dwell"]
-        sa = self.config.system_alarms
-        d = AlarmDef(
-            sa.state_timeout,
-            int(state),
-            f"{state_name(state)} timed out waiting for {', '.join(missing)}",
-            sa.state_timeout_category,
-        )
-        self._raise(d, source="unit", trigger=Trigger.TIMEOUT)
-        self.alarms.clear(d.id, d.value, self._t)
-
-    def _on_dwell(self, data: tuple[State, int]) -> None:
-        """Nothing to do here: :meth:`_settle`, run after every deadline, completes the state."""
-
-    def _on_mode_timeout(self, seq: int) -> None:
-        if not self.mode_change_in_process or self.sequence != seq:
-            return
-        waiting = ", ".join(sorted(self.equipment.pending))
-        target = self.mode_requested
-        self.mode_requested = self.mode
-        self._mode_changing(False)
-        self.equipment.end_aggregation()
-        sa = self.config.system_alarms
-        d = AlarmDef(
-            sa.mode_change_timeout,
-            target,
-            f"mode change to {self._mode_name(target)} timed out waiting for {waiting}",
-            sa.mode_change_timeout_category,
-        )
-        self._raise(d, source="unit", trigger=Trigger.TIMEOUT)
-        self.alarms.clear(d.id, d.value, self._t)
-        self._rev += 1
-        self._status_now()
-
-    def _on_lamp_off(self, _: Any) -> None:
-        """``mode_change_not_allowed`` went out (3 s after the refusal): publish that."""
-        if not self.mode_change_not_allowed:
-            self._rev += 1
-            self._status_now()
-
-    def _on_status(self, _: Any) -> None:
-        self.publication.status_deadline(self._t, self.state, self.sequence)
-
-    def _on_admin_change(self, _: Any) -> None:
-        self.publication.admin(build_admin(self, self._t), coalesced=True)
-
-    def _on_save(self, period: float) -> None:
-        self._snapshot()
-        self._every("save", period)
-
-    def _on_admin(self, period: float) -> None:
-        self.publication.admin(build_admin(self, self._t), coalesced=False)
-        self._every("admin", period)
 
     # -- publication ------------------------------------------------------------------------------------
     def _status_key(self) -> tuple[int, ...]:

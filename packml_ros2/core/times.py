@@ -74,8 +74,9 @@ class ModeStateTimes:
         current = self.state_current
         base = self._base
         current[base + first] = 0.0
-        for state in between:
-            current[base + state] = 0.0
+        if between:  # (rare: a third state in one step)
+            for state in between:
+                current[base + state] = 0.0
         current[base + last] = 0.0
         self._state = last
         self._planned = planned

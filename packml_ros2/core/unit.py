@@ -14,7 +14,10 @@ A :class:`Unit` is composed of its inputs by concern, each in its own module:
 - :mod:`.em_inputs`: what the equipment modules tell it (seen, lost, requests, interlocks, counts,
   switched active);
 - :mod:`.alarm_inputs`: alarms raised, cleared, acknowledged and reset;
-- :mod:`.tag_inputs`: Admin and Command tags (times, counters, speed, parameters, products).
+- :mod:`.tag_inputs`: Admin and Command tags (times, counters, speed, parameters, products);
+- :mod:`.deadline_handlers`: what falls due on its own (timeouts, dwell, coalesced and periodic
+  status, admin and saves);
+- :mod:`.unit_views`: the status and admin views built on request.
 
 Outputs are queued and taken with :meth:`Unit.drain`: transitions, status and alarm-list changes,
 admin snapshots due, and log lines. The ROS node (``packml_ros2.unit_node``) publishes them.
@@ -27,6 +30,7 @@ from typing import Any
 
 from . import inputlog
 from .alarm_inputs import AlarmInputs
+from .deadline_handlers import DeadlineHandlers
 from .em_inputs import EquipmentInputs
 from .machine import (
     CommandRequest,
@@ -40,9 +44,10 @@ from .machine import (
 )
 from .reasons import Answer
 from .tag_inputs import TagInputs
+from .unit_views import UnitViews
 
 
-class Unit(EquipmentInputs, AlarmInputs, TagInputs):
+class Unit(EquipmentInputs, AlarmInputs, TagInputs, DeadlineHandlers, UnitViews):
     """One PackML unit. ``Unit(config, clock)``; optionally a :class:`~.persistence.Store`.
 
     Inputs are methods (:meth:`command`, :meth:`set_mode`, :meth:`em_complete`, ...) answering
