@@ -62,6 +62,17 @@ def idle_cpu(pid: int, seconds: float) -> float:
     return round((cpu_seconds(pid) - c0) / (time.monotonic() - t0) * 100, 2)
 
 
+#: s a cell is left after its start before its idle CPU is measured: a warm-up of the measurement
+#: (discovery, first and latched publications end), not a wait for an event
+SETTLE = 2.0
+
+
+def at_rest(pid: int, seconds: float, settle: float = SETTLE) -> dict[str, object]:
+    """Idle CPU (percent of one core over ``seconds``) and RSS of ``pid`` after ``settle``."""
+    time.sleep(settle)
+    return {"idle_cpu_pct": idle_cpu(pid, seconds), "rss_mb": rss_mb(pid)}
+
+
 def ems_cell(n: int) -> dict[str, object]:
     sim = {"cycle_time": 0, "counter": "none", "lease": 2.0}
     return {
@@ -170,7 +181,7 @@ def demo_cell(client: Client, workdir: Path, idle: float) -> dict[str, object]:
     name = f"scale_demo_{os.getpid()}"
     cell = Launched(workdir, name, doc)
     try:
-        time.sleep(2)
+        time.sleep(SETTLE)
         entry: dict[str, object] = {"stopped_cpu_pct": idle_cpu(cell.proc.pid, idle)}
         service = client.node.create_client(Command, f"/{name}/coordinator/command")
         if not service.wait_for_service(timeout_sec=30):
@@ -226,9 +237,7 @@ def main() -> int:
         client = Client()
         try:
             floor = subprocess.Popen([sys.executable, "-c", FLOOR])
-            time.sleep(5)  # an empty node: nothing to wait for but its start
-            result["floor"] = {"idle_cpu_pct": idle_cpu(floor.pid, args.idle),
-                               "rss_mb": rss_mb(floor.pid)}  # fmt: skip
+            result["floor"] = at_rest(floor.pid, args.idle, settle=5.0)  # an empty node
             floor.send_signal(2)
             floor.wait(20)
 
@@ -239,11 +248,7 @@ def main() -> int:
                 name = f"scale_ems{n}_{os.getpid()}"
                 cell = Launched(workdir, name, ems_cell(n))
                 try:
-                    time.sleep(2)
-                    entry: dict[str, object] = {
-                        "idle_cpu_pct": idle_cpu(cell.proc.pid, args.idle),
-                        "rss_mb": rss_mb(cell.proc.pid),
-                    }
+                    entry = at_rest(cell.proc.pid, args.idle)
                     topic = f"/{name}/unit/status"
                     client.watch(topic)
                     triggers = {c: client.trigger(f"/{name}/unit/{c}") for c in commands}
@@ -258,11 +263,7 @@ def main() -> int:
                 name = f"scale_units{n}_{os.getpid()}"
                 cell = Launched(workdir, name, units_cell(n))
                 try:
-                    time.sleep(2)
-                    entry = {
-                        "idle_cpu_pct": idle_cpu(cell.proc.pid, args.idle),
-                        "rss_mb": rss_mb(cell.proc.pid),
-                    }
+                    entry = at_rest(cell.proc.pid, args.idle)
                     service = client.node.create_client(Command, f"/{name}/coordinator/command")
                     if not service.wait_for_service(timeout_sec=30):
                         raise TimeoutError(f"{name}: coordinator command service not available")

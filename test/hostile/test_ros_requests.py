@@ -178,6 +178,25 @@ def answers(futures: list[Any], timeout: float) -> int:
     return left[0]
 
 
+def pipelined(ros: Any, clients: dict[tuple[Any, str], Any], base: str,
+              batch: list[tuple[Any, str, dict[str, Any], set[int]]]) -> list[tuple[Any, str, set[int]]]:  # fmt: skip
+    """Send ``batch`` (service type, name under ``base``, request fields, expected results) at
+    once, one client per service kept in ``clients``; every answer, with a description of its
+    request and the results expected of it."""
+    futures = []
+    for srv, name, fields, expected in batch:
+        client = clients.get((srv, name))
+        if client is None:
+            client = ros.node.create_client(srv, f"{base}/{name}", qos_profile=qos.SERVICES)
+            assert client.wait_for_service(timeout_sec=10), name
+            clients[(srv, name)] = client
+        what = f"{name}({ {k: str(v)[:60] for k, v in fields.items()} })"
+        futures.append((client.call_async(srv.Request(**fields)), what, expected))
+    unanswered = answers([f for f, *_ in futures], 30)
+    assert not unanswered, f"{unanswered} of {len(futures)} pipelined requests never answered"
+    return [(future.result(), what, expected) for future, what, expected in futures]
+
+
 def rss_mb() -> float:
     with open(f"/proc/{os.getpid()}/status") as f:
         return int(next(line for line in f if line.startswith("VmRSS")).split()[1]) / 1024
@@ -209,27 +228,13 @@ def test_thousands_of_hostile_service_requests_and_reports_change_nothing(
         if sent >= WARM_UP and not rss_before:
             rss_before = rss_mb()
         batch = [next(requests) for _ in range(BATCH)]
-        futures = []
-        for srv, name, fields, expected in batch:
-            client = clients.get((srv, name))
-            if client is None:
-                client = ros.node.create_client(
-                    srv, f"{unit.base}/{name}", qos_profile=qos.SERVICES
-                )
-                assert client.wait_for_service(timeout_sec=10), name
-                clients[(srv, name)] = client
-            futures.append((client.call_async(srv.Request(**fields)), name, fields, expected))
-        unanswered = answers([f for f, *_ in futures], 30)
-        assert not unanswered, f"{unanswered} of {len(futures)} pipelined requests never answered"
-        for future, name, fields, expected in futures:
-            resp = future.result()
+        for resp, what, expected in pipelined(ros, clients, unit.base, batch):
             text = resp.message_out if hasattr(resp, "message_out") else resp.message
-            what = f"{name}({ {k: str(v)[:60] for k, v in fields.items()} })"
             assert not resp.accepted, f"{what} accepted: {text}"
             assert resp.result in expected, f"{what}: result {resp.result}: {text}"
             assert 10 < len(text) < 600 and text.isprintable(), f"{what}: {text[:300]!r}"
             counts[resp.result] = counts.get(resp.result, 0) + 1
-        sent += len(futures)
+        sent += len(batch)
     rss_after = rss_mb()
 
     # forged EM reports: made-up EMs, fields out of range, and the configured EM from another writer
@@ -358,19 +363,7 @@ def test_hostile_cell_requests_at_the_coordinator_change_nothing(ros: Any, tmp_p
     clients: dict[tuple[Any, str], Any] = {}
     counts: dict[int, int] = {}
     for start in range(0, len(requests), 50):
-        futures = []
-        for srv, name, fields, expected in requests[start : start + 50]:
-            client = clients.get((srv, name))
-            if client is None:
-                client = ros.node.create_client(srv, f"{base}/{name}", qos_profile=qos.SERVICES)
-                assert client.wait_for_service(timeout_sec=10), name
-                clients[(srv, name)] = client
-            futures.append((client.call_async(srv.Request(**fields)), name, fields, expected))
-        unanswered = answers([f for f, *_ in futures], 30)
-        assert not unanswered, f"{unanswered} of {len(futures)} requests never answered"
-        for future, name, fields, expected in futures:
-            resp = future.result()
-            what = f"{name}({ {k: str(v)[:60] for k, v in fields.items()} })"
+        for resp, what, expected in pipelined(ros, clients, base, requests[start : start + 50]):
             if isinstance(resp, Trigger.Response):
                 assert not resp.success and 10 < len(resp.message) < 2000, f"{what}: {resp.message}"
                 continue
