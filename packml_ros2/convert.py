@@ -24,6 +24,7 @@ from packml_interfaces.msg import (
     Status,
     TransitionEvent,
 )
+from packml_interfaces.srv import QueryAlarms
 
 from .core import config as cfg
 from .core.alarms import AlarmEvent, AlarmManager
@@ -38,6 +39,11 @@ _ZERO7 = [0] * 7
 
 
 _CHECKED = os.environ.get("ROS_PYTHON_CHECK_FIELDS", "0") == "1"
+
+
+#: ``QueryAlarms.Request.sort`` -> the order's name (:data:`.core.alarms.ORDERS`)
+QUERY_SORTS = {QueryAlarms.Request.SORT_TIME: "time", QueryAlarms.Request.SORT_CATEGORY_TIME: "category",
+               QueryAlarms.Request.SORT_TIME_NEWEST: "newest"}  # fmt: skip
 
 
 def build(cls: type[M], **fields: Any) -> M:

@@ -77,8 +77,6 @@ from .driver import FrozenClock, UnitDriver
 from .remote_lock import RemoteLock
 
 T = TypeVar("T")
-SORTS = {QueryAlarms.Request.SORT_TIME: "time", QueryAlarms.Request.SORT_CATEGORY_TIME: "category",
-         QueryAlarms.Request.SORT_TIME_NEWEST: "newest"}  # fmt: skip
 #: s: the input log goes out at most this long after an input (in batches, after the outputs)
 INPUT_LOG_DELAY = 0.05
 #: s: a wake-up for a lease is armed this much after it expires (``Liveliness.expired`` is strict)
@@ -310,7 +308,7 @@ class UnitNode(Node):
         events = self.unit.alarms.query(
             active_only=req.active_only,
             category=req.category if req.filter_category else None,
-            sort=SORTS.get(req.sort, "time"),
+            sort=convert.QUERY_SORTS.get(req.sort, "time"),
             include_warnings=req.include_warnings,
             history=req.history,
         )

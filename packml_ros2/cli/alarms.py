@@ -10,6 +10,7 @@ from packml_interfaces.msg import Alarm
 from packml_interfaces.srv import QueryAlarms
 
 from ..client import Unavailable, UnitProxy
+from ..core.alarms import select
 from .main import EXIT_OK, EXIT_REFUSED, EXIT_UNAVAILABLE, EXIT_USAGE
 from .session import add_common, fail, session
 
@@ -81,16 +82,8 @@ def _when(a: Alarm) -> str:
     )
 
 
-def _time(a: Alarm) -> tuple[int, int]:
-    return a.stamp.sec, a.stamp.nanosec
-
-
-#: the orders of query_alarms (core.alarms.AlarmManager.query), on the messages of the topic
-ORDERS = {
-    "time": _time,
-    "category": lambda a: (a.category, *_time(a)),
-    "newest": lambda a: tuple(-t for t in _time(a)),
-}
+def _view(a: Alarm) -> tuple[bool, int, float]:
+    return a.trigger, a.category, a.stamp.sec + a.stamp.nanosec * 1e-9
 
 
 def _listed(u: UnitProxy, args: argparse.Namespace, timeout: float) -> tuple[str, int]:
@@ -99,12 +92,8 @@ def _listed(u: UnitProxy, args: argparse.Namespace, timeout: float) -> tuple[str
     msg = u.wait_alarms(timeout)
     if msg.alarm_overflow or msg.warning_overflow:
         return _list(u, args, timeout)
-    listed = [
-        a
-        for a in [*msg.alarms, *msg.warnings]
-        if (not args.active or a.trigger) and (args.category is None or a.category == args.category)
-    ]
-    return _lines(u.name, sorted(listed, key=ORDERS[args.sort]), "alarms"), EXIT_OK
+    listed = select([*msg.alarms, *msg.warnings], args.active, args.category, args.sort, _view)
+    return _lines(u.name, listed, "alarms"), EXIT_OK
 
 
 def _list(u: UnitProxy, args: argparse.Namespace, timeout: float) -> tuple[str, int]:

@@ -11,10 +11,10 @@ warnings never act.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from enum import IntEnum
-from typing import Any
+from typing import Any, TypeVar
 
 from .numbers import Cmd
 from .rules import DEFAULT_REACTIONS, NUM_CATEGORIES, REACTIONS, Alert, Watch
@@ -138,6 +138,41 @@ class Raised:
     new: bool
     rising: bool
     reaction: int
+
+
+#: The orders of a query of alarms, by the key of an entry's (category, time): declared once for
+#: the unit's query_alarms, the PLC bridge's and ``packml alarms`` on the latched list.
+ORDERS: dict[str, Callable[[int, float], tuple[float, ...]]] = {
+    "time": lambda category, time: (time,),
+    "category": lambda category, time: (category, time),
+    "newest": lambda category, time: (-time,),
+}
+
+T = TypeVar("T")
+
+
+def select(items: Iterable[T], active_only: bool, category: int | None, sort: str,
+           view: Callable[[T], tuple[bool, int, float]]) -> list[T]:  # fmt: skip
+    """``items`` filtered (only those whose condition is active, only ``category``) and ordered
+    by ``sort`` (:data:`ORDERS`); ``view(item)`` = (trigger, category, time)."""
+    if sort not in ORDERS:
+        raise ValueError(f"sort must be one of {', '.join(ORDERS)}, not {sort!r}")
+    order = ORDERS[sort]
+    views = [(view(item), item) for item in items]
+    kept = [
+        (order(cat, time), item)
+        for (trigger, cat, time), item in views
+        if (trigger or not active_only) and (category is None or cat == category)
+    ]
+    return [item for _, item in sorted(kept, key=lambda pair: pair[0])]
+
+
+def select_events(events: Iterable[AlarmEvent], active_only: bool = False,
+                  category: int | None = None, sort: str = "time") -> list[AlarmEvent]:  # fmt: skip
+    """:func:`select` for the engine's own events."""
+    return select(
+        events, active_only, category, sort, lambda ev: (ev.trigger, ev.category, ev.time)
+    )
 
 
 @dataclass
@@ -354,21 +389,7 @@ class AlarmManager:
         kinds = {Kind.ALARM, Kind.WARNING} if include_warnings else {Kind.ALARM}
         if history:
             kinds |= {Kind.EVENT, Kind.COMMAND}
-        items = [
-            ev
-            for ev in source
-            if ev.kind in kinds
-            and (not active_only or ev.trigger)
-            and (category is None or ev.category == category)
-        ]
-        sorters = {
-            "time": lambda ev: (ev.time,),
-            "category": lambda ev: (ev.category, ev.time),
-            "newest": lambda ev: (-ev.time,),
-        }
-        if sort not in sorters:
-            raise ValueError(f"sort must be one of {', '.join(sorters)}, not {sort!r}")
-        return sorted(items, key=sorters[sort])
+        return select_events([ev for ev in source if ev.kind in kinds], active_only, category, sort)
 
     # -- persistence -------------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

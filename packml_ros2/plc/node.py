@@ -70,7 +70,7 @@ from std_srvs.srv import Trigger as TriggerSrv
 from .. import convert, qos, responses, run
 from ..core import CellConfig, Cmd, UnitConfig, load_cell, state_name
 from ..core import config as cfg
-from ..core.alarms import AlarmEvent
+from ..core.alarms import select_events
 from ..core.interlocks import interlock_refusal
 from ..core.numbers import NUM_STATES, Mode, State, command_name
 from ..core.packtags import EmView, RemoteInterfaceView, StatusView, compute_oee
@@ -673,14 +673,9 @@ class PlcUnitNode(Node):
             events = m.history() if req.history else m.alarms()
             if req.include_warnings and not req.history:
                 events = events + m.warnings()
-        if req.active_only:
-            events = [e for e in events if e.trigger]
-        if req.filter_category:
-            events = [e for e in events if e.category == req.category]
-        key: Callable[[AlarmEvent], Any] = lambda e: e.time  # noqa: E731
-        if req.sort == QueryAlarms.Request.SORT_CATEGORY_TIME:
-            key = lambda e: (e.category, e.time)  # noqa: E731
-        events = sorted(events, key=key, reverse=req.sort == QueryAlarms.Request.SORT_TIME_NEWEST)
+        category = req.category if req.filter_category else None
+        sort = convert.QUERY_SORTS.get(req.sort, "time")
+        events = select_events(events, req.active_only, category, sort)
         resp.alarms = [convert.alarm(e) for e in events]
         resp.count = len(events)
         return resp

@@ -13,6 +13,7 @@ from packml_interfaces.srv import AckAlarms, SetAlarm
 
 from packml_ros2.cli import alarms as cli
 from packml_ros2.client import UnitProxy
+from packml_ros2.core.alarms import ORDERS
 from test.ros.test_unit_services import make_unit
 
 __all__ = ["make_unit"]  # the fixture
@@ -44,7 +45,7 @@ def test_the_latched_list_prints_what_query_alarms_answers(ros: Any, make_unit: 
 
     proxy = UnitProxy(ros.node, unit.base, topics=("alarms",))
     proxy.wait_alarms(10)
-    orders = list(cli.ORDERS)
+    orders = list(ORDERS)
     assert set(orders) == set(cli.SORTS)  # every order of the service
     for sort, active, category in itertools.product(orders, (False, True), (None, 5, 3)):
         given = args(sort=sort, active=active, category=category)
