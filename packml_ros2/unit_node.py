@@ -379,9 +379,10 @@ class UnitNode(Node):
         if not taken:
             self.refused_reports += 1
             return
-        if msg.kind == LEAVE or msg.em not in self.unit.equipment.modules:
+        leaving = msg.kind == LEAVE
+        if leaving or msg.em not in self.unit.equipment.modules:
             self.writers.release(msg.em)  # left, or not an EM of the unit: keep nothing
-        if msg.kind == EmReport.KIND_LEAVE:
+        if leaving:
             self._leave(msg, now)
         else:
             self._leaving.pop(msg.em, None)  # anything else from it: it is back (or never left)

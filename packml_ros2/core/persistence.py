@@ -60,7 +60,7 @@ class StoreLocked(StoreError):
     """The store is held by another unit (another process, or another store object here)."""
 
 
-def _why(exc: BaseException) -> str:
+def os_reason(exc: BaseException) -> str:
     if isinstance(exc, OSError):
         why = exc.strerror or type(exc).__name__
         return f"{Path(exc.filename).name}: {why}" if isinstance(exc.filename, str) else why
@@ -122,13 +122,13 @@ class Store:
         self.appends = 0
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            for where in (self.path, _lock_path(self.path)):
+            for where in (self.path, lock_path(self.path)):
                 if (problem := not_a_file(where)) is not None:
                     raise problem
             for where in (self.path.parent, self.path):  # (root passes access(): sqlite decides)
                 if where.exists() and not os.access(where, os.W_OK):
                     raise PermissionError(13, f"{where} is not writable")
-            self._lock = _lock(self.path, unit)
+            self._lock = lock_store(self.path, unit)
         except (OSError, ValueError) as exc:
             raise self._cannot_open(exc) from None
         try:
@@ -143,7 +143,7 @@ class Store:
 
     def _cannot_open(self, exc: BaseException) -> StoreError:
         return StoreError(
-            f"{self.path}: cannot open the admin store of unit {self.unit}: {_why(exc)} "
+            f"{self.path}: cannot open the admin store of unit {self.unit}: {os_reason(exc)} "
             "(persistence.path of the cell file; persistence: false runs without one)"
         )
 
@@ -173,7 +173,7 @@ class Store:
         except (sqlite3.Error, ValueError, UnicodeDecodeError) as exc:
             with contextlib.suppress(Exception):
                 db.close()
-            aside = _move_aside(self.path, "-wal", "-shm")
+            aside = move_aside(self.path, "-wal", "-shm")
             self.problems.append(
                 f"{self.path.name} could not be read ({one_line(exc)}): moved aside to {aside.name}; the "
                 "unit starts with the admin data its journal holds, if any"
@@ -188,7 +188,7 @@ class Store:
         journal = _journal(self.path)
         records, damage = _read_journal(journal)
         if damage is not None:
-            aside = _move_aside(journal)
+            aside = move_aside(journal)
             self.problems.append(
                 f"{journal.name} is damaged ({one_line(damage)}): the {len(records)} records before the "
                 f"damage were kept, the file moved aside to {aside.name}"
@@ -197,7 +197,7 @@ class Store:
         try:
             document = _replay(document, records)
         except (ValueError, KeyError, TypeError) as exc:
-            aside = _move_aside(journal)
+            aside = move_aside(journal)
             self.problems.append(
                 f"{journal.name} does not apply to the snapshot ({one_line(exc)}): moved aside to {aside.name}"
             )
@@ -250,14 +250,13 @@ def _journal(path: Path) -> Path:
     return path.with_name(path.name + ".journal")
 
 
-def _lock_path(path: Path) -> Path:
+def lock_path(path: Path) -> Path:
     return path.with_name(path.name + ".lock")
 
 
-def _lock(path: Path, unit: str) -> int:
+def lock_store(path: Path, unit: str) -> int:
     """Hold ``path.lock`` (released when the process ends, however it ends)."""
-    lock_path = _lock_path(path)
-    fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = os.open(lock_path(path), os.O_RDWR | os.O_CREAT, 0o644)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError as exc:
@@ -291,9 +290,8 @@ def _row(db: sqlite3.Connection, unit: str, where: str) -> dict[str, Any] | None
         raise ValueError(f"not a PackML store: it holds the tables {', '.join(sorted(tables))}")
     if not tables:
         return None
-    damage = db.execute("PRAGMA quick_check(1)").fetchone()[0]
-    if damage != "ok":
-        raise ValueError(f"damaged: {one_line(damage)}")
+    if damage := sqlite_damage(db):
+        raise ValueError(damage)
     row = db.execute(
         f"SELECT schema, typeof(document), length(CAST(document AS BLOB)) FROM {TABLE} WHERE unit = ?",
         (unit,),
@@ -359,7 +357,13 @@ def _write_journal(path: Path, records: list[dict[str, Any]]) -> None:
     path.write_text("".join(_line(r) for r in records), encoding="utf-8")
 
 
-def _move_aside(path: Path, *companions: str) -> Path:
+def sqlite_damage(db: sqlite3.Connection) -> str:
+    """What SQLite's own check finds wrong with the file ('' = nothing)."""
+    damage = db.execute("PRAGMA quick_check(1)").fetchone()[0]
+    return "" if damage == "ok" else f"damaged: {one_line(damage)}"
+
+
+def move_aside(path: Path, *companions: str) -> Path:
     """Rename ``path`` (and its ``companions``: suffixes like -wal) to a name saying when and why."""
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
     aside = path.with_name(f"{path.name}.unreadable-{stamp}")

@@ -30,7 +30,7 @@ from typing import Any
 from asyncua import Server, ua
 
 from ..core.config import CellConfig, UnitConfig
-from ..core.persistence import _move_aside, _why, not_a_file, one_line
+from ..core.persistence import move_aside, not_a_file, one_line, os_reason
 from ..presence import Seen
 from . import line, security
 from .available import unit_graph
@@ -112,10 +112,10 @@ async def own_certificate(folder: Path, app_uri: str, name: str, host: str) -> t
             ) and cert.not_valid_after_utc > dt.datetime.now(dt.UTC) + dt.timedelta(days=7):
                 return cert_file, key_file
         except (OSError, ValueError, TypeError, x509.ExtensionNotFound) as exc:
-            moved = [_move_aside(f).name for f in (cert_file, key_file) if f.exists() or f.is_symlink()]  # fmt: skip
+            moved = [move_aside(f).name for f in (cert_file, key_file) if f.exists() or f.is_symlink()]  # fmt: skip
             _logger.warning(
                 "%s: the certificate made before cannot be used (%s): moved aside (%s), a new "
-                "one is made", folder, one_line(_why(exc)), ", ".join(moved),
+                "one is made", folder, one_line(os_reason(exc)), ", ".join(moved),
             )  # fmt: skip
     folder.mkdir(parents=True, exist_ok=True)
     key = cert_gen.generate_private_key()

@@ -31,12 +31,13 @@ from typing import Any
 
 from ..persistence import (
     StoreError,
-    _lock,
-    _lock_path,
-    _move_aside,
-    _why,
+    lock_path,
+    lock_store,
+    move_aside,
     not_a_file,
     one_line,
+    os_reason,
+    sqlite_damage,
     strict_json,
 )
 from .episodes import Episode
@@ -78,10 +79,10 @@ class LineStore:
         self.commits = 0
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            for where in (self.path, _lock_path(self.path)):
+            for where in (self.path, lock_path(self.path)):
                 if (problem := not_a_file(where)) is not None:
                     raise problem
-            self._lock = _lock(self.path, f"line of {cell}")
+            self._lock = lock_store(self.path, f"line of {cell}")
         except (OSError, ValueError) as exc:
             raise self._cannot_open(exc) from None
         try:
@@ -91,7 +92,7 @@ class LineStore:
             raise self._cannot_open(exc) from None
 
     def _cannot_open(self, exc: BaseException) -> StoreError:
-        return StoreError(f"{self.path}: cannot open the line store of {self.cell}: {_why(exc)} "
+        return StoreError(f"{self.path}: cannot open the line store of {self.cell}: {os_reason(exc)} "
                           "(line.store of the cell file; store: false keeps it in memory)")  # fmt: skip
 
     def _open(self) -> sqlite3.Connection:
@@ -112,7 +113,7 @@ class LineStore:
         return db
 
     def _aside(self, why: str) -> sqlite3.Connection:
-        aside = _move_aside(self.path, "-wal", "-shm")
+        aside = move_aside(self.path, "-wal", "-shm")
         self.problems.append(f"{self.path.name} {why}: moved aside to {aside.name}; the line starts with an empty one")  # fmt: skip
         return sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
 
@@ -306,9 +307,8 @@ def _foreign(db: sqlite3.Connection) -> str:
     tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
     if not tables:
         return ""
-    damage = db.execute("PRAGMA quick_check(1)").fetchone()[0]
-    if damage != "ok":
-        return f"damaged: {one_line(damage)}"
+    if damage := sqlite_damage(db):
+        return damage
     if tables - _TABLES or "meta" not in tables:
         return f"it holds the tables {', '.join(sorted(tables))}"
     row = db.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone()
