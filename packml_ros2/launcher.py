@@ -187,6 +187,7 @@ def build_nodes(p: Plan, **node_kwargs: Any) -> list[Node]:
 def launch_in_process(p: Plan, threads: int = 0, ready: Callable[[str], None] = print) -> int:
     run.default_environment()
     rclpy.init(signal_handler_options=rclpy.signals.SignalHandlerOptions.ALL)
+    run.catch_stop_signals()
     try:
         nodes = build_nodes(p)
     except BaseException:  # StoreError: an admin store cannot be opened

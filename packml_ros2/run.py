@@ -112,11 +112,8 @@ def spin(
     # destroy the nodes under that callback: a traceback, and a half-done update saved.) A
     # callback that runs after the signal arrived sees shutting_down() (Python runs the handler
     # before the callback's first line).
-    _shutdown.reset()
-    previous = {
-        s: signal.signal(s, lambda signum, _: _shutdown.request(signal.Signals(signum).name))
-        for s in STOP_SIGNALS
-    }
+    # (a stop asked for since catch_stop_signals, while the nodes were made, ends the spin at once)
+    previous = {s: signal.signal(s, _on_stop_signal) for s in STOP_SIGNALS}
     side_thread = None
     if side is not None:
         side_thread = threading.Thread(target=_spin_side, args=(side,), name="packml-blocking", daemon=True)  # fmt: skip
@@ -188,4 +185,18 @@ def init(argv: Sequence[str] | None = None) -> list[str]:
     default_environment()
     args = list(sys.argv if argv is None else argv)
     rclpy.init(args=args, signal_handler_options=rclpy.signals.SignalHandlerOptions.ALL)
+    catch_stop_signals()
     return rclpy.utilities.remove_ros_args(args)[1:]
+
+
+def catch_stop_signals() -> None:
+    """From now on Ctrl-C and SIGTERM only ask :func:`spin` to end (at once, when it begins): a
+    signal while the nodes are still being made (a cell stopped as it starts) ends the process
+    like one during the spin, exit code 0 and no traceback, instead of a KeyboardInterrupt."""
+    _shutdown.reset()
+    for s in STOP_SIGNALS:
+        signal.signal(s, _on_stop_signal)
+
+
+def _on_stop_signal(signum: int, _frame: object) -> None:
+    _shutdown.request(signal.Signals(signum).name)

@@ -229,3 +229,30 @@ def test_a_signal_during_a_callback_lets_it_finish_then_shuts_down(sig: str) -> 
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["callback", "finished", "shut", "down"], out.stdout + out.stderr
     assert "Traceback" not in out.stderr and "Destroyable" not in out.stderr, out.stderr
+
+
+SIGNAL_WHILE_STARTING = """
+import os, signal, sys
+from rclpy.node import Node
+from packml_ros2 import run
+
+run.init(["probe"])
+os.kill(os.getpid(), signal.{sig})  # (a cell stopped as it starts: the node is not made yet)
+node = Node("starting_probe")
+print("made", flush=True)
+code = run.spin([node], on_shutdown=lambda: print("shut down", run.shutdown_reason(), flush=True))
+sys.exit(code)
+"""
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+def test_a_signal_while_the_nodes_are_made_ends_the_spin_at_once(sig: str) -> None:
+    """Ctrl-C between run.init and run.spin (before: a KeyboardInterrupt traceback, exit 1)."""
+    out = subprocess.run(
+        [sys.executable, "-c", SIGNAL_WHILE_STARTING.replace("{sig}", sig)],
+        cwd=ROOT, capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["made", "shut", "down", sig], out.stdout + out.stderr
+    assert "Traceback" not in out.stderr, out.stderr
