@@ -131,6 +131,10 @@ def spin(
         try:
             if on_shutdown is not None:
                 on_shutdown()
+            # what the nodes keep is saved: the teardown below (executors, DDS) may not hang
+            watchdog = threading.Timer(TEARDOWN_LIMIT, _teardown_overdue)
+            watchdog.daemon = True
+            watchdog.start()
             for ex in (executor, side) if side is not None else (executor,):
                 _drain(ex, timeout=2.0)
                 ex.shutdown(timeout_sec=2)
@@ -139,11 +143,24 @@ def spin(
             for node in [*nodes, *blocking]:
                 node.destroy_node()
             rclpy.try_shutdown()
+            watchdog.cancel()
         finally:
             for s, handler in previous.items():
                 if handler is not None:  # None: installed outside Python, cannot be put back
                     signal.signal(s, handler)
     return 0
+
+
+#: s: after ``on_shutdown`` (the nodes have saved what they keep) the executors and DDS get this
+#: long to end; then the process exits anyway, code 0 (a teardown stuck in the middleware once in
+#: a few runs: ros2 launch would SIGKILL it, packml launch report it)
+TEARDOWN_LIMIT = 6.0
+
+
+def _teardown_overdue() -> None:
+    print(f"the ROS 2 teardown did not end within {TEARDOWN_LIMIT:g} s after the nodes were "
+          "closed: exiting", file=sys.stderr, flush=True)  # fmt: skip
+    os._exit(0)
 
 
 #: s: the main loop looks at Ctrl-C / SIGTERM at least this often (Python runs its signal

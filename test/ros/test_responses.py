@@ -256,3 +256,37 @@ def test_a_signal_while_the_nodes_are_made_ends_the_spin_at_once(sig: str) -> No
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["made", "shut", "down", sig], out.stdout + out.stderr
     assert "Traceback" not in out.stderr, out.stderr
+
+
+STUCK_TEARDOWN = """
+import os, signal, sys, threading, time
+from rclpy.node import Node
+from packml_ros2 import run
+
+run.init(["probe"])
+node = Node("stuck_probe")
+started = threading.Event()
+
+def stuck():  # a callback that never returns: the executor's threads cannot be joined
+    started.set()
+    time.sleep(3600)
+
+node.create_timer(0.01, stuck)
+threading.Thread(target=lambda: (started.wait(), os.kill(os.getpid(), signal.SIGINT))).start()
+sys.exit(run.spin([node], threads=2, on_shutdown=lambda: print("saved", flush=True)))
+"""
+
+
+@pytest.mark.ros
+def test_a_teardown_that_hangs_after_the_nodes_closed_still_ends_the_process() -> None:
+    """After on_shutdown (what the nodes keep is saved) the process ends within
+    run.TEARDOWN_LIMIT even when the executor cannot join a thread (before: for ever, and
+    ros2 launch / packml launch killed it and reported a failure)."""
+    from packml_ros2.run import TEARDOWN_LIMIT
+
+    t0 = time.monotonic()
+    out = subprocess.run([sys.executable, "-c", STUCK_TEARDOWN], cwd=ROOT, capture_output=True,
+                         text=True, timeout=60, check=False)  # fmt: skip
+    assert out.returncode == 0 and out.stdout.split() == ["saved"], out.stdout + out.stderr
+    assert "teardown did not end" in out.stderr and "Traceback" not in out.stderr, out.stderr
+    assert time.monotonic() - t0 < TEARDOWN_LIMIT + 10
