@@ -41,6 +41,7 @@ from .equipment import Equipment
 from .interlocks import STOP_ID_BLOCKED, STOP_ID_STARVED, Interlocks, interlock_refusal
 from .modes import ModeDef
 from .numbers import Cmd, State, command_name, state_name
+from .outputs import Outputs, Transition
 from .packtags import build_admin
 from .persistence import Store
 from .publication import Publication as _Publication
@@ -71,22 +72,6 @@ from .times import ModeStateTimes
 
 S, C = State, Cmd
 Clock = Callable[[], float]
-
-
-class Transition(NamedTuple):
-    """One state or mode transition (``TransitionEvent``)."""
-
-    time: float
-    sequence: int
-    from_state: State
-    to_state: State
-    from_mode: int
-    to_mode: int
-    trigger: Trigger
-    command: int = 0
-    source: str = ""
-    skipped: tuple[State, ...] = ()
-    detail: str = ""
 
 
 # -- requests of one evaluation step -----------------------------------------------------------------
@@ -152,7 +137,6 @@ _REARM, _STOP = int(Entry.REARM), int(Entry.STOP)
 _NOT_QUIET = ~(_REARM | _RESET_ALARMS | _CLEAR_FIRST_OUT)
 
 _REPORT_OK = Answer(True, Reason.ACCEPTED, "State Complete accepted")
-_new_tuple = tuple.__new__
 #: At most this many rounds of _settle (each applies a queued command or a State Complete).
 _SETTLE_BOUND = range(1000)
 #: Handlers of deadlines, by kind (``_on_<kind>`` of Unit: core/deadline_handlers.py).
@@ -236,7 +220,7 @@ class UnitMachine:
         self.interlocks = Interlocks(self.alert)
         self.stops = StopReasons(config.planned_stop_ids)
         self.deadlines = Deadlines()
-        self._out: list[tuple[str, Any]] = []  # the output queue (drain)
+        self._out = Outputs()  # the output queue (drain)
         self.publication = _Publication(
             self._queue, self.deadlines, self._status_key, self._admin_key, self.alarms
         )
@@ -317,12 +301,11 @@ class UnitMachine:
         entry = self._accepted_mode[self.state].get(cmd)
         if entry is not None and not entry[5] & bits:  # (Accepted.watch)
             # The fast path: the table accepts and no guard of this command watches anything set.
-            final, skipped, answer, number, trigger, _, flags, run = entry
+            run = entry[7]  # (Accepted.run)
             if self.mode_change_in_process:  # (only Stop and Abort watch no mode change)
                 self._abandon_mode_change(f"{command_name(cmd)} from {source}")
             if remote:
-                self._note_remote(number, source)
-            self.cntrl_cmd = number
+                self._note_remote(entry[3], source)
             # A unit without EMs follows the State Completes that come at once as compiled
             # (rules.Run: what _transition's loop does, unrolled) when nothing else that loop
             # looks at is set: a queued command, an interlock's suspension, an alarm list to
@@ -336,16 +319,15 @@ class UnitMachine:
                 and alarms.version == self.publication.alarms_seen
                 and not (run[3] and (alarms.current or alarms.first_out_by_category))
             ):
-                steps, to, between, entered = run
+                steps, to, between, entered, final, skipped, answer, number, trigger = run
+                self.cntrl_cmd = number
                 t, mode, seq, out = self._t, self.mode, self.sequence + 1, self._out.append
-                out(("transition", _new_tuple(Transition, (t, seq, self.state, final, mode, mode,
-                                                           trigger, number, source, skipped,
-                                                           ""))))  # fmt: skip
+                out(("transition", (t, seq, self.state, final, mode, mode, trigger, number, source,
+                                    skipped, "")))  # fmt: skip
                 for frm, nxt, step_trigger, step_skipped in steps:
                     seq += 1
-                    out(("transition", _new_tuple(Transition, (t, seq, frm, nxt, mode, mode,
-                                                               step_trigger, 0, "unit",
-                                                               step_skipped, ""))))  # fmt: skip
+                    out(("transition", (t, seq, frm, nxt, mode, mode, step_trigger, 0, "unit",
+                                        step_skipped, "")))  # fmt: skip
                 stops = self.stops
                 if entered & _REARM:
                     stops.armed = True  # all the entry actions do: no alarm or first-out to reset
@@ -359,6 +341,8 @@ class UnitMachine:
                     self.equipment.begin(to, seq)
                 more = self.interlocks.busy
             else:
+                final, skipped, answer, number, trigger, _, flags, _ = entry
+                self.cntrl_cmd = number
                 more = self._transition(final, trigger, number, source, skipped, "", None, True,
                                         flags)  # fmt: skip
             if not more:
@@ -531,14 +515,14 @@ class UnitMachine:
     # ================================================================================================
     # Outputs and views
     # ================================================================================================
-    def drain(self) -> list[tuple[str, Any]]:
+    def drain(self) -> Outputs:
         """Outputs since the last call, in order: ("transition", Transition), ("status",
         StatusMark), ("alarms", version), ("admin", AdminView), ("log", (level, text)).
 
         A status is due after every transition (publish :meth:`status_at` of the transition
         record) and at every ("status", mark) — changes that were not transitions. Marks and
         records are cheap; building the StatusView is left to the publisher."""
-        out, self._out = self._out, []
+        out, self._out = self._out, Outputs()
         return out
 
     @property
@@ -740,8 +724,8 @@ class UnitMachine:
                     self._entry_actions(to, skipped, trigger, cmd, source, cause)
                     special = interlocks.suspended
                     alarms_changed = alarms.version != self.publication.alarms_seen
-            out(("transition", _new_tuple(Transition, (t, seq, frm, to, mode, mode, trigger, cmd,
-                                                       source, skipped, detail))))  # fmt: skip
+            out(("transition", (t, seq, frm, to, mode, mode, trigger, cmd, source, skipped,
+                                detail)))  # fmt: skip
             if alarms_changed:  # the alarm list goes with the transition
                 self.publication.alarms_changed()
                 alarms_changed = False

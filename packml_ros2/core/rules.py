@@ -648,21 +648,23 @@ class Accepted(NamedTuple):
     run: Run | None = None  #: the State Completes that follow at once without EMs
 
 
-#: One State Complete of a :class:`Run`: (from, to, trigger, skipped).
+#: One State Complete of a :data:`Run`: (from, to, trigger, skipped).
 RunStep = tuple[State, State, Trigger, tuple[State, ...]]
 
 
-class Run(NamedTuple):
-    """What follows an accepted command at once in a unit without EMs: the State Completes of
-    the states that complete immediately (:data:`AT_ONCE_WITHOUT_EMS`), up to the state that
-    waits. Compiled from the same :class:`ScStep` entries; None (no run: the engine's general
-    loop decides) where a state on the way is timed (timeout, minimum dwell), where State
-    Complete leads into a disabled state, or where an entry action records a StopReason."""
-
-    steps: tuple[RunStep, ...]  #: the State Completes, in order
-    final: State  #: where the unit waits
-    between: tuple[State, ...]  #: states entered after the command's and before ``final``
-    entry: int  #: Entry flags of every state entered (re-arm, alarm and first-out resets only)
+#: What follows an accepted command at once in a unit without EMs: the State Completes of the
+#: states that complete immediately (:data:`AT_ONCE_WITHOUT_EMS`), up to the state that waits.
+#: Compiled from the same :class:`ScStep` entries; None (no run: the engine's general loop
+#: decides) where a state on the way is timed (timeout, minimum dwell), where State Complete
+#: leads into a disabled state, or where an entry action records a StopReason. A plain tuple,
+#: everything the engine's fast path reads at once (CPython unpacks a plain tuple fastest):
+#:
+#: ``(steps, final, between, entry, command's final, its skipped, answer, cmd, trigger)``:
+#: the State Completes in order; where the unit waits; the states entered after the command's
+#: and before ``final``; the Entry flags of every state entered (re-arm, alarm and first-out
+#: resets only); then the command's own :class:`Accepted` fields.
+Run = tuple[tuple[RunStep, ...], State, tuple[State, ...], int,
+            State, tuple[State, ...], Answer, int, Trigger]  # fmt: skip
 
 
 class ScStep(NamedTuple):
@@ -714,7 +716,7 @@ class Rules:
                  interlock_reaction: int = C.SUSPEND,
                  timed: frozenset[State] = frozenset()) -> None:  # fmt: skip
         self.table = table
-        #: States with a timeout or a minimum dwell: no :class:`Run` goes through them.
+        #: States with a timeout or a minimum dwell: no :data:`Run` goes through them.
         self.timed = timed
         self.modes = dict(modes)
         #: The guards in force: the interlock guard only where interlocks act.
@@ -764,16 +766,17 @@ class Rules:
                                   _entry_of(skipped, final))  # fmt: skip
         for by_cmd in accepted:
             for key, a in by_cmd.items():
-                by_cmd[key] = a._replace(run=self._run(a.final, a.entry, steps))
+                by_cmd[key] = a._replace(run=self._run(a, steps))
         self.accepted[number] = accepted
         self.refused[number] = refused
         self.sc[number] = steps
 
-    def _run(self, state: State, entry: int, sc: list[ScStep | None]) -> Run | None:
-        """The :class:`Run` after entering ``state`` (with ``entry`` flags) by a command."""
+    def _run(self, accepted: Accepted, sc: list[ScStep | None]) -> Run | None:
+        """The :data:`Run` after the command ``accepted`` entered its final state."""
         steps: list[RunStep] = []
         between: list[State] = []
-        first = state
+        first = state = accepted.final
+        entry = accepted.entry
         while True:
             if state in self.timed:
                 return None
@@ -789,7 +792,8 @@ class Rules:
             state = step.final
         if entry & Entry.STOP:
             return None
-        return Run(tuple(steps), state, tuple(between), entry)
+        return (tuple(steps), state, tuple(between), entry, accepted.final, accepted.skipped,
+                accepted.answer, accepted.cmd, accepted.trigger)  # fmt: skip
 
     # -- the table's verdict ------------------------------------------------------------------------
     def table_verdict(self, state: State, mode: int, cmd: int) -> Verdict:
