@@ -4,7 +4,9 @@
 Every transition makes a record, so the engine queues it as the cheapest object CPython makes: a
 plain tuple of the :class:`Transition` fields, in their order (a typed record costs twice as much
 to make and to free: bench/engine_instructions.py). It becomes its :class:`Transition` when the
-outputs are read, by iteration or index; a plain tuple and its Transition compare equal.
+outputs are read, by iteration or index; a plain tuple and its Transition compare equal. A
+publisher that reads the fields by position takes the outputs as queued (:meth:`Outputs.raw`:
+the unit node does) and never pays for the typed record.
 """
 
 from __future__ import annotations
@@ -36,6 +38,10 @@ class Transition(NamedTuple):
     detail: str = ""
 
 
+#: A transition as queued: the :class:`Transition` fields in their order, in a plain tuple.
+RawTransition = tuple[float, int, State, State, int, int, Trigger, int, str, tuple[State, ...], str]
+
+
 def _typed(item: tuple[str, Any]) -> tuple[str, Any]:
     kind, value = item
     if kind == TRANSITION and type(value) is tuple:
@@ -52,6 +58,10 @@ class Outputs(list[tuple[str, Any]]):
     def __iter__(self) -> Iterator[tuple[str, Any]]:
         return map(_typed, super().__iter__())
 
+    def raw(self) -> Iterator[tuple[str, Any]]:
+        """The outputs as queued: a transition as its :data:`RawTransition` (the fastest read)."""
+        return super().__iter__()
+
     @overload
     def __getitem__(self, i: SupportsIndex) -> tuple[str, Any]: ...
     @overload
@@ -62,4 +72,4 @@ class Outputs(list[tuple[str, Any]]):
         return _typed(super().__getitem__(i))
 
 
-__all__ = ["TRANSITION", "Outputs", "Transition"]
+__all__ = ["TRANSITION", "Outputs", "RawTransition", "Transition"]
