@@ -113,13 +113,16 @@ def test_em_killed_in_an_acting_state_triggers_the_reaction(
         client.wait_state("EXECUTE")
         client.trigger("stop")
     client.wait_state(state)
-    killed_at = time.monotonic()
+    killed_at, killed_wall = time.monotonic(), time.time()
     gripper.kill()
     lost = client.transitions.wait_for(
-        lambda t: t.trigger == TransitionEvent.TRIGGER_EM_LOST, lease + 2.0, "EM lost reaction"
+        lambda t: t.trigger == TransitionEvent.TRIGGER_EM_LOST, lease + 3.0, "EM lost reaction"
     )
-    reaction_time = time.monotonic() - killed_at
-    assert reaction_time <= lease + 0.5, f"reaction after {reaction_time:.3f} s"
+    received = time.monotonic() - killed_at
+    # The unit's reaction is when it decided (the transition's stamp, the unit's wall clock like
+    # this one): the delivery of its message to this test's client is not the unit's timing.
+    decided = lost.stamp.sec + lost.stamp.nanosec * 1e-9 - killed_wall
+    assert decided <= lease + 0.5, f"reaction {decided:.3f} s after the kill (seen after {received:.3f} s)"  # fmt: skip
     assert lost.from_state_name == state and lost.to_state_name == "ABORTING"
     assert "gripper" in lost.detail
     # the lost EM is excused while aborting; the unit settles in Aborted and says which EM is gone
