@@ -13,7 +13,7 @@ per command, one dict look-up of (state, command) in the same TR88 table, State 
 by dict look-ups, and what makes the same transitions observable: a sequence number and a record
 per transition in an output queue, drained; no modes, guards, times, EMs or alarms. It is driven
 by the same loop as ours (:func:`cycle_loop`: the clock moved, the outputs drained every cycle).
-Ours queues a transition as the plain tuple of its 11 fields (core/outputs.py: typed as its
+Ours queues a transition as plain tuples of its 11 fields (core/outputs.py: typed as its
 ``Transition`` when iterated; the unit node reads the fields by position); the loop does not read
 the outputs (nor the floor's 5-field records); ``with_outputs_read`` is ours with every drained
 output read as the unit node reads it, beside it.
@@ -80,7 +80,7 @@ def cycle_loop(machine: Machine, now: list[float], read: bool = False) -> Callab
             if read:  # as the unit node's publisher reads them (packml_ros2.driver)
                 for kind, item in drain().raw():  # type: ignore[attr-defined]
                     if kind == "transition":  # (convert.transition unpacks the 11 fields)
-                        _t, _s, _f, _to, _fm, _tm, _tr, _c, _src, _sk, _d = item
+                        _t, _s, (_f, _to, _fm, _tm, _tr, _c, _src, _sk, _d) = item
             else:
                 drain()
         assert machine.state is State.IDLE

@@ -167,8 +167,11 @@ def status(v: StatusView) -> Status:
 def transition(
     unit: str, t: Transition | RawTransition, mode_names: dict[int, str] | None = None
 ) -> TransitionEvent:
-    """``TransitionEvent`` of a record, typed or as queued (the fields in their order)."""
-    time, sequence, from_state, to_state, from_mode, to_mode, trigger, command, source, skipped, detail = t  # fmt: skip
+    """``TransitionEvent`` of a record, typed or as queued (time, sequence, the other fields)."""
+    if isinstance(t, Transition):
+        time, sequence, from_state, to_state, from_mode, to_mode, trigger, command, source, skipped, detail = t  # fmt: skip
+    else:
+        time, sequence, (from_state, to_state, from_mode, to_mode, trigger, command, source, skipped, detail) = t  # fmt: skip
     return TransitionEvent(
         stamp=stamp(time),
         unit=unit,

@@ -100,7 +100,7 @@ class UnitDriver:
 
     def flush(self) -> None:
         unit = self.unit
-        for kind, item in unit.drain().raw():  # (a transition as the plain tuple of its fields)
+        for kind, item in unit.drain().raw():  # (a transition as (time, sequence, other fields))
             if kind == "transition":
                 self.emit("transitions", convert.transition(self.name, item))
                 self.emit("status", self.status_message(item))

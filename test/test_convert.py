@@ -97,8 +97,9 @@ def test_admin_goes_out_on_change_and_as_a_slow_heartbeat() -> None:
 
 
 def test_a_transition_as_queued_converts_as_its_typed_record() -> None:
-    """The unit node reads the drained outputs as queued (Outputs.raw: a transition as the plain
-    tuple of its fields); its TransitionEvent and status equal those of the typed record."""
+    """The unit node reads the drained outputs as queued (Outputs.raw: a transition as plain
+    tuples, time, sequence and the other fields); its TransitionEvent and status equal those of
+    the typed record."""
     unit = _views()
     unit.drain()
     unit.command(Cmd.STOP)

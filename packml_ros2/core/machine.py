@@ -316,15 +316,15 @@ class UnitMachine(ModeChanges):
                 and alarms.version == self.publication.alarms_seen
                 and not (run[3] and (alarms.current or alarms.first_out_by_category))
             ):
-                steps, to, between, entered, final, skipped, answer, number, trigger = run
+                tails, to, between, entered, final, skipped, answer, number, trigger, tail = run
                 self.cntrl_cmd = number
                 t, mode, seq, out = self._t, self.mode, self.sequence + 1, self._out.append
-                out(("transition", (t, seq, self.state, final, mode, mode, trigger, number, source,
-                                    skipped, "")))  # fmt: skip
-                for frm, nxt, step_trigger, step_skipped in steps:
+                if source is not OPERATOR:  # (the compiled tail names the operator)
+                    tail = (tail[0], final, mode, mode, trigger, number, source, skipped, "")
+                out(("transition", (t, seq, tail)))
+                for tail in tails:
                     seq += 1
-                    out(("transition", (t, seq, frm, nxt, mode, mode, step_trigger, 0, "unit",
-                                        step_skipped, "")))  # fmt: skip
+                    out(("transition", (t, seq, tail)))
                 stops = self.stops
                 if entered & _REARM:
                     stops.armed = True  # all the entry actions do: no alarm or first-out to reset
@@ -710,8 +710,8 @@ class UnitMachine(ModeChanges):
                     self._entry_actions(to, skipped, trigger, cmd, source, cause)
                     special = interlocks.suspended
                     alarms_changed = alarms.version != self.publication.alarms_seen
-            out(("transition", (t, seq, frm, to, mode, mode, trigger, cmd, source, skipped,
-                                detail)))  # fmt: skip
+            out(("transition", (t, seq, (frm, to, mode, mode, trigger, cmd, source, skipped,
+                                         detail))))  # fmt: skip
             if alarms_changed:  # the alarm list goes with the transition
                 self.publication.alarms_changed()
                 alarms_changed = False

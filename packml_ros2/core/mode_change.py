@@ -16,7 +16,7 @@ from .deadlines import Deadlines
 from .equipment import Equipment
 from .modes import ModeDef
 from .numbers import State
-from .outputs import Outputs, Transition
+from .outputs import Outputs
 from .publication import Publication
 from .rules import (
     Accepted,
@@ -106,11 +106,9 @@ class ModeChanges:
         self._mode_changing(False)
         self.times.enter(self._t, self.mode, self.state, self._planned())
         self.equipment.end_aggregation()
-        self._out.append(
-            ("transition", Transition(self._t, self.sequence, self.state, self.state, frm, self.mode,
-                                      Trigger.MODE, 0, self._mode_source, (),
-                                      f"{self._mode_name(frm)} -> {self.mode_def.name}"))
-        )  # fmt: skip
+        detail = f"{self._mode_name(frm)} -> {self.mode_def.name}"
+        self._out.append(("transition", (self._t, self.sequence, (self.state, self.state, frm,
+                          self.mode, Trigger.MODE, 0, self._mode_source, (), detail))))  # fmt: skip
         self.publication.with_record()
         self._log(
             "info", f"mode {self._mode_name(frm)} -> {self.mode_def.name} ({self._mode_source})"

@@ -1,12 +1,13 @@
 """What a unit outputs (:meth:`~.machine.UnitMachine.drain`): the :class:`Transition` record and
 :class:`Outputs`, the queue the outputs are drained in.
 
-Every transition makes a record, so the engine queues it as the cheapest object CPython makes: a
-plain tuple of the :class:`Transition` fields, in their order (a typed record costs twice as much
-to make and to free: bench/engine_instructions.py). It becomes its :class:`Transition` when the
-outputs are read, by iteration or index; a plain tuple and its Transition compare equal. A
-publisher that reads the fields by position takes the outputs as queued (:meth:`Outputs.raw`:
-the unit node does) and never pays for the typed record.
+Every transition makes a record, so the engine queues it as the cheapest objects CPython makes:
+plain tuples, ``(time, sequence, tail)`` (:data:`RawTransition`), where ``tail`` holds the other
+nine :class:`Transition` fields in their order and is compiled once for the transitions a
+command's run makes (:data:`~.rules.Run`: a typed record costs twice as much to make and to free,
+bench/engine_instructions.py). It becomes its :class:`Transition` when the outputs are iterated
+or indexed. A publisher that reads the fields by position takes the outputs as queued
+(:meth:`Outputs.raw`: the unit node does) and never pays for the typed record.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from collections.abc import Iterator
 from typing import Any, NamedTuple, SupportsIndex, overload
 
 from .numbers import State
-from .rules import Trigger
+from .rules import RecordTail, Trigger
 
 #: The kind of a transition in the queue (the other kinds: "status", "alarms", "admin", "log").
 TRANSITION = "transition"
@@ -38,14 +39,15 @@ class Transition(NamedTuple):
     detail: str = ""
 
 
-#: A transition as queued: the :class:`Transition` fields in their order, in a plain tuple.
-RawTransition = tuple[float, int, State, State, int, int, Trigger, int, str, tuple[State, ...], str]
+#: A transition as queued: (time, sequence, the other fields in their order).
+RawTransition = tuple[float, int, RecordTail]
 
 
 def _typed(item: tuple[str, Any]) -> tuple[str, Any]:
     kind, value = item
     if kind == TRANSITION and type(value) is tuple:
-        return (TRANSITION, _new_tuple(Transition, value))
+        time, sequence, tail = value
+        return (TRANSITION, _new_tuple(Transition, (time, sequence, *tail)))
     return item
 
 

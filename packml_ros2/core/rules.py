@@ -648,9 +648,9 @@ class Accepted(NamedTuple):
     run: Run | None = None  #: the State Completes that follow at once without EMs
 
 
-#: One State Complete of a :data:`Run`: (from, to, trigger, skipped).
-RunStep = tuple[State, State, Trigger, tuple[State, ...]]
-
+#: What follows a transition record's time and sequence: the other :class:`~.outputs.Transition`
+#: fields in their order (from, to, from mode, to mode, trigger, command, source, skipped, detail).
+RecordTail = tuple[State, State, int, int, Trigger, int, str, tuple[State, ...], str]
 
 #: What follows an accepted command at once in a unit without EMs: the State Completes of the
 #: states that complete immediately (:data:`AT_ONCE_WITHOUT_EMS`), up to the state that waits.
@@ -659,12 +659,13 @@ RunStep = tuple[State, State, Trigger, tuple[State, ...]]
 #: leads into a disabled state, or where an entry action records a StopReason. A plain tuple,
 #: everything the engine's fast path reads at once (CPython unpacks a plain tuple fastest):
 #:
-#: ``(steps, final, between, entry, command's final, its skipped, answer, cmd, trigger)``:
-#: the State Completes in order; where the unit waits; the states entered after the command's
-#: and before ``final``; the Entry flags of every state entered (re-arm, alarm and first-out
-#: resets only); then the command's own :class:`Accepted` fields.
-Run = tuple[tuple[RunStep, ...], State, tuple[State, ...], int,
-            State, tuple[State, ...], Answer, int, Trigger]  # fmt: skip
+#: ``(tails, final, between, entry, command's final, its skipped, answer, cmd, trigger, tail)``:
+#: the record tails of the State Completes in order (made once: only time and sequence vary);
+#: where the unit waits; the states entered after the command's and before ``final``; the Entry
+#: flags of every state entered (re-arm, alarm and first-out resets only); the command's own
+#: :class:`Accepted` fields; the record tail of the command's transition from the operator.
+Run = tuple[tuple[RecordTail, ...], State, tuple[State, ...], int,
+            State, tuple[State, ...], Answer, int, Trigger, RecordTail]  # fmt: skip
 
 
 class ScStep(NamedTuple):
@@ -764,16 +765,18 @@ class Rules:
             trigger = Trigger.SKIP if skipped else Trigger.STATE_COMPLETE
             steps[state] = ScStep(final, skipped, trigger, final not in disabled,
                                   _entry_of(skipped, final))  # fmt: skip
-        for by_cmd in accepted:
+        for state, by_cmd in zip(State, accepted, strict=False):
             for key, a in by_cmd.items():
-                by_cmd[key] = a._replace(run=self._run(a, steps))
+                by_cmd[key] = a._replace(run=self._run(state, number, a, steps))
         self.accepted[number] = accepted
         self.refused[number] = refused
         self.sc[number] = steps
 
-    def _run(self, accepted: Accepted, sc: list[ScStep | None]) -> Run | None:
-        """The :data:`Run` after the command ``accepted`` entered its final state."""
-        steps: list[RunStep] = []
+    def _run(self, start: State, mode: int, accepted: Accepted, sc: list[ScStep | None]
+             ) -> Run | None:  # fmt: skip
+        """The :data:`Run` after the command ``accepted`` took the unit from ``start`` (in
+        ``mode``) into its final state."""
+        steps: list[RecordTail] = []
         between: list[State] = []
         first = state = accepted.final
         entry = accepted.entry
@@ -787,13 +790,15 @@ class Rules:
                 return None
             if state is not first:
                 between.append(state)
-            steps.append((state, step.final, step.trigger, step.skipped))
+            steps.append((state, step.final, mode, mode, step.trigger, 0, "unit", step.skipped, ""))
             entry |= step.entry
             state = step.final
         if entry & Entry.STOP:
             return None
+        tail = (start, accepted.final, mode, mode, accepted.trigger, accepted.cmd, OPERATOR,
+                accepted.skipped, "")  # fmt: skip
         return (tuple(steps), state, tuple(between), entry, accepted.final, accepted.skipped,
-                accepted.answer, accepted.cmd, accepted.trigger)  # fmt: skip
+                accepted.answer, accepted.cmd, accepted.trigger, tail)  # fmt: skip
 
     # -- the table's verdict ------------------------------------------------------------------------
     def table_verdict(self, state: State, mode: int, cmd: int) -> Verdict:
@@ -983,6 +988,7 @@ __all__ = [
     "Edge",
     "Entry",
     "Guard",
+    "RecordTail",
     "Rules",
     "Run",
     "ScStep",

@@ -24,7 +24,10 @@ class UnitViews(UnitMachine):
         and time, the other fields as they are now."""
         if isinstance(mark, StatusMark):
             return build_status(self, mark.time, State(mark.state), mark.sequence)
-        return build_status(self, mark[0], mark[3], mark[1])  # (time, to_state, sequence)
+        if isinstance(mark, Transition):
+            return build_status(self, mark.time, mark.to_state, mark.sequence)
+        time, sequence, tail = mark
+        return build_status(self, time, tail[1], sequence)  # (tail[1]: the state entered)
 
     def status(self) -> StatusView:
         return build_status(self, self._t, self.state, self.sequence)

@@ -1,6 +1,6 @@
-"""The drained outputs (core/outputs.py): the engine queues a transition as the plain tuple of its
-fields; whoever reads the outputs (iteration, index, slice) gets its typed Transition record, also
-from a unit restored from a snapshot."""
+"""The drained outputs (core/outputs.py): the engine queues a transition as plain tuples (time,
+sequence, the other fields); whoever reads the outputs (iteration, index, slice) gets its typed
+Transition record, also from a unit restored from a snapshot."""
 
 from __future__ import annotations
 
@@ -37,7 +37,8 @@ def test_a_drained_transition_is_a_typed_record() -> None:
     assert type(out[0][1]) is Transition  # by index
     assert all(type(v) is Transition for k, v in out[:2] if k == "transition")  # by slice
     assert list(out) == [(k, v) for k, v in out]
-    assert out[0][1] == tuple(out[0][1])  # a record and the plain tuple of its fields compare equal
+    raw = [value for kind, value in out.raw() if kind == "transition"]
+    assert [(t, seq, *tail) for t, seq, tail in raw] == [tuple(r) for r in records]  # as queued
 
 
 def test_a_restored_unit_drains_typed_records() -> None:
