@@ -2,7 +2,9 @@
 ``stop`` until Stopped, with 0, 1, 4 and 8 EMs in separate processes; side by side with the rclpy
 floor measured in the same run (a Trigger call whose handler publishes a Status, until that Status
 arrives: one request hop plus one pub/sub hop) and the fan-out floor (the same message pattern with
-trivial echo processes in place of the EMs); 8 EMs composed in one process on one executor; 400
+trivial echo processes in place of the EMs: the Starting and the Execute message on one topic that
+the echoes and the client read, as the unit's status is; beside it the floor of earlier runs, whose
+last message went to the client only); 8 EMs composed in one process on one executor; 400
 back-to-back reset / stop commands from one client, each sent when the previous one answered; RSS
 of a unit and of an EM process. Prints JSON, with the ratios and the targets of issue 18.
 
@@ -37,14 +39,14 @@ from packml_interfaces.msg import Status
 from packml_ros2 import qos, run
 run.init()
 node = Node("floor_server")
-pub = node.create_publisher(Status, "/bench_floor/status", qos.STATUS)
+pub = node.create_publisher(Status, sys.argv[1] + "/status", qos.STATUS)
 seq = [0]
 def handle(req, resp):
     seq[0] += 1
     pub.publish(Status(unit="floor", sequence=seq[0], state_current=6, state_current_name="EXECUTE"))
     resp.success = True
     return resp
-node.create_service(Trigger, "/bench_floor/trigger", handle)
+node.create_service(Trigger, sys.argv[1] + "/trigger", handle)
 sys.exit(run.spin([node]))  # the executor the packml nodes use: a fair floor
 """
 
@@ -56,10 +58,12 @@ from std_srvs.srv import Trigger
 from packml_interfaces.msg import EmReport, Status
 from packml_ros2 import qos, run
 run.init()
-n_echo = int(sys.argv[1])
+n_echo, one_topic, ns = int(sys.argv[1]), sys.argv[2] == "one", sys.argv[3]
 node = Node("fanout_server")
-go = node.create_publisher(Status, "/bench_fanout/go", qos.STATUS)
-out = node.create_publisher(Status, "/bench_fanout/status", qos.STATUS)
+out = node.create_publisher(Status, ns + "/status", qos.STATUS)
+# one topic: the Starting message and the Execute message on one topic that the echoes and the
+# client read (the unit's status); else the Execute message on its own topic, to the client only
+go = out if one_topic else node.create_publisher(Status, ns + "/go", qos.STATUS)
 state = {"seq": 0, "replies": 0}
 def handle(req, resp):
     state["seq"] += 1
@@ -74,10 +78,11 @@ def on_reply(msg):
         state["replies"] += 1
         if state["replies"] == n_echo:
             out.publish(Status(unit="fanout", sequence=state["seq"], state_current=6))
-node.create_service(Trigger, "/bench_fanout/trigger", handle)
-node.create_subscription(EmReport, "/bench_fanout/reports", on_reply, qos.EM_REPORTS)
+node.create_service(Trigger, ns + "/trigger", handle)
+node.create_subscription(EmReport, ns + "/reports", on_reply, qos.EM_REPORTS)
 sys.exit(run.spin([node]))
 """
+
 
 ECHO = """
 import sys, rclpy
@@ -86,9 +91,11 @@ from packml_interfaces.msg import EmReport, Status
 from packml_ros2 import qos, run
 run.init()
 node = Node("echo_" + sys.argv[1])
-pub = node.create_publisher(EmReport, "/bench_fanout/reports", qos.EM_REPORTS)
-node.create_subscription(Status, "/bench_fanout/go",
-    lambda m: pub.publish(EmReport(em=sys.argv[1], kind=1, sequence=m.sequence)), qos.STATUS)
+pub = node.create_publisher(EmReport, sys.argv[3] + "/reports", qos.EM_REPORTS)
+def on_status(m):
+    if m.state_current == 3:
+        pub.publish(EmReport(em=sys.argv[1], kind=1, sequence=m.sequence))
+node.create_subscription(Status, sys.argv[3] + sys.argv[2], on_status, qos.STATUS)
 sys.exit(run.spin([node]))
 """
 
@@ -147,6 +154,13 @@ class Client:
             self.executor.spin_once(timeout_sec=0.1)
 
     def watch(self, topic: str, msg_type: object = None) -> None:
+        """Keep the latest message of ``topic`` (one subscription per topic: a second reader in
+        this process would make every publisher of the topic write twice)."""
+        with self._cond:
+            self._latest.pop(topic, None)
+        if topic in self._subs:
+            return
+
         def on_status(msg: object, topic: str = topic) -> None:
             now = time.perf_counter()
             with self._cond:
@@ -221,63 +235,92 @@ class Client:
         rclpy.try_shutdown()
 
 
-def measure_floor(client: Client, procs: Processes, cycles: int) -> list[float]:
-    procs.start("floor_server", "-c", FLOOR_SERVER)
-    client.watch("/bench_floor/status")
-    trig = client.trigger("/bench_floor/trigger")
-    samples = []
-    for i in range(cycles + 10):
-        t0 = client.call(trig)
-        _, t1 = client.wait("/bench_floor/status", lambda m, i=i: m.sequence == i + 1)
-        if i >= 10:  # warm-up
-            samples.append(t1 - t0)
-    return samples
+class Pattern:
+    """A message pattern set up and warmed up, measured one cycle at a time so that several are
+    measured interleaved (each cycle of one next to a cycle of the others: the load of this
+    shared machine, which drifts over seconds, weighs on all of them alike)."""
+
+    def __init__(self, cycle, stop) -> None:  # type: ignore[no-untyped-def]
+        self.cycle = cycle  #: one cycle; returns its samples (seconds)
+        self.stop = stop
+        self.samples: list[tuple[float, ...]] = []
 
 
-def measure_fanout_floor(client: Client, procs: Processes, echoes: int, cycles: int) -> list[float]:
-    """The rclpy floor of the unit's message pattern with ``echoes`` EM processes: a Trigger
-    call, one message to every echo process, one reply from each, one message back."""
-    server = procs.start(f"fanout_server_{echoes}", "-c", FANOUT_SERVER, str(echoes))
-    echo_procs = [procs.start(f"echo_{echoes}_{i}", "-c", ECHO, f"e{i}") for i in range(echoes)]
-    topic = "/bench_fanout/status"
+def floor_pattern(client: Client, procs: Processes, ns: str) -> Pattern:
+    """The rclpy floor: a Trigger call whose handler publishes a Status, until it arrives."""
+    server = procs.start(f"floor_server{ns.replace('/', '_')}", "-c", FLOOR_SERVER, ns)
+    topic = f"{ns}/status"
     client.watch(topic)
-    trig = client.trigger("/bench_fanout/trigger")
+    trig = client.trigger(f"{ns}/trigger")
+    sent = 0
+
+    def cycle() -> tuple[float, ...]:
+        nonlocal sent
+        sent += 1
+        t0 = client.call(trig)
+        _, t1 = client.wait(topic, lambda m, n=sent: m.sequence == n)
+        return (t1 - t0,)
+
+    for _ in range(10):  # warm-up
+        cycle()
+    return Pattern(cycle, server.stop)
+
+
+def fanout_pattern(
+    client: Client, procs: Processes, ns: str, echoes: int, one_topic: bool = True
+) -> Pattern:
+    """The rclpy floor of the unit's message pattern with ``echoes`` EM processes: a Trigger
+    call, one message to every echo process, one reply from each, one message back, on the topic
+    the echo processes read too (as the unit's Execute status reaches its EMs and the client);
+    ``one_topic=False``: the last message on a topic of its own, to the client only (the floor of
+    earlier runs)."""
+    pattern = "one" if one_topic else "two"
+    tag = ns.replace("/", "_")
+    server = procs.start(f"fanout_server{tag}", "-c", FANOUT_SERVER, str(echoes), pattern, ns)
+    go = "/status" if one_topic else "/go"
+    echo_procs = [procs.start(f"echo{tag}_{i}", "-c", ECHO, f"e{i}", go, ns) for i in range(echoes)]  # fmt: skip
+    topic = f"{ns}/status"
+    client.watch(topic)
+    trig = client.trigger(f"{ns}/trigger")
     deadline = time.monotonic() + 30
-    while (
-        client.node.count_subscribers("/bench_fanout/go") < echoes and time.monotonic() < deadline
-    ):
+    readers = echoes + 1 if one_topic else echoes
+    while client.node.count_subscribers(ns + go) < readers and time.monotonic() < deadline:
         time.sleep(0.05)
     sent = 0
 
-    def cycle(timeout: float) -> float:
+    def attempt(timeout: float) -> tuple[float, ...]:
         nonlocal sent
         sent += 1  # the server numbers the cycles as it gets the calls
         t0 = client.call(trig)
         _, t1 = client.wait(
             topic, lambda m, n=sent: m.sequence == n and m.state_current == 6, timeout
         )
-        return t1 - t0
+        return (t1 - t0,)
 
     # Warm-up: 10 complete cycles. An echo's reply is lost while its writer has not matched the
     # server's reader yet (no API shows that from here): such a cycle is simply started again.
     warm, deadline = 0, time.monotonic() + 30
     while warm < 10:
         try:
-            cycle(1.0)
+            attempt(1.0)
             warm += 1
         except TimeoutError:
             if time.monotonic() > deadline:
                 raise
-    samples = [cycle(10.0) for _ in range(cycles)]
-    for proc in [*echo_procs, server]:
-        proc.stop()
-    return samples
+
+    def stop() -> None:
+        for proc in [*echo_procs, server]:
+            proc.stop()
+
+    return Pattern(lambda: attempt(10.0), stop)
 
 
-def measure_unit(
-    client: Client, procs: Processes, workdir: Path, ems: int, cycles: int, composed: bool = False
-) -> dict[str, object]:
-    """``ems`` EMs in a process each, or (``composed``) all in one process on one executor."""
+def unit_pattern(
+    client: Client, procs: Processes, workdir: Path, ems: int, composed: bool = False
+) -> tuple[Pattern, dict[str, object]]:
+    """A unit with ``ems`` EMs in a process each, or (``composed``) all in one process on one
+    executor; a cycle is start -> Execute, stop -> Stopped, reset -> Idle and gives the first
+    two. Also returns what the caller measures on it (cell, topic, triggers, processes)."""
     cell = f"bench{ems}{'c' if composed else ''}"
     em_names = [f"em{i}" for i in range(ems)]
     doc = {
@@ -310,34 +353,92 @@ def measure_unit(
     )
     client.call(reset)
     client.wait(topic, lambda m: m.state_current_name == "IDLE")
-    to_execute, to_stopped = [], []
-    for i in range(cycles + 10):
+
+    def cycle() -> tuple[float, ...]:
         t0 = client.call(start)
         _, t1 = client.wait(topic, lambda m: m.state_current_name == "EXECUTE")
         t2 = client.call(stop)
         _, t3 = client.wait(topic, lambda m: m.state_current_name == "STOPPED")
         client.call(reset)
         client.wait(topic, lambda m: m.state_current_name == "IDLE")
-        if i >= 10:
-            to_execute.append(t1 - t0)
-            to_stopped.append(t3 - t2)
+        return (t1 - t0, t3 - t2)
+
+    for _ in range(10):  # warm-up
+        cycle()
+
+    def stop_all() -> None:
+        for proc in [*em_procs, unit]:
+            proc.stop()
+
+    info = {"cell": cell, "topic": topic, "triggers": (start, stop, reset), "unit": unit,
+            "ems": em_procs}  # fmt: skip
+    return Pattern(cycle, stop_all), info
+
+
+def interleave(patterns: list[Pattern], cycles: int) -> None:
+    """``cycles`` cycles of each pattern, one of each in turn (the order rotated each round)."""
+    for i in range(cycles):
+        k = i % len(patterns)
+        for pattern in patterns[k:] + patterns[:k]:
+            pattern.samples.append(pattern.cycle())
+
+
+def measure_em_count(
+    client: Client, procs: Processes, workdir: Path, ems: int, cycles: int
+) -> dict[str, object]:
+    """The unit with ``ems`` EM processes beside its floors, measured interleaved: the rclpy
+    floor, the fan-out floor (one topic, as the unit's status) and, with EMs, the fan-out floor
+    whose last message goes to the client only. The ratios are those of the same minutes."""
+    ns = f"/bench_floor_{ems}"
+    floor = floor_pattern(client, procs, ns)
+    fan = fanout_pattern(client, procs, f"/bench_fanout_{ems}", ems)
+    fan2 = fanout_pattern(client, procs, f"/bench_fanout2_{ems}", ems, one_topic=False) if ems else None  # fmt: skip
+    unit, info = unit_pattern(client, procs, workdir, ems)
+    patterns = [p for p in (floor, fan, fan2, unit) if p is not None]
+    try:
+        interleave(patterns, cycles)
+    finally:
+        for p in patterns:
+            if p is not unit:
+                p.stop()
     hops = (
-        measure_hops(client, cell, topic, (start, stop, reset), max(cycles // 2, 10))
+        measure_hops(client, info["cell"], info["topic"], info["triggers"], max(cycles // 2, 10))  # type: ignore[arg-type]
         if ems
         else None
     )
+    unit_proc, em_procs = info["unit"], info["ems"]
     result: dict[str, object] = {
-        "idle_to_execute": summary_ms(to_execute),
-        "stop_to_stopped": summary_ms(to_stopped),
-        "unit_rss_mb": rss_mb(unit.pid),
+        "idle_to_execute": summary_ms([x[0] for x in unit.samples]),
+        "stop_to_stopped": summary_ms([x[1] for x in unit.samples]),
+        "floor": summary_ms([x[0] for x in floor.samples]),
+        "fanout_floor": summary_ms([x[0] for x in fan.samples]),
+        "unit_rss_mb": rss_mb(unit_proc.pid),  # type: ignore[attr-defined]
     }
+    if fan2 is not None:
+        result["fanout_floor_last_message_to_the_client_only"] = summary_ms([x[0] for x in fan2.samples])  # fmt: skip
     if em_procs:
-        result["em_rss_mb"] = rss_mb(em_procs[0].pid)
+        result["em_rss_mb"] = rss_mb(em_procs[0].pid)  # type: ignore[index]
     if hops is not None:
         result["hops_idle_to_execute"] = hops
-    for proc in [*em_procs, unit]:
-        proc.stop()
+    unit.stop()
     return result
+
+
+def measure_composed(
+    client: Client, procs: Processes, workdir: Path, ems: int, cycles: int
+) -> dict[str, object]:
+    """The unit with ``ems`` EMs composed in one process (no floor beside it)."""
+    unit, info = unit_pattern(client, procs, workdir, ems, composed=True)
+    try:
+        interleave([unit], cycles)
+        rss = {"unit_rss_mb": rss_mb(info["unit"].pid), "em_rss_mb": rss_mb(info["ems"][0].pid)}  # type: ignore[attr-defined, index]
+    finally:
+        unit.stop()
+    return {
+        "idle_to_execute": summary_ms([x[0] for x in unit.samples]),
+        "stop_to_stopped": summary_ms([x[1] for x in unit.samples]),
+        **rss,
+    }
 
 
 def measure_hops(client: Client, cell: str, topic: str, triggers, cycles: int) -> dict[str, object]:  # type: ignore[no-untyped-def]
@@ -427,15 +528,11 @@ def main() -> int:
         procs = Processes(workdir)
         client = Client()
         try:
-            floor = measure_floor(client, procs, args.cycles)
-            fanout = {
-                str(n): measure_fanout_floor(client, procs, n, args.cycles) for n in em_counts
-            }
             units = {
-                str(n): measure_unit(client, procs, workdir, n, args.cycles) for n in em_counts
+                str(n): measure_em_count(client, procs, workdir, n, args.cycles) for n in em_counts
             }
             composed = (
-                measure_unit(client, procs, workdir, args.composed, args.cycles, composed=True)
+                measure_composed(client, procs, workdir, args.composed, args.cycles)
                 if args.composed
                 else None
             )
@@ -447,19 +544,18 @@ def main() -> int:
         finally:
             client.close()
             procs.close()
-    floor_p50 = statistics.median(floor)
     result: dict[str, object] = {
         "benchmark": "ros_latency",
         "cycles": args.cycles,
-        "floor": {"trigger_call_to_published_status": summary_ms(floor)},
-        "floor_fanout_by_em_count": {n: summary_ms(v) for n, v in fanout.items()},
         "units_by_em_count": units,
     }
-    for n, data in units.items():
-        ex = data["idle_to_execute"]  # type: ignore[index]
-        data["idle_to_execute_over_floor"] = round(ex["p50_ms"] / (floor_p50 * 1e3), 2)  # type: ignore[index]
-        fan = statistics.median(fanout[n]) * 1e3
-        data["idle_to_execute_over_fanout_floor"] = round(ex["p50_ms"] / fan, 2)  # type: ignore[index]
+    for data in units.values():
+        p50 = data["idle_to_execute"]["p50_ms"]  # type: ignore[index]
+        data["idle_to_execute_over_floor"] = round(p50 / data["floor"]["p50_ms"], 2)  # type: ignore[index]
+        data["idle_to_execute_over_fanout_floor"] = round(p50 / data["fanout_floor"]["p50_ms"], 2)  # type: ignore[index]
+        two = data.get("fanout_floor_last_message_to_the_client_only")
+        if two is not None:
+            data["idle_to_execute_over_fanout_floor_client_only"] = round(p50 / two["p50_ms"], 2)  # type: ignore[index]
     if composed is not None:
         result["unit_with_composed_ems"] = {"ems_in_one_process": args.composed, **composed}
     if b2b is not None:

@@ -112,7 +112,8 @@ class UnitNode(Node):
         self.refused_reports = 0
         self._log_limiter = LogLimiter()
         self._leaving: dict[str, tuple[float, EmReport]] = {}  # EM -> (when it is lost, goodbye)
-        self._inputs: list[UnitInput] = []
+        #: inputs not yet published: (time, index, name, arguments), made messages when they go out
+        self._inputs: list[tuple[float, int, str, dict[str, Any]]] = []
         self._input_index = 0
         self._record = bool(self.get_parameter("record_inputs").value)
         self.unit.on_input = self._on_input if self._record else None
@@ -440,12 +441,12 @@ class UnitNode(Node):
             due = min(due, leave_at)
         if self._inputs and now + INPUT_LOG_DELAY < due:
             due = now + INPUT_LOG_DELAY
-        if due == self._wake_at or self._closed:
+        if due >= self._wake_at or self._closed:
+            # Armed for then or sooner (or nothing is due): that wake-up arms for what is due
+            # after it. Re-arming only for something sooner keeps the EMs' reports, each of
+            # which moves a lease expiry later, from resetting the timer one by one.
             return
         self._wake_at = due
-        if due == math.inf:
-            self._wake.cancel()
-            return
         self._wake.timer_period_ns = max(int((due - now) * 1e9), 1)
         self._wake.reset()
 
@@ -485,7 +486,8 @@ class UnitNode(Node):
             # so replay needs one exactly when the node had one)
             start = {"document": self.unit.restored, "time": self.unit.now,
                      "persistence": self.store is not None, "schema": inputlog.SCHEMA}  # fmt: skip
-            self._on_input(self.unit.now, inputlog.START, start)
+            # (a copy: the input goes out later, and the engine keeps the restored document)
+            self._on_input(self.unit.now, inputlog.START, json.loads(json.dumps(start)))
         self.driver.flush()
         self._emit("admin", self.driver.admin_message())
 
@@ -526,11 +528,12 @@ class UnitNode(Node):
         )
 
     def _on_input(self, t: float, name: str, args: dict[str, Any]) -> None:
+        """An input the engine applied, kept for the input log. Its message is made when the
+        batch goes out (after the statuses, off the path of a command and of the EMs' reports:
+        a fifth of the unit's work per report); the arguments are the engine's own, made for
+        this record and not kept by it."""
         self._input_index += 1
-        self._inputs.append(
-            UnitInput(stamp=convert.stamp(t), index=self._input_index, unit=self.config.name, name=name,
-                      args_json=json.dumps(args, separators=(",", ":")))
-        )  # fmt: skip
+        self._inputs.append((t, self._input_index, name, args))
 
     def _flush_inputs(self) -> None:
         """The input log goes out in batches (every tick, 50 ms), never delaying a status; the
@@ -538,8 +541,10 @@ class UnitNode(Node):
         inputs, self._inputs = self._inputs, []
         if not self.context.ok():
             return  # shutting down: nobody can receive them any more
-        for msg in inputs:
-            self.pub_inputs.publish(msg)
+        unit, publish = self.config.name, self.pub_inputs.publish
+        for t, index, name, args in inputs:
+            publish(convert.build(UnitInput, stamp=convert.stamp(t), index=index, unit=unit, name=name,
+                                  args_json=json.dumps(args, separators=(",", ":"))))  # fmt: skip
 
     def close(self) -> None:
         """Record the unit's shutdown (an event; the StopReason when it was producing), publish

@@ -342,13 +342,40 @@ def test_a_journal_longer_than_the_bound_is_read_up_to_it(
     again.close()
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root writes read-only files")
+#: As root (CI): the store's directory is bind-mounted read-only in a mount namespace of a child
+#: process (root writes a file of mode 0444, but not on a read-only mount).
+READ_ONLY_CHILD = """
+import sys
+from packml_ros2.core import Store, StoreError
+try:
+    Store(sys.argv[1], "u")
+except StoreError as exc:
+    print(f"refused: {exc}")
+else:
+    print("opened")
+"""
+MOUNT_READ_ONLY = 'mount --bind "$1" "$1" && mount -o remount,ro,bind "$1" && shift && exec "$@"'
+
+
 def test_a_read_only_store_is_refused_in_one_line(tmp_path: Path) -> None:
     path = tmp_path / "u.sqlite3"
     used_unit_store(path)
     path.chmod(0o444)
-    with pytest.raises(StoreError, match="not writable"):
-        Store(path, "u")
+    if os.geteuid() != 0:
+        with pytest.raises(StoreError, match="not writable"):
+            Store(path, "u")
+        return
+    run = subprocess.run(
+        ["unshare", "--mount", "--propagation", "private", "sh", "-c", MOUNT_READ_ONLY, "sh",
+         str(tmp_path), sys.executable, "-c", READ_ONLY_CHILD, str(path)],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    if run.returncode != 0 and "mount" in run.stderr:
+        pytest.skip(f"no mount namespace here: {run.stderr.strip()[:200]}")
+    assert run.returncode == 0, run.stderr
+    (line,) = run.stdout.splitlines()
+    assert line.startswith("refused: ") and "not writable" in line, line
+    assert "Traceback" not in run.stderr
 
 
 # -- as the user runs them --------------------------------------------------------------------------
