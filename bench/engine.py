@@ -13,6 +13,10 @@ per command, one dict look-up of (state, command) in the same TR88 table, State 
 by dict look-ups, and what makes the same transitions observable: a sequence number and a record
 per transition in an output queue, drained; no modes, guards, times, EMs or alarms. It is driven
 by the same loop as ours (:func:`cycle_loop`: the clock moved, the outputs drained every cycle).
+Ours queues a transition as plain tuples of its 11 fields (core/outputs.py: typed as its
+``Transition`` when iterated; the unit node reads the fields by position); the loop does not read
+the outputs (nor the floor's 5-field records); ``with_outputs_read`` is ours with every drained
+output read as the unit node reads it, beside it.
 ``floor_lookups_only`` is the floor of earlier runs (the look-ups and a counter, no clock, no
 record, no drain), kept for comparison. Everything runs in this process, interleaved, repeats
 alternating, so machine noise hits all alike; a ratio is the median of the repeats' ratios (each
@@ -59,9 +63,10 @@ class Machine(Protocol):
     def drain(self) -> object: ...
 
 
-def cycle_loop(machine: Machine, now: list[float]) -> Callable[[int], int]:
+def cycle_loop(machine: Machine, now: list[float], read: bool = False) -> Callable[[int], int]:
     """The full cycle ``cycles`` times on ``machine`` (ours or the floor: the same loop), the
-    clock 1 ms further each cycle, the outputs drained; returns the transitions made."""
+    clock 1 ms further each cycle, the outputs drained (and with ``read``, read: every output
+    taken as a publisher takes it); returns the transitions made."""
 
     def run(cycles: int) -> int:
         before = machine.sequence
@@ -72,23 +77,29 @@ def cycle_loop(machine: Machine, now: list[float]) -> Callable[[int], int]:
             command(start)  # Idle -> Starting -> Execute
             command(complete)  # Execute -> Completing -> Complete
             command(reset)  # Complete -> Resetting -> Idle
-            drain()
+            if read:  # as the unit node's publisher reads them (packml_ros2.driver)
+                for kind, item in drain().raw():  # type: ignore[attr-defined]
+                    if kind == "transition":  # (convert.transition unpacks the 11 fields)
+                        _t, _s, (_f, _to, _fm, _tm, _tr, _c, _src, _sk, _d) = item
+            else:
+                drain()
         assert machine.state is State.IDLE
         return machine.sequence - before
 
     return run
 
 
-def ours_cycle_runner(store_folder: str | None = None) -> Callable[[int], int]:
+def ours_cycle_runner(store_folder: str | None = None, read: bool = False) -> Callable[[int], int]:
     """Our unit without EMs; with ``store_folder``, with persistence there (every command
-    journals its changes before it answers)."""
+    journals its changes before it answers); with ``read``, its outputs read as well, as the
+    unit node's publisher reads them (by position, as queued)."""
     now, clock = settable_clock()
     store = Store(Path(store_folder) / "bench.sqlite3", "bench") if store_folder else None
     unit = Unit(unit_config("bench"), clock=clock, store=store)
     unit.command(Cmd.RESET)  # Stopped -> Resetting -> Idle
     assert unit.state is State.IDLE
 
-    return cycle_loop(unit, now)
+    return cycle_loop(unit, now, read)
 
 
 class FloorMachine:
@@ -289,6 +300,7 @@ def main() -> int:
     if theirs is not None:
         runners["packmlpy"] = theirs
     runners["packml_ros2_8_ems_32_alarms"] = ours_with_ems_runner()
+    runners["packml_ros2_outputs_read"] = ours_cycle_runner(read=True)
     with tempfile.TemporaryDirectory(prefix="packml_bench_") as folder:
         runners["packml_ros2_with_persistence"] = ours_cycle_runner(folder)
         samples = measure(runners, args.seconds, args.repeats)
@@ -325,6 +337,14 @@ def main() -> int:
         "us_per_transition_median": ems["us_per_transition_median"],
         "target_us": 3,
         "note": "per transition, including the 8 State Complete reports of each acting state",
+    }
+    read, _ = ratio("packml_ros2_outputs_read", "floor")
+    result["with_outputs_read"] = {
+        "us_per_transition_median": summary(samples["packml_ros2_outputs_read"])[
+            "us_per_transition_median"
+        ],
+        "ratio_over_floor": read,
+        "note": "the drained outputs read as the unit node reads them (records by position)",
     }
     stored = summary(samples["packml_ros2_with_persistence"])
     cost, _ = ratio("packml_ros2_with_persistence", "packml_ros2")

@@ -30,6 +30,7 @@ from .core import config as cfg
 from .core.alarms import AlarmEvent, AlarmManager
 from .core.counters import Counter
 from .core.numbers import NUM_MODES, NUM_STATES, state_name
+from .core.outputs import RawTransition
 from .core.packtags import AdminView, StatusView, date_time_array
 from .core.unit import Transition
 
@@ -164,24 +165,29 @@ def status(v: StatusView) -> Status:
 
 
 def transition(
-    unit: str, t: Transition, mode_names: dict[int, str] | None = None
+    unit: str, t: Transition | RawTransition, mode_names: dict[int, str] | None = None
 ) -> TransitionEvent:
+    """``TransitionEvent`` of a record, typed or as queued (time, sequence, the other fields)."""
+    if isinstance(t, Transition):
+        time, sequence, from_state, to_state, from_mode, to_mode, trigger, command, source, skipped, detail = t  # fmt: skip
+    else:
+        time, sequence, (from_state, to_state, from_mode, to_mode, trigger, command, source, skipped, detail) = t  # fmt: skip
     return TransitionEvent(
-        stamp=stamp(t.time),
+        stamp=stamp(time),
         unit=unit,
-        sequence=t.sequence,
-        from_state=int(t.from_state),
-        to_state=int(t.to_state),
-        from_state_name=state_name(t.from_state),
-        to_state_name=state_name(t.to_state),
-        from_mode=t.from_mode,
-        to_mode=t.to_mode,
-        trigger=int(t.trigger),
-        trigger_name=t.trigger.name,
-        command=int(t.command),
-        source=t.source,
-        skipped_states=[int(s) for s in t.skipped],
-        detail=t.detail,
+        sequence=sequence,
+        from_state=int(from_state),
+        to_state=int(to_state),
+        from_state_name=state_name(from_state),
+        to_state_name=state_name(to_state),
+        from_mode=from_mode,
+        to_mode=to_mode,
+        trigger=int(trigger),
+        trigger_name=trigger.name,
+        command=int(command),
+        source=source,
+        skipped_states=[int(s) for s in skipped],
+        detail=detail,
     )
 
 

@@ -17,6 +17,7 @@ from . import convert
 from .core import Unit, inputlog, snapshot
 from .core.counters import KINDS
 from .core.liveliness import Liveliness
+from .core.outputs import RawTransition
 from .core.packtags import AdminView
 from .core.unit import StatusMark, Transition
 
@@ -99,7 +100,7 @@ class UnitDriver:
 
     def flush(self) -> None:
         unit = self.unit
-        for kind, item in unit.drain():
+        for kind, item in unit.drain().raw():  # (a transition as (time, sequence, other fields))
             if kind == "transition":
                 self.emit("transitions", convert.transition(self.name, item))
                 self.emit("status", self.status_message(item))
@@ -133,5 +134,5 @@ class UnitDriver:
         """The Admin message of ``view`` (default: the unit's admin data now)."""
         return convert.admin(self.unit.admin() if view is None else view, self.cache, self.modes)
 
-    def status_message(self, mark: Transition | StatusMark) -> Any:
+    def status_message(self, mark: Transition | RawTransition | StatusMark) -> Any:
         return convert.status(self.unit.status_at(mark))

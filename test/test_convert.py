@@ -94,3 +94,21 @@ def test_admin_goes_out_on_change_and_as_a_slow_heartbeat() -> None:
         t[0] += 0.25
         unit.advance()
     assert [kind for kind, _ in unit.drain()].count("admin") == 1
+
+
+def test_a_transition_as_queued_converts_as_its_typed_record() -> None:
+    """The unit node reads the drained outputs as queued (Outputs.raw: a transition as plain
+    tuples, time, sequence and the other fields); its TransitionEvent and status equal those of
+    the typed record."""
+    unit = _views()
+    unit.drain()
+    unit.command(Cmd.STOP)
+    out = unit.drain()
+    raw = [item for kind, item in out.raw() if kind == "transition"]
+    typed = [item for kind, item in out if kind == "transition"]
+    assert raw and [type(r) for r in raw] == [tuple] * len(raw)
+    for r, t in zip(raw, typed, strict=True):
+        assert serialize_message(convert.transition("filler", r)) == serialize_message(
+            convert.transition("filler", t)
+        )
+        assert unit.status_at(r) == unit.status_at(t)

@@ -4,6 +4,9 @@ evaluation (deadlines, settling, publication, persistence) every input goes thro
 inputs are concerns of their own, composed into :class:`~.unit.Unit`: the EMs' (:mod:`.em_inputs`),
 alarms (:mod:`.alarm_inputs`), the Admin and Command tags (:mod:`.tag_inputs`); so are what falls
 due on its own (:mod:`.deadline_handlers`) and the views built on request (:mod:`.unit_views`).
+A mode change, once accepted, is :mod:`.mode_change`'s (a base of the machine: it owns the mode's
+fields, which the fast path reads); the transition record and the output queue are
+:mod:`.outputs`'.
 
 A unit is pure Python: it takes its clock as a parameter and never looks at wall time itself.
 Every input (a command, a mode request, an EM report, an alarm...) first advances the engine to the
@@ -13,7 +16,8 @@ recorded clock reproduces the outputs exactly.
 
 What a unit is made of (each part owns its state; together they are the engine's state):
 
-- the machine: ``state``, ``mode``, ``sequence``, the mode change in process (this module);
+- the machine: ``state``, ``sequence`` (this module), ``mode`` and the mode change in process
+  (:class:`~.mode_change.ModeChanges`);
 - :class:`~.equipment.Equipment` (EMs, State Complete aggregation), :class:`~.alarms.AlarmManager`,
   :class:`~.times.ModeStateTimes`, :class:`~.counters.Counters`,
   :class:`~.interlocks.Interlocks`, :class:`~.stopreason.StopReasons`;
@@ -39,8 +43,9 @@ from .deadlines import Deadlines
 from .durable import Durable, document
 from .equipment import Equipment
 from .interlocks import STOP_ID_BLOCKED, STOP_ID_STARVED, Interlocks, interlock_refusal
-from .modes import ModeDef
+from .mode_change import ModeChanges
 from .numbers import Cmd, State, command_name, state_name
+from .outputs import Outputs, Transition
 from .packtags import build_admin
 from .persistence import Store
 from .publication import Publication as _Publication
@@ -71,22 +76,6 @@ from .times import ModeStateTimes
 
 S, C = State, Cmd
 Clock = Callable[[], float]
-
-
-class Transition(NamedTuple):
-    """One state or mode transition (``TransitionEvent``)."""
-
-    time: float
-    sequence: int
-    from_state: State
-    to_state: State
-    from_mode: int
-    to_mode: int
-    trigger: Trigger
-    command: int = 0
-    source: str = ""
-    skipped: tuple[State, ...] = ()
-    detail: str = ""
 
 
 # -- requests of one evaluation step -----------------------------------------------------------------
@@ -152,7 +141,6 @@ _REARM, _STOP = int(Entry.REARM), int(Entry.STOP)
 _NOT_QUIET = ~(_REARM | _RESET_ALARMS | _CLEAR_FIRST_OUT)
 
 _REPORT_OK = Answer(True, Reason.ACCEPTED, "State Complete accepted")
-_new_tuple = tuple.__new__
 #: At most this many rounds of _settle (each applies a queued command or a State Complete).
 _SETTLE_BOUND = range(1000)
 #: Handlers of deadlines, by kind (``_on_<kind>`` of Unit: core/deadline_handlers.py).
@@ -160,7 +148,7 @@ _HANDLERS = ("timeout", "dwell", "mode_timeout", "status", "lamp_off", "admin_ch
              "admin")  # fmt: skip
 
 
-class UnitMachine:
+class UnitMachine(ModeChanges):
     """The state machine of one PackML unit and the evaluation of its inputs (the base of
     :class:`~.unit.Unit`: build that). ``Unit(config, clock)``; optionally a
     :class:`~.persistence.Store`.
@@ -174,17 +162,17 @@ class UnitMachine:
     # on the hot paths gets slower; slots keep them fast (bench/engine.py).
     __slots__ = (  # noqa: RUF023 (grouped by concern, not sorted)
         # the machine
-        "state", "mode", "mode_def", "sequence", "entered_at", "mode_requested",
-        "mode_change_in_process", "_mode_source", "mode_change_not_allowed_until", "_sc_refused",
+        # (the mode and its change: ModeChanges)
+        "state", "sequence", "entered_at", "_sc_refused",
         # Command and Status tags
-        "remote_enabled", "cntrl_cmd", "command_unit_mode", "mach_speed", "parameters", "products",
+        "remote_enabled", "cntrl_cmd", "mach_speed", "parameters", "products",
         "remote_commands",
         # parts
         "config", "rules", "_clock", "store", "_durable", "on_input", "restored", "alert", "stats",
         "times",
         "counters", "alarms", "equipment", "interlocks", "stops", "deadlines", "publication",
         # the compiled rules the hot paths index, and configuration they test
-        "_accepted", "_accepted_mode", "_sc", "_timed",
+        "_accepted", "_sc", "_timed",
         # evaluation
         "_t", "_advance_to", "_internal", "_step_winner", "_restart_detail", "_handlers", "_out",
         # caches
@@ -201,18 +189,12 @@ class UnitMachine:
         now = float(clock())  # the clock returns seconds as a float
         self._t = self._advance_to = now
         self.state = S.STOPPED
-        self.mode = int(config.initial_mode)
-        self.mode_def: ModeDef = config.modes[self.mode]
+        ModeChanges.__init__(self, config, rules.accepted)
         self.sequence = 0
         self.entered_at = now
-        self.mode_requested = self.mode
-        self.mode_change_in_process = False
-        self._mode_source = ""
-        self.mode_change_not_allowed_until = -math.inf
         self._sc_refused = -1  # the sequence whose State Complete was refused
         self.remote_enabled = config.remote_commands_enabled
         self.cntrl_cmd = 0
-        self.command_unit_mode = self.mode
         self.mach_speed = config.mach_speed
         self.parameters: list[Descriptor] = list(config.parameters)
         self.products: list[Product] = list(config.products)
@@ -236,12 +218,11 @@ class UnitMachine:
         self.interlocks = Interlocks(self.alert)
         self.stops = StopReasons(config.planned_stop_ids)
         self.deadlines = Deadlines()
-        self._out: list[tuple[str, Any]] = []  # the output queue (drain)
+        self._out = Outputs()  # the output queue (drain)
         self.publication = _Publication(
             self._queue, self.deadlines, self._status_key, self._admin_key, self.alarms
         )
         self._accepted = rules.accepted
-        self._accepted_mode = rules.accepted[self.mode]  # the current mode's
         self._sc = rules.sc
         self._timed = frozenset(config.timeouts) | frozenset(config.min_dwell)
         self._internal: list[_Cmd] = []
@@ -317,12 +298,11 @@ class UnitMachine:
         entry = self._accepted_mode[self.state].get(cmd)
         if entry is not None and not entry[5] & bits:  # (Accepted.watch)
             # The fast path: the table accepts and no guard of this command watches anything set.
-            final, skipped, answer, number, trigger, _, flags, run = entry
+            run = entry[7]  # (Accepted.run)
             if self.mode_change_in_process:  # (only Stop and Abort watch no mode change)
                 self._abandon_mode_change(f"{command_name(cmd)} from {source}")
             if remote:
-                self._note_remote(number, source)
-            self.cntrl_cmd = number
+                self._note_remote(entry[3], source)
             # A unit without EMs follows the State Completes that come at once as compiled
             # (rules.Run: what _transition's loop does, unrolled) when nothing else that loop
             # looks at is set: a queued command, an interlock's suspension, an alarm list to
@@ -336,16 +316,15 @@ class UnitMachine:
                 and alarms.version == self.publication.alarms_seen
                 and not (run[3] and (alarms.current or alarms.first_out_by_category))
             ):
-                steps, to, between, entered = run
+                tails, to, between, entered, final, skipped, answer, number, trigger, tail = run
+                self.cntrl_cmd = number
                 t, mode, seq, out = self._t, self.mode, self.sequence + 1, self._out.append
-                out(("transition", _new_tuple(Transition, (t, seq, self.state, final, mode, mode,
-                                                           trigger, number, source, skipped,
-                                                           ""))))  # fmt: skip
-                for frm, nxt, step_trigger, step_skipped in steps:
+                if source is not OPERATOR:  # (the compiled tail names the operator)
+                    tail = (tail[0], final, mode, mode, trigger, number, source, skipped, "")
+                out(("transition", (t, seq, tail)))
+                for tail in tails:
                     seq += 1
-                    out(("transition", _new_tuple(Transition, (t, seq, frm, nxt, mode, mode,
-                                                               step_trigger, 0, "unit",
-                                                               step_skipped, ""))))  # fmt: skip
+                    out(("transition", (t, seq, tail)))
                 stops = self.stops
                 if entered & _REARM:
                     stops.armed = True  # all the entry actions do: no alarm or first-out to reset
@@ -359,6 +338,8 @@ class UnitMachine:
                     self.equipment.begin(to, seq)
                 more = self.interlocks.busy
             else:
+                final, skipped, answer, number, trigger, _, flags, _ = entry
+                self.cntrl_cmd = number
                 more = self._transition(final, trigger, number, source, skipped, "", None, True,
                                         flags)  # fmt: skip
             if not more:
@@ -392,7 +373,7 @@ class UnitMachine:
         self._enter()
         source = source or OPERATOR
         self._record(inputlog.MODE, mode, source)
-        answer = self._apply_mode(ModeRequest(mode, source))
+        answer = self._apply_mode(mode, source)
         self._leave()
         return answer
 
@@ -410,7 +391,7 @@ class UnitMachine:
             if isinstance(r, CommandRequest):
                 answers[i] = self._apply_command(int(r.cmd), r.source or OPERATOR, start_state)
             elif isinstance(r, ModeRequest):
-                answers[i] = self._apply_mode(r)
+                answers[i] = self._apply_mode(r.mode, r.source)
             else:
                 answers[i] = self._apply_report(r.em, r.state, r.sequence)
         self._leave()
@@ -531,14 +512,14 @@ class UnitMachine:
     # ================================================================================================
     # Outputs and views
     # ================================================================================================
-    def drain(self) -> list[tuple[str, Any]]:
+    def drain(self) -> Outputs:
         """Outputs since the last call, in order: ("transition", Transition), ("status",
         StatusMark), ("alarms", version), ("admin", AdminView), ("log", (level, text)).
 
         A status is due after every transition (publish :meth:`status_at` of the transition
         record) and at every ("status", mark) — changes that were not transitions. Marks and
         records are cheap; building the StatusView is left to the publisher."""
-        out, self._out = self._out, []
+        out, self._out = self._out, Outputs()
         return out
 
     @property
@@ -569,10 +550,6 @@ class UnitMachine:
         state = self.state if state is None else state
         return self.rules.settles_in(state)
 
-    @property
-    def mode_change_not_allowed(self) -> bool:
-        return self._t < self.mode_change_not_allowed_until
-
     # -- what the guards read (rules.Situation) ----------------------------------------------------------
     def missing_names(self) -> list[str]:
         return [em.name for em in self.equipment.missing()]
@@ -585,13 +562,6 @@ class UnitMachine:
 
     def interlock_reasons(self) -> list[str]:
         return self.interlocks.reasons()
-
-    def mode_change_text(self) -> str:
-        waiting = ", ".join(sorted(self.equipment.pending)) or "none"
-        return (
-            f"mode change {self.mode_def.name} -> {self._mode_name(self.mode_requested)} in "
-            f"process (waiting for EMs: {waiting})"
-        )
 
     # ================================================================================================
     # The state machine
@@ -740,8 +710,8 @@ class UnitMachine:
                     self._entry_actions(to, skipped, trigger, cmd, source, cause)
                     special = interlocks.suspended
                     alarms_changed = alarms.version != self.publication.alarms_seen
-            out(("transition", _new_tuple(Transition, (t, seq, frm, to, mode, mode, trigger, cmd,
-                                                       source, skipped, detail))))  # fmt: skip
+            out(("transition", (t, seq, (frm, to, mode, mode, trigger, cmd, source, skipped,
+                                         detail))))  # fmt: skip
             if alarms_changed:  # the alarm list goes with the transition
                 self.publication.alarms_changed()
                 alarms_changed = False
@@ -880,21 +850,18 @@ class UnitMachine:
         self._internal.append(_Cmd(cmd, "interlock", Trigger.INTERLOCK, detail, stop_id=stop_id))
         return True
 
-    # -- modes ---------------------------------------------------------------------------------------------
-    def _mode_name(self, number: int) -> str:
-        m = self.config.modes.get(number)
-        return m.name if m else f"MODE_{number}"
-
-    def _apply_mode(self, r: ModeRequest) -> Answer:
-        target = self._find_mode(r.mode)
+    # -- modes (the rest of a mode change: core/mode_change.py) ---------------------------------
+    def _apply_mode(self, mode: int | str, source: str) -> Answer:
+        """A mode change request (by number or name) from ``source``: judged, then begun."""
+        target = self._find_mode(mode)
         if target is None:
             configured = ", ".join(f"{n} {m.name}" for n, m in sorted(self.config.modes.items()))
             return Answer.no(
                 Reason.MODE_UNKNOWN,
-                f"mode {r.mode!r} is not configured on {self.config.name} (now {state_name(self.state)} "
+                f"mode {mode!r} is not configured on {self.config.name} (now {state_name(self.state)} "
                 f"in {self.mode_def.name} mode; configured: {configured})",
             )
-        refused = self._locked(f"mode change to {target.name}", r.source)
+        refused = self._locked(f"mode change to {target.name}", source)
         if refused is not None:
             return refused
         if self.mode_change_in_process:
@@ -919,50 +886,12 @@ class UnitMachine:
         self.command_unit_mode = target.number
         self.mode_requested = target.number
         self._mode_changing(True)
-        self._mode_source = r.source
+        self._mode_source = source
         self.sequence += 1
         self.equipment.begin_mode_change(self.sequence)
         self.deadlines.at(self._t + self.config.mode_change_timeout, "mode_timeout", self.sequence)
         self._status_now()
         return Answer.ok(f"mode change {self.mode_def.name} -> {target.name} accepted")
-
-    def _mode_changing(self, on: bool) -> None:
-        self.mode_change_in_process = on
-        self.alert.set(Watch.MODE_CHANGE, on)
-
-    def _abandon_mode_change(self, why: str) -> None:
-        """A fault command arrived while a mode change was in process: the mode stays."""
-        target = self.mode_requested
-        self.mode_requested = self.mode
-        self._mode_changing(False)
-        self._rev += 1
-        self._log(
-            "warn",
-            f"mode change {self.mode_def.name} -> {self._mode_name(target)} abandoned: {why}",
-        )
-
-    def _find_mode(self, mode: int | str) -> ModeDef | None:
-        if isinstance(mode, str) and not mode.strip().isdigit():
-            return self.config.mode_by_name(mode)
-        return self.config.modes.get(int(mode))
-
-    def _finish_mode_change(self) -> None:
-        frm = self.mode
-        self.mode = self.mode_requested
-        self.mode_def = self.config.modes[self.mode]
-        self._accepted_mode = self._accepted[self.mode]
-        self._mode_changing(False)
-        self.times.enter(self._t, self.mode, self.state, self._planned())
-        self.equipment.end_aggregation()
-        self._out.append(
-            ("transition", Transition(self._t, self.sequence, self.state, self.state, frm, self.mode,
-                                      Trigger.MODE, 0, self._mode_source, (),
-                                      f"{self._mode_name(frm)} -> {self.mode_def.name}"))
-        )  # fmt: skip
-        self.publication.with_record()
-        self._log(
-            "info", f"mode {self._mode_name(frm)} -> {self.mode_def.name} ({self._mode_source})"
-        )
 
     # -- alarms inside -------------------------------------------------------------------------------------
     def _raise(
@@ -1023,6 +952,10 @@ class UnitMachine:
 
     def _log(self, level: str, text: str) -> None:
         self.publication.log(level, text)
+
+    def _changed(self) -> None:
+        """Something a status shows changed that no part's version counts."""
+        self._rev += 1
 
     # -- persistence (core/durable.py) ------------------------------------------------------------
     def document(self) -> dict[str, Any]:

@@ -648,21 +648,24 @@ class Accepted(NamedTuple):
     run: Run | None = None  #: the State Completes that follow at once without EMs
 
 
-#: One State Complete of a :class:`Run`: (from, to, trigger, skipped).
-RunStep = tuple[State, State, Trigger, tuple[State, ...]]
+#: What follows a transition record's time and sequence: the other :class:`~.outputs.Transition`
+#: fields in their order (from, to, from mode, to mode, trigger, command, source, skipped, detail).
+RecordTail = tuple[State, State, int, int, Trigger, int, str, tuple[State, ...], str]
 
-
-class Run(NamedTuple):
-    """What follows an accepted command at once in a unit without EMs: the State Completes of
-    the states that complete immediately (:data:`AT_ONCE_WITHOUT_EMS`), up to the state that
-    waits. Compiled from the same :class:`ScStep` entries; None (no run: the engine's general
-    loop decides) where a state on the way is timed (timeout, minimum dwell), where State
-    Complete leads into a disabled state, or where an entry action records a StopReason."""
-
-    steps: tuple[RunStep, ...]  #: the State Completes, in order
-    final: State  #: where the unit waits
-    between: tuple[State, ...]  #: states entered after the command's and before ``final``
-    entry: int  #: Entry flags of every state entered (re-arm, alarm and first-out resets only)
+#: What follows an accepted command at once in a unit without EMs: the State Completes of the
+#: states that complete immediately (:data:`AT_ONCE_WITHOUT_EMS`), up to the state that waits.
+#: Compiled from the same :class:`ScStep` entries; None (no run: the engine's general loop
+#: decides) where a state on the way is timed (timeout, minimum dwell), where State Complete
+#: leads into a disabled state, or where an entry action records a StopReason. A plain tuple,
+#: everything the engine's fast path reads at once (CPython unpacks a plain tuple fastest):
+#:
+#: ``(tails, final, between, entry, command's final, its skipped, answer, cmd, trigger, tail)``:
+#: the record tails of the State Completes in order (made once: only time and sequence vary);
+#: where the unit waits; the states entered after the command's and before ``final``; the Entry
+#: flags of every state entered (re-arm, alarm and first-out resets only); the command's own
+#: :class:`Accepted` fields; the record tail of the command's transition from the operator.
+Run = tuple[tuple[RecordTail, ...], State, tuple[State, ...], int,
+            State, tuple[State, ...], Answer, int, Trigger, RecordTail]  # fmt: skip
 
 
 class ScStep(NamedTuple):
@@ -714,7 +717,7 @@ class Rules:
                  interlock_reaction: int = C.SUSPEND,
                  timed: frozenset[State] = frozenset()) -> None:  # fmt: skip
         self.table = table
-        #: States with a timeout or a minimum dwell: no :class:`Run` goes through them.
+        #: States with a timeout or a minimum dwell: no :data:`Run` goes through them.
         self.timed = timed
         self.modes = dict(modes)
         #: The guards in force: the interlock guard only where interlocks act.
@@ -762,18 +765,21 @@ class Rules:
             trigger = Trigger.SKIP if skipped else Trigger.STATE_COMPLETE
             steps[state] = ScStep(final, skipped, trigger, final not in disabled,
                                   _entry_of(skipped, final))  # fmt: skip
-        for by_cmd in accepted:
+        for state, by_cmd in zip(State, accepted, strict=False):
             for key, a in by_cmd.items():
-                by_cmd[key] = a._replace(run=self._run(a.final, a.entry, steps))
+                by_cmd[key] = a._replace(run=self._run(state, number, a, steps))
         self.accepted[number] = accepted
         self.refused[number] = refused
         self.sc[number] = steps
 
-    def _run(self, state: State, entry: int, sc: list[ScStep | None]) -> Run | None:
-        """The :class:`Run` after entering ``state`` (with ``entry`` flags) by a command."""
-        steps: list[RunStep] = []
+    def _run(self, start: State, mode: int, accepted: Accepted, sc: list[ScStep | None]
+             ) -> Run | None:  # fmt: skip
+        """The :data:`Run` after the command ``accepted`` took the unit from ``start`` (in
+        ``mode``) into its final state."""
+        steps: list[RecordTail] = []
         between: list[State] = []
-        first = state
+        first = state = accepted.final
+        entry = accepted.entry
         while True:
             if state in self.timed:
                 return None
@@ -784,12 +790,15 @@ class Rules:
                 return None
             if state is not first:
                 between.append(state)
-            steps.append((state, step.final, step.trigger, step.skipped))
+            steps.append((state, step.final, mode, mode, step.trigger, 0, "unit", step.skipped, ""))
             entry |= step.entry
             state = step.final
         if entry & Entry.STOP:
             return None
-        return Run(tuple(steps), state, tuple(between), entry)
+        tail = (start, accepted.final, mode, mode, accepted.trigger, accepted.cmd, OPERATOR,
+                accepted.skipped, "")  # fmt: skip
+        return (tuple(steps), state, tuple(between), entry, accepted.final, accepted.skipped,
+                accepted.answer, accepted.cmd, accepted.trigger, tail)  # fmt: skip
 
     # -- the table's verdict ------------------------------------------------------------------------
     def table_verdict(self, state: State, mode: int, cmd: int) -> Verdict:
@@ -979,6 +988,7 @@ __all__ = [
     "Edge",
     "Entry",
     "Guard",
+    "RecordTail",
     "Rules",
     "Run",
     "ScStep",

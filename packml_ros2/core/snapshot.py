@@ -27,6 +27,7 @@ from . import inputlog
 from .alarms import AlarmEvent
 from .equipment import EquipmentModule
 from .numbers import NUM_MODES, NUM_STATES, State
+from .outputs import Outputs
 
 if TYPE_CHECKING:
     from .config import UnitConfig
@@ -175,6 +176,7 @@ def capture(unit: Unit) -> dict[str, Any]:
             "planned": times._planned,
             "modes_used": sorted(times.modes_used),
             "since": times._since,
+            "mode_since": times._mode_since,
             "resets": times.resets,
         },
         "counters": {
@@ -345,6 +347,8 @@ def _restore(unit: Unit, d: Mapping[str, Any]) -> None:
     times._planned = bool(t["planned"])
     times.modes_used = {int(x) for x in t["modes_used"]}
     times._since = float(t["since"])
+    # (snapshots before the mode figures had a clock of their own held them as of "since")
+    times._mode_since = float(t.get("mode_since", t["since"]))
     times.resets = int(t["resets"])
     if not 0 <= times._mode < NUM_MODES or not 0 <= times._state < NUM_STATES:
         raise SnapshotError(f"times of mode {times._mode} state {times._state}: out of range")
@@ -399,7 +403,7 @@ def _restore(unit: Unit, d: Mapping[str, Any]) -> None:
     pub.alarms_seen = int(p["alarms_seen"])
 
     unit._valid_cache.clear()
-    unit._out = []
+    unit._out = Outputs()
     unit._internal = []
     unit.restored = None
     durable = unit._durable

@@ -3,7 +3,10 @@
 
 Time only advances at state and mode changes (:meth:`ModeStateTimes.enter_states`,
 :meth:`ModeStateTimes.enter`) and is read at any instant with :meth:`snapshot`, so results depend
-on the clock values passed in, never on when the caller happened to look.
+on the clock values passed in, never on when the caller happened to look. A state change (the
+hot path: every transition) closes only the current figures and the state's cumulative time;
+the mode's cumulative time and AccTimeSinceReset are closed at mode changes and resets, and read
+as stored plus the time since.
 """
 
 from __future__ import annotations
@@ -31,7 +34,11 @@ class TimesSnapshot:
 
 
 class ModeStateTimes:
-    """Accumulates seconds of the current mode and (mode, state) between changes."""
+    """Accumulates seconds of the current mode and (mode, state) between changes.
+
+    Two clocks: the current times, the (mode, state) cumulative times and the planned stop are
+    stored as of ``_since`` (the last state change), ModeCumulativeTime and AccTimeSinceReset as
+    of ``_mode_since`` (the last mode change or reset); a reading adds the time since."""
 
     def __init__(self, now: float, mode: int, state: int) -> None:
         self.mode_current = [0.0] * NUM_MODES
@@ -46,20 +53,28 @@ class ModeStateTimes:
         self._planned = False
         self.modes_used: set[int] = {mode}  # only these modes can hold non-zero times
         self._since = now
+        self._mode_since = now
         self.resets = 0  # +1 at every reset (persistence compares; state and mode changes it sees)
 
     # -- accumulation ------------------------------------------------------------------------------
     def _close(self, now: float) -> None:
+        """Bring every figure up to ``now`` (a mode change, a reset)."""
+        self._close_state(now)
+        dt = now - self._mode_since
+        if dt <= 0.0:
+            return
+        self.mode_cumulative[self._mode] += dt
+        self.acc_time_since_reset += dt
+        self._mode_since = now
+
+    def _close_state(self, now: float) -> None:
         dt = now - self._since
         if dt <= 0.0:
             return
-        m = self._mode
-        i = m * NUM_STATES + self._state
-        self.mode_current[m] += dt
-        self.mode_cumulative[m] += dt
+        i = self._base + self._state
+        self.mode_current[self._mode] += dt
         self.state_current[i] += dt
         self.state_cumulative[i] += dt
-        self.acc_time_since_reset += dt
         if self._planned:
             self.planned_stop += dt
         self._since = now
@@ -70,7 +85,7 @@ class ModeStateTimes:
         in the current mode at ``now``: a command and the State Completes that followed at once,
         one call for them all. ``planned``: ``last`` is a planned stop (OEE)."""
         if now > self._since:
-            self._close(now)
+            self._close_state(now)
         current = self.state_current
         base = self._base
         current[base + first] = 0.0
@@ -102,6 +117,7 @@ class ModeStateTimes:
         self.resets += 1
         self._close(now)
         self._since = max(self._since, now)
+        self._mode_since = max(self._mode_since, now)
         m = self._mode
         self.mode_current[m] = self.mode_cumulative[m] = 0.0
         for i in range(m * NUM_STATES, (m + 1) * NUM_STATES):
@@ -112,6 +128,7 @@ class ModeStateTimes:
         self.resets += 1
         self._close(now)
         self._since = max(self._since, now)
+        self._mode_since = max(self._mode_since, now)
         for values in (
             self.mode_current,
             self.mode_cumulative,
@@ -126,19 +143,20 @@ class ModeStateTimes:
     def live(self, now: float) -> tuple[list[float], list[float], list[float], list[float], float]:
         """Float seconds as of ``now`` without changing anything."""
         dt = max(0.0, now - self._since)
+        mode_dt = max(0.0, now - self._mode_since)
         mc, mcum = list(self.mode_current), list(self.mode_cumulative)
         sc, scum = list(self.state_current), list(self.state_cumulative)
         m = self._mode
         i = m * NUM_STATES + self._state
         mc[m] += dt
-        mcum[m] += dt
+        mcum[m] += mode_dt
         sc[i] += dt
         scum[i] += dt
-        return mc, mcum, sc, scum, self.acc_time_since_reset + dt
+        return mc, mcum, sc, scum, self.acc_time_since_reset + mode_dt
 
     def acc_at(self, now: float) -> float:
         """AccTimeSinceReset as of ``now``."""
-        return self.acc_time_since_reset + max(0.0, now - self._since)
+        return self.acc_time_since_reset + max(0.0, now - self._mode_since)
 
     def planned_stop_at(self, now: float) -> float:
         return self.planned_stop + (max(0.0, now - self._since) if self._planned else 0.0)
@@ -176,6 +194,7 @@ class ModeStateTimes:
         """Sparse: only non-zero entries of the modes ever used, keyed by index. This runs at
         every transition (persistence), so it touches 18 entries per used mode, not 576."""
         dt = max(0.0, now - self._since)
+        mode_dt = max(0.0, now - self._mode_since)
         cur_mode, cur_index = self._mode, self._mode * NUM_STATES + self._state
         indices = [m * NUM_STATES + s for m in sorted(self.modes_used) for s in range(NUM_STATES)]
 
@@ -184,17 +203,17 @@ class ModeStateTimes:
             out[str(cur_index)] = values[cur_index] + dt
             return out
 
-        def sparse_modes(values: list[float]) -> dict[str, float]:
+        def sparse_modes(values: list[float], since: float) -> dict[str, float]:
             out = {str(m): values[m] for m in self.modes_used if values[m]}
-            out[str(cur_mode)] = values[cur_mode] + dt
+            out[str(cur_mode)] = values[cur_mode] + since
             return out
 
         return {
-            "mode_current": sparse_modes(self.mode_current),
-            "mode_cumulative": sparse_modes(self.mode_cumulative),
+            "mode_current": sparse_modes(self.mode_current, dt),
+            "mode_cumulative": sparse_modes(self.mode_cumulative, mode_dt),
             "state_current": sparse_states(self.state_current),
             "state_cumulative": sparse_states(self.state_cumulative),
-            "acc_time_since_reset": self.acc_time_since_reset + dt,
+            "acc_time_since_reset": self.acc_time_since_reset + mode_dt,
             "planned_stop": self.planned_stop_at(now),
         }
 
@@ -211,6 +230,6 @@ class ModeStateTimes:
                         self.modes_used.add(int(index) // NUM_STATES)
         self.acc_time_since_reset = float(data.get("acc_time_since_reset", 0.0))
         self.planned_stop = float(data.get("planned_stop", 0.0))
-        self._since = now
+        self._since = self._mode_since = now
         self.mode_current[:] = [0.0] * NUM_MODES  # a restarted unit entered its mode just now
         self.state_current[self._mode * NUM_STATES + self._state] = 0.0

@@ -11,6 +11,9 @@ A :class:`Unit` is composed of its inputs by concern, each in its own module:
 
 - :mod:`.machine`: the state machine (commands, modes, State Complete, the step) and the
   evaluation every input goes through (deadlines, settling, publication, persistence);
+- :mod:`.mode_change`: a mode change once accepted (awaited, finished, abandoned), and the
+  mode's fields;
+- :mod:`.outputs`: the transition record and the queue outputs are drained in;
 - :mod:`.em_inputs`: what the equipment modules tell it (seen, lost, requests, interlocks, counts,
   switched active);
 - :mod:`.alarm_inputs`: alarms raised, cleared, acknowledged and reset;

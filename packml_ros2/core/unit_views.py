@@ -7,8 +7,9 @@ publication and the guards read while an input is evaluated stays with the machi
 from __future__ import annotations
 
 from .equipment import EquipmentModule
-from .machine import Transition, UnitMachine
+from .machine import UnitMachine
 from .numbers import State
+from .outputs import RawTransition, Transition
 from .packtags import AdminView, StatusView, build_admin, build_status
 from .publication import StatusMark
 
@@ -18,12 +19,15 @@ class UnitViews(UnitMachine):
 
     __slots__ = ()
 
-    def status_at(self, mark: StatusMark | Transition) -> StatusView:
-        """The status at a drained transition or mark: its state, sequence and time, the other
-        fields as they are now."""
+    def status_at(self, mark: StatusMark | Transition | RawTransition) -> StatusView:
+        """The status at a drained transition (typed or as queued) or mark: its state, sequence
+        and time, the other fields as they are now."""
+        if isinstance(mark, StatusMark):
+            return build_status(self, mark.time, State(mark.state), mark.sequence)
         if isinstance(mark, Transition):
             return build_status(self, mark.time, mark.to_state, mark.sequence)
-        return build_status(self, mark.time, State(mark.state), mark.sequence)
+        time, sequence, tail = mark
+        return build_status(self, time, tail[1], sequence)  # (tail[1]: the state entered)
 
     def status(self) -> StatusView:
         return build_status(self, self._t, self.state, self.sequence)
