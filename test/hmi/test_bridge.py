@@ -51,7 +51,9 @@ class Cell:
 
     def __init__(self, ros: Any, tmp_path: Path, token: str | None, lease: float,
                  users: dict[str, Any] | None = None) -> None:  # fmt: skip
-        self.file, self.cell = write_cell(tmp_path, {UNIT: dict(UNIT_DOC)})
+        # (the cell file's unit_lease is the bridge's: a unit started from it as a process
+        # offers the lease the bridge asks for)
+        self.file, self.cell = write_cell(tmp_path, {UNIT: dict(UNIT_DOC)}, {"unit_lease": lease})
         self.config = load_cell(self.file)
         self.lease = lease
         self.node = self.start_unit(ros)
@@ -299,7 +301,7 @@ def test_alarms_are_acknowledged_and_reset_through_the_bridge(make_cell) -> None
     cell.wait_event(lambda e: e["topic"] == "alarms" and not e["data"]["alarms"], "empty", mark)
 
 
-def test_a_unit_that_is_gone_is_lost_within_its_lease_and_comes_back(make_cell, ros) -> None:
+def test_a_unit_that_is_gone_is_lost_within_its_lease_and_comes_back(make_cell, processes) -> None:
     cell = make_cell(lease=1.0)
     if not cell.first_snapshot["units"][UNIT]["online"]:  # (else present before it subscribed)
         cell.wait_event(lambda e: e["topic"] == "online" and e["data"]["present"], "present")
@@ -321,7 +323,11 @@ def test_a_unit_that_is_gone_is_lost_within_its_lease_and_comes_back(make_cell, 
         answer["result_name"] == "UNIT_UNAVAILABLE" and "not reachable since" in answer["message"]
     )
     assert time.monotonic() - started < 0.5, "not at once"
-    cell.node = cell.start_unit(ros)
+    # It comes back as a unit restarted on a cell does: a process of its own. (A status writer
+    # made again in this test's own DDS participant is not reliably reported alive to the
+    # bridge's readers in that participant: Fast DDS follows a local writer's liveliness apart,
+    # eProsima/Fast-DDS#6306; it failed 1 run in 6 here. A cell's units never share the HMI's.)
+    processes.module("unit", "packml_ros2.unit_node", str(cell.file), UNIT)
     # (from after the loss: the first presence event may arrive after the mark)
     after = next(i for i, e in enumerate(cell.events.messages) if e is lost) + 1
     back = cell.wait_event(lambda e: e["topic"] == "online" and e["data"]["present"], "back", after)
