@@ -386,40 +386,46 @@ def interleave(patterns: list[Pattern], cycles: int) -> None:
 def measure_em_count(
     client: Client, procs: Processes, workdir: Path, ems: int, cycles: int
 ) -> dict[str, object]:
-    """The unit with ``ems`` EM processes beside its floors, measured interleaved: the rclpy
-    floor, the fan-out floor (one topic, as the unit's status) and, with EMs, the fan-out floor
-    whose last message goes to the client only. The ratios are those of the same minutes."""
-    ns = f"/bench_floor_{ems}"
-    floor = floor_pattern(client, procs, ns)
+    """The unit with ``ems`` EM processes beside its floors, measured interleaved (the ratios
+    are those of the same minutes): the rclpy floor and the fan-out floor (one topic, as the
+    unit's status); then, with EMs, the fan-out floor whose last message goes to the client only
+    beside the unit again (one floor's processes at a time: each idle process adds DDS
+    discovery traffic that every other one handles)."""
+    floor = floor_pattern(client, procs, f"/bench_floor_{ems}")
     fan = fanout_pattern(client, procs, f"/bench_fanout_{ems}", ems)
-    fan2 = fanout_pattern(client, procs, f"/bench_fanout2_{ems}", ems, one_topic=False) if ems else None  # fmt: skip
     unit, info = unit_pattern(client, procs, workdir, ems)
-    patterns = [p for p in (floor, fan, fan2, unit) if p is not None]
     try:
-        interleave(patterns, cycles)
+        interleave([floor, fan, unit], cycles)
     finally:
-        for p in patterns:
-            if p is not unit:
-                p.stop()
-    hops = (
-        measure_hops(client, info["cell"], info["topic"], info["triggers"], max(cycles // 2, 10))  # type: ignore[arg-type]
-        if ems
-        else None
-    )
+        floor.stop()
+        fan.stop()
+    beside_floors, unit.samples = unit.samples, []
     unit_proc, em_procs = info["unit"], info["ems"]
     result: dict[str, object] = {
-        "idle_to_execute": summary_ms([x[0] for x in unit.samples]),
-        "stop_to_stopped": summary_ms([x[1] for x in unit.samples]),
+        "idle_to_execute": summary_ms([x[0] for x in beside_floors]),
+        "stop_to_stopped": summary_ms([x[1] for x in beside_floors]),
         "floor": summary_ms([x[0] for x in floor.samples]),
         "fanout_floor": summary_ms([x[0] for x in fan.samples]),
         "unit_rss_mb": rss_mb(unit_proc.pid),  # type: ignore[attr-defined]
     }
-    if fan2 is not None:
-        result["fanout_floor_last_message_to_the_client_only"] = summary_ms([x[0] for x in fan2.samples])  # fmt: skip
-    if em_procs:
+    if ems:
+        fan2 = fanout_pattern(client, procs, f"/bench_fanout2_{ems}", ems, one_topic=False)
+        try:
+            interleave([fan2, unit], cycles)
+        finally:
+            fan2.stop()
+        two = summary_ms([x[0] for x in fan2.samples])
+        result["fanout_floor_last_message_to_the_client_only"] = {
+            **two, "unit_beside_it_p50_ms": summary_ms([x[0] for x in unit.samples])["p50_ms"]
+        }  # fmt: skip
         result["em_rss_mb"] = rss_mb(em_procs[0].pid)  # type: ignore[index]
-    if hops is not None:
-        result["hops_idle_to_execute"] = hops
+        result["hops_idle_to_execute"] = measure_hops(
+            client,
+            info["cell"],
+            info["topic"],
+            info["triggers"],
+            max(cycles // 2, 10),  # type: ignore[arg-type]
+        )
     unit.stop()
     return result
 
@@ -555,7 +561,8 @@ def main() -> int:
         data["idle_to_execute_over_fanout_floor"] = round(p50 / data["fanout_floor"]["p50_ms"], 2)  # type: ignore[index]
         two = data.get("fanout_floor_last_message_to_the_client_only")
         if two is not None:
-            data["idle_to_execute_over_fanout_floor_client_only"] = round(p50 / two["p50_ms"], 2)  # type: ignore[index]
+            beside = two["unit_beside_it_p50_ms"]  # type: ignore[index]
+            data["idle_to_execute_over_fanout_floor_client_only"] = round(beside / two["p50_ms"], 2)  # type: ignore[index]
     if composed is not None:
         result["unit_with_composed_ems"] = {"ems_in_one_process": args.composed, **composed}
     if b2b is not None:
