@@ -441,12 +441,12 @@ class UnitNode(Node):
             due = min(due, leave_at)
         if self._inputs and now + INPUT_LOG_DELAY < due:
             due = now + INPUT_LOG_DELAY
-        if due >= self._wake_at or self._closed:
-            # Armed for then or sooner (or nothing is due): that wake-up arms for what is due
-            # after it. Re-arming only for something sooner keeps the EMs' reports, each of
-            # which moves a lease expiry later, from resetting the timer one by one.
+        if due == self._wake_at or self._closed:
             return
         self._wake_at = due
+        if due == math.inf:
+            self._wake.cancel()
+            return
         self._wake.timer_period_ns = max(int((due - now) * 1e9), 1)
         self._wake.reset()
 
