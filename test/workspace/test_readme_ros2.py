@@ -56,9 +56,18 @@ def test_every_ros2_command_of_the_readme_against_the_demo_cell(tmp_path: Path) 
                 if nodes.stdout.count("/demo_cell/") >= 10 or time.monotonic() > deadline:
                     break
             for command, expected in readme_ros2_commands():
-                result = shell(command, tmp_path, ROOT, timeout=60)
+                # The graph is eventually consistent: a daemon busy past ros2cli's timeout makes
+                # the command fall back to a node of its own that has not discovered the cell
+                # yet (`ros2 node list` printed nothing once, right after listing all 13 nodes).
+                # A command is run again until its output shows what the README shows, or 30 s.
+                tried_until = time.monotonic() + 30
+                while True:
+                    result = shell(command, tmp_path, ROOT, timeout=60)
+                    missing = shown_in(expected, result.stdout)
+                    done = result.returncode == 0 and missing is None
+                    if done or time.monotonic() > tried_until:
+                        break
                 assert result.returncode == 0, f"$ {command}\n{result.stdout}"
-                missing = shown_in(expected, result.stdout)
                 assert missing is None, (
                     f"$ {command}\nthe README shows {missing!r}; the output was:\n{result.stdout}"
                 )
