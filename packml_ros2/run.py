@@ -4,6 +4,7 @@ Ctrl-C / SIGTERM (exit code 0, no traceback)."""
 from __future__ import annotations
 
 import contextlib
+import faulthandler
 import os
 import signal
 import sys
@@ -93,7 +94,10 @@ def spin(
 ) -> int:
     """Spin ``nodes`` until Ctrl-C or SIGTERM, then shut down in order; returns the exit code.
     ``on_shutdown`` runs first, while the nodes can still publish (:func:`shutdown_reason` says
-    why); then the executors and the nodes are destroyed.
+    why); then the executors and the nodes are destroyed. From then on the process has
+    :data:`TEARDOWN_LIMIT` to end, here and in the interpreter's exit after ``spin`` returns
+    (then every thread's stack goes to stderr and the process exits): ``spin`` is the last thing
+    a node process does.
 
     ``threads``: 0 or 1 = one thread (:func:`make_executor`), also for several nodes whose
     callbacks never block; more = a multi-threaded executor with that many
@@ -131,10 +135,9 @@ def spin(
         try:
             if on_shutdown is not None:
                 on_shutdown()
-            # what the nodes keep is saved: the teardown below (executors, DDS) may not hang
-            watchdog = threading.Timer(TEARDOWN_LIMIT, _teardown_overdue)
-            watchdog.daemon = True
-            watchdog.start()
+            # what the nodes keep is saved: the teardown below (executors, DDS) and the
+            # interpreter's exit after spin returns may not hang
+            _guard_teardown()
             for ex in (executor, side) if side is not None else (executor,):
                 _drain(ex, timeout=2.0)
                 ex.shutdown(timeout_sec=2)
@@ -143,7 +146,6 @@ def spin(
             for node in [*nodes, *blocking]:
                 node.destroy_node()
             rclpy.try_shutdown()
-            watchdog.cancel()
         finally:
             for s, handler in previous.items():
                 if handler is not None:  # None: installed outside Python, cannot be put back
@@ -151,15 +153,31 @@ def spin(
     return 0
 
 
-#: s: after ``on_shutdown`` (the nodes have saved what they keep) the executors and DDS get this
-#: long to end; then the process exits anyway, code 0 (a teardown stuck in the middleware once in
-#: a few runs: ros2 launch would SIGKILL it, packml launch report it)
+#: s: after ``on_shutdown`` (the nodes have saved what they keep) the executors, DDS and the
+#: interpreter's exit get this long; then the process writes every thread's stack to stderr and
+#: exits anyway, code 0 (a teardown stuck in the middleware once in a few runs: ros2 launch
+#: would SIGKILL it, packml launch report it)
 TEARDOWN_LIMIT = 6.0
+#: s: the last resort, TEARDOWN_LIMIT + this: a C thread of faulthandler that needs no GIL (a
+#: teardown stuck inside C++ that holds the GIL stops every Python thread, the timer above and
+#: the signal handlers too) writes the stacks and exits with code 1
+HELD_GIL_GRACE = 4.0
+
+
+def _guard_teardown() -> None:
+    """Arm both watchdogs; neither is cancelled: they end with the process (the interpreter's
+    own exit, after spin returns, joins threads and destroys rclpy's C++ objects: it can hang
+    too). ``spin`` is the last thing a node process does."""
+    faulthandler.dump_traceback_later(TEARDOWN_LIMIT + HELD_GIL_GRACE, exit=True)
+    watchdog = threading.Timer(TEARDOWN_LIMIT, _teardown_overdue)
+    watchdog.daemon = True
+    watchdog.start()
 
 
 def _teardown_overdue() -> None:
     print(f"the ROS 2 teardown did not end within {TEARDOWN_LIMIT:g} s after the nodes were "
-          "closed: exiting", file=sys.stderr, flush=True)  # fmt: skip
+          "closed: exiting; where it was:", file=sys.stderr, flush=True)  # fmt: skip
+    faulthandler.dump_traceback(sys.stderr, all_threads=True)
     os._exit(0)
 
 

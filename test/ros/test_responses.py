@@ -290,3 +290,71 @@ def test_a_teardown_that_hangs_after_the_nodes_closed_still_ends_the_process() -
     assert out.returncode == 0 and out.stdout.split() == ["saved"], out.stdout + out.stderr
     assert "teardown did not end" in out.stderr and "Traceback" not in out.stderr, out.stderr
     assert time.monotonic() - t0 < TEARDOWN_LIMIT + 10
+
+
+EXIT_STUCK = """
+import os, signal, sys, threading, time
+from rclpy.node import Node
+from packml_ros2 import run
+
+run.init(["probe"])
+node = Node("exit_probe")
+
+def saved():  # a thread nobody joins: the interpreter's exit waits for it, after spin returned
+    print("saved", flush=True)
+    threading.Thread(target=time.sleep, args=(3600,), name="never-ends").start()
+
+threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT)).start()
+sys.exit(run.spin([node], on_shutdown=saved))
+"""
+
+
+@pytest.mark.ros
+def test_an_exit_that_hangs_after_spin_returned_still_ends_the_process() -> None:
+    """The watchdog covers the interpreter's own exit too (before: cancelled when spin returned,
+    and a process stuck joining a thread ignored Ctrl-C and SIGTERM until SIGKILL); the stacks
+    of every thread say where it was."""
+    from packml_ros2.run import TEARDOWN_LIMIT
+
+    t0 = time.monotonic()
+    out = subprocess.run([sys.executable, "-c", EXIT_STUCK], cwd=ROOT, capture_output=True,
+                         text=True, timeout=60, check=False)  # fmt: skip
+    assert out.returncode == 0 and out.stdout.split() == ["saved"], out.stdout + out.stderr
+    assert "teardown did not end" in out.stderr and "never-ends" not in out.stdout, out.stderr
+    assert "in _shutdown" in out.stderr, out.stderr  # threading._shutdown: the main thread's stack
+    assert time.monotonic() - t0 < TEARDOWN_LIMIT + 10
+
+
+GIL_HELD = """
+import ctypes, os, signal, sys, threading
+from rclpy.node import Node
+from packml_ros2 import run
+
+class Stuck(Node):
+    def destroy_node(self):  # a teardown stuck in C that holds the GIL, like rclpy's C++ does
+        print("destroying", flush=True)
+        libc = ctypes.PyDLL(None)  # PyDLL: the call keeps the GIL (ctypes.CDLL would release it)
+        mutex = ctypes.create_string_buffer(64)  # a pthread mutex, all zeros: unlocked
+        libc.pthread_mutex_lock(mutex)
+        libc.pthread_mutex_lock(mutex)  # never returns, not even on a signal
+
+run.init(["probe"])
+node = Stuck("gil_probe")
+threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT)).start()
+sys.exit(run.spin([node], on_shutdown=lambda: print("saved", flush=True)))
+"""
+
+
+@pytest.mark.ros
+def test_a_teardown_stuck_in_c_holding_the_gil_ends_with_the_stacks_and_code_1() -> None:
+    """No Python thread runs while C code holds the GIL (nor the Python watchdog, nor a signal
+    handler: the process ignored Ctrl-C and SIGTERM until ros2 launch SIGKILLed it): faulthandler's
+    C thread writes every thread's stack and exits with code 1 (before: for ever)."""
+    from packml_ros2.run import HELD_GIL_GRACE, TEARDOWN_LIMIT
+
+    t0 = time.monotonic()
+    out = subprocess.run([sys.executable, "-c", GIL_HELD], cwd=ROOT, capture_output=True,
+                         text=True, timeout=60, check=False)  # fmt: skip
+    assert out.returncode == 1 and out.stdout.split() == ["saved", "destroying"], out.stdout + out.stderr  # fmt: skip
+    assert "in destroy_node" in out.stderr and "in spin" in out.stderr, out.stderr
+    assert TEARDOWN_LIMIT + HELD_GIL_GRACE <= time.monotonic() - t0 < TEARDOWN_LIMIT + 20
