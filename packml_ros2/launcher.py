@@ -327,10 +327,13 @@ def launch_processes(
 
 
 def _stop_children(
-    children: Sequence[tuple[str, subprocess.Popen[bytes]]], timeout: float = 10.0
+    children: Sequence[tuple[str, subprocess.Popen[bytes]]], timeout: float = 15.0
 ) -> int:
     """SIGINT to everyone at once, in start order (units first, as ``ros2 launch`` does: a unit
-    that stops with its EMs records no lost EM), then wait; 0 when every child exited cleanly."""
+    that stops with its EMs records no lost EM), then wait; 0 when every child exited cleanly.
+    ``timeout``: SIGKILL after it, like ``ros2 launch`` (5 s to SIGTERM, 10 more to SIGKILL); a
+    node whose exit is stuck ends itself before, with the stacks of its threads
+    (run.TEARDOWN_LIMIT + run.HELD_GIL_GRACE after its goodbye)."""
     for _, c in children:
         if c.poll() is None:
             c.send_signal(signal.SIGINT)
