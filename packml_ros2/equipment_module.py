@@ -25,6 +25,10 @@ when the unit aborts), a plain function sees ``ctx.cancelled`` set (``ctx.sleep(
 False; ``ctx.next_state`` tells where the unit went). The next state's hook starts
 only after the previous one has ended. An exception in a hook raises the EM's fault alarm.
 
+``self.state``, ``self.sequence`` and ``self.mode`` follow the unit; ``self.status`` is its latest
+status as the EM reads it (read from the message's bytes: state, sequence, mode, this EM's entry)
+and ``self.unit_status`` the whole message, decoded when asked for.
+
 Heartbeats keep the EM's lease alive at the unit; an EM that restarts re-joins at the unit's current
 state and sequence (the status topic is latched). An EM switched inactive sits states out; switched
 active while the unit waits in an acting state, it joins that state: it runs its hook and reports
@@ -42,13 +46,15 @@ import time
 import traceback
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import Any, TypeVar
+from typing import Any, NamedTuple, TypeVar
 
 from builtin_interfaces.msg import Time
 from packml_interfaces.msg import EmReport, Status
 from rclpy.node import Node
+from rclpy.serialization import deserialize_message
 
 from . import qos, run
+from .cdr_fields import Unreadable, field_reader
 from .core.numbers import ACTING, Cmd, State, state_name
 
 T = TypeVar("T")
@@ -69,6 +75,43 @@ HOOKS: dict[State, str] = {
 COUNTERS = {"consumed": EmReport.COUNTER_CONSUMED, "processed": EmReport.COUNTER_PROCESSED,
             "defective": EmReport.COUNTER_DEFECTIVE}  # fmt: skip
 FAULT_ALARM_ID = 9100  # default ID of the alarm raised when a hook fails
+_STATUS_FIELDS = ["state_current", "sequence", "unit_mode_current", "unit_mode_requested",
+                  "unit_mode_change_in_process"]  # fmt: skip
+_EM_FIELDS = ["name", "active", "state_complete"]
+#: What an EM reads of each status, straight from its bytes (a third of a full decode's time;
+#: the full message is decoded only for who reads :attr:`EquipmentModule.unit_status`).
+_read_status = field_reader(Status, _STATUS_FIELDS, {"equipment_modules": _EM_FIELDS})
+
+
+class StatusView(NamedTuple):
+    """What an EM follows of its unit's status."""
+
+    state: int
+    sequence: int
+    mode: int
+    mode_requested: int
+    mode_changing: bool
+    mine: tuple[bool, bool] | None  # this EM's entry: (active, state_complete); None: not listed
+
+    @property
+    def key(self) -> tuple[int, int]:
+        return self.state, self.sequence
+
+
+def status_view(raw: bytes, em: str) -> StatusView:
+    """The view of serialized status ``raw`` for EM ``em``; raises ValueError (and only that)
+    when the bytes are no status."""
+    try:
+        *head, entries = _read_status(raw)
+    except Unreadable:
+        try:
+            msg = deserialize_message(raw, Status)
+        except Exception as exc:  # rclpy raises several types for bad bytes
+            raise ValueError(f"not a status: {exc}") from None
+        head = [getattr(msg, f) for f in _STATUS_FIELDS]
+        entries = [tuple(getattr(e, f) for f in _EM_FIELDS) for e in msg.equipment_modules]
+    mine = next(((active, done) for name, active, done in entries if name == em), None)
+    return StatusView(*head, mine)
 
 
 @dataclass
@@ -109,11 +152,14 @@ class EquipmentModule(Node):
         self.unit_name = unit
         self.lease = lease
         self.fault_alarm_id = fault_alarm_id
-        self.unit_status: Status | None = None
+        self.status: StatusView | None = None  # the unit's latest status, as this EM reads it
+        self._status_raw: bytes | None = None
+        self._status_msg: tuple[bytes, Status] | None = None  # decoded on demand (unit_status)
+        self.refused_statuses = 0  # messages on the status topic that were no status
         self.active = True
         self._key: tuple[int, int] | None = None  # (state, sequence) being worked on
         self._pub = self.create_publisher(EmReport, "em_reports", qos.EM_REPORTS)
-        self.create_subscription(Status, "status", self._on_status, qos.STATUS)
+        self.create_subscription(Status, "status", self._on_raw_status, qos.STATUS, raw=True)
         self.create_timer(lease / 4.0, self._heartbeat)
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(
@@ -122,7 +168,7 @@ class EquipmentModule(Node):
         self._thread.start()
         self._lock = threading.Lock()
         self._running = False  # a hook task is in flight (started or finishing)
-        self._pending: Status | None = None  # newest status that arrived while it was
+        self._pending: StatusView | None = None  # newest status that arrived while it was
         self._task: asyncio.Task[None] | None = None
         self._ctx: StateContext | None = None
         self._reported: tuple[int, int, float] | None = None  # last SC: (state, sequence, when)
@@ -130,16 +176,30 @@ class EquipmentModule(Node):
 
     # -- what integrators call -------------------------------------------------------------------------
     @property
+    def unit_status(self) -> Status | None:
+        """The unit's latest status message in full (decoded when asked for)."""
+        raw, cached = self._status_raw, self._status_msg
+        if raw is None:
+            return None
+        if cached is None or cached[0] is not raw:
+            cached = (raw, deserialize_message(raw, Status))
+            self._status_msg = cached
+        return cached[1]
+
+    @property
     def state(self) -> State:
-        return State(self.unit_status.state_current) if self.unit_status else State.UNDEFINED
+        view = self.status
+        if view is None or view.state not in State._value2member_map_:
+            return State.UNDEFINED
+        return State(view.state)
 
     @property
     def sequence(self) -> int:
-        return self.unit_status.sequence if self.unit_status else 0
+        return self.status.sequence if self.status else 0
 
     @property
     def mode(self) -> int:
-        return self.unit_status.unit_mode_current if self.unit_status else 0
+        return self.status.mode if self.status else 0
 
     def request(self, command: Cmd | int) -> None:
         """Ask the unit for a state command (e.g. ``Cmd.STOP``); 0 withdraws."""
@@ -199,16 +259,15 @@ class EquipmentModule(Node):
         it did not take: lost, or refused while it checked who speaks for this EM after a
         restart, core.reports.Writers)."""
         self._send(EmReport.KIND_HEARTBEAT)
-        reported, status = self._reported, self.unit_status
+        reported, status = self._reported, self.status
         if reported is None or status is None:
             return
         state, sequence, when = reported
-        if (status.state_current, status.sequence) != (state, sequence):
+        if status.key != (state, sequence):
             return
-        mine = next((e for e in status.equipment_modules if e.name == self.em_name), None)
         if (
-            mine is not None
-            and not mine.state_complete
+            status.mine is not None
+            and not status.mine[1]
             and time.monotonic() - when >= self.lease / 4
         ):
             self.report_complete(state, sequence)
@@ -218,15 +277,26 @@ class EquipmentModule(Node):
         choose hooks at run time."""
         return getattr(self, HOOKS[state], None)
 
-    def _on_status(self, msg: Status) -> None:
+    def _on_raw_status(self, raw: bytes) -> None:
+        """Executor thread: a status as it came (serialized), read for what an EM follows."""
+        try:
+            view = status_view(raw, self.em_name)
+        except ValueError as exc:
+            self.refused_statuses += 1
+            self.get_logger().warning(f"status refused: {exc}"[:200], throttle_duration_sec=10.0)
+            return
+        with self._lock:
+            self._status_raw = raw
+        self._on_status(view)
+
+    def _on_status(self, msg: StatusView) -> None:
         """Executor thread. With no hook in flight the decision is taken right here (a state
         without a hook is reported complete at once); otherwise the running hook is cancelled
         first and the newest status handled when it has ended."""
         with self._lock:
-            self.unit_status = msg
-            mine = next((e for e in msg.equipment_modules if e.name == self.em_name), None)
-            self.active = mine.active if mine is not None else True
-            if (msg.state_current, msg.sequence) == self._key:
+            self.status = msg
+            self.active = msg.mine[0] if msg.mine is not None else True
+            if msg.key == self._key:
                 return
             if self._running:
                 self._pending = msg
@@ -234,25 +304,20 @@ class EquipmentModule(Node):
                 return
             self._dispatch(msg)
 
-    def _dispatch(self, msg: Status) -> None:
+    def _dispatch(self, msg: StatusView) -> None:
         """Under the lock: start the hook for ``msg``'s (state, sequence), or report at once."""
-        mine = next((e for e in msg.equipment_modules if e.name == self.em_name), None)
-        if (mine is not None and mine.state_complete) or not self.active:
+        if (msg.mine is not None and msg.mine[1]) or not self.active:
             # Already reported (an EM that restarted), or switched inactive: the (state,
             # sequence) is not taken, so an EM switched active while the unit waits in this state
             # joins it with its next status (PACKML rules: it owes State Complete for it).
             return
-        self._key = (msg.state_current, msg.sequence)
-        state = (
-            State(msg.state_current)
-            if msg.state_current in State._value2member_map_
-            else State.UNDEFINED
-        )
-        if msg.unit_mode_change_in_process:
-            ctx = StateContext(state, msg.sequence, msg.unit_mode_requested)
+        self._key = msg.key
+        state = State(msg.state) if msg.state in State._value2member_map_ else State.UNDEFINED
+        if msg.mode_changing:
+            ctx = StateContext(state, msg.sequence, msg.mode_requested)
             hook = getattr(self, "on_mode_change", None)
         elif state in ACTING:
-            ctx = StateContext(state, msg.sequence, msg.unit_mode_current)
+            ctx = StateContext(state, msg.sequence, msg.mode)
             hook = self.hook_for(state)
         else:
             return
@@ -271,8 +336,8 @@ class EquipmentModule(Node):
         if self._task is not None and not self._task.done() and self._ctx is not None:
             with self._lock:
                 pending = self._pending
-            if pending is not None and pending.state_current in State._value2member_map_:
-                self._ctx.next_state = State(pending.state_current)
+            if pending is not None and pending.state in State._value2member_map_:
+                self._ctx.next_state = State(pending.state)
             self._ctx.cancelled.set()
             self._task.cancel()
 
@@ -282,7 +347,7 @@ class EquipmentModule(Node):
             self._task, self._ctx = None, None
             self._running = False
             pending, self._pending = self._pending, None
-            if pending is not None and (pending.state_current, pending.sequence) != self._key:
+            if pending is not None and pending.key != self._key:
                 self._dispatch(pending)
 
     async def _run(self, hook: Callable[[StateContext], Any] | None, ctx: StateContext) -> None:
@@ -311,8 +376,8 @@ class EquipmentModule(Node):
                 self.fault_alarm_id, 0, f"{self.em_name}: {name} failed: {exc}"[:200], category=2
             )
             return
-        if (self.unit_status is not None and (self.unit_status.state_current, self.unit_status.sequence)
-                == (int(ctx.state), ctx.sequence)):  # fmt: skip
+        status = self.status
+        if status is not None and status.key == (int(ctx.state), ctx.sequence):
             self.report_complete(ctx.state, ctx.sequence)
 
     def run_coroutine(self, coro: Awaitable[T]) -> concurrent.futures.Future[T]:

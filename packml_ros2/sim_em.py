@@ -33,7 +33,7 @@ from .core import schema as sc
 from .core.config import load_cell
 from .core.numbers import ACTING, State, parse_state
 from .core.schema import ConfigError, Node
-from .equipment_module import EquipmentModule, StateContext
+from .equipment_module import EquipmentModule, StateContext, StatusView
 
 SIM_KEYS = {"durations", "cycle_time", "counter", "counter_index", "defect_rate", "defect_counter_index",
             "consumed_per_cycle", "cycles_per_run", "lease", "faults", "seed", "fed_by", "buffer"}  # fmt: skip
@@ -173,7 +173,7 @@ class SimulatedEm(EquipmentModule):
                 self.count("defective", 1, self.sim.defect_counter_index)
 
     # -- fed by a unit upstream --------------------------------------------------------------------------------
-    def _on_status(self, msg: Status) -> None:
+    def _on_status(self, msg: StatusView) -> None:
         super()._on_status(msg)
         self._watch_buffer()
 

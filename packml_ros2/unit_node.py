@@ -439,8 +439,9 @@ class UnitNode(Node):
         due = min(due, expiry)
         for leave_at, _ in self._leaving.values():
             due = min(due, leave_at)
-        if self._inputs and now + INPUT_LOG_DELAY < due:
-            due = now + INPUT_LOG_DELAY
+        if self._inputs:  # the batch goes out INPUT_LOG_DELAY after its first input: a due
+            # time that inputs do not move, so the EMs' reports do not reset the timer one by one
+            due = min(due, self._inputs[0][0] + INPUT_LOG_DELAY)
         if due == self._wake_at or self._closed:
             return
         self._wake_at = due

@@ -65,9 +65,9 @@ def test_every_validator_refuses_a_mutated_file_cleanly(tmp_path: Path) -> None:
         for i, m in enumerate(mutations(text, SEED, PER_BASE)):
             path = tmp_path / f"{base}_{i}.yaml"
             path.write_bytes(m.data)
-            t = time.monotonic()
+            t = time.thread_time()  # CPU time: a loaded machine's waits are not the file's
             report = validate(path)  # anything but ConfigError fails the test here
-            took = time.monotonic() - t
+            took = time.thread_time() - t
             slowest = max(slowest, took)
             assert took < MAX_SECONDS_PER_FILE, f"{base} #{i} ({m.name}): {took:.2f} s"
             if report is not None:

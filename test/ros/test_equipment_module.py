@@ -8,8 +8,10 @@ import time
 from pathlib import Path
 
 import pytest
+from packml_interfaces.msg import Status
 from packml_interfaces.srv import SetEmActive
 
+from packml_ros2 import qos
 from packml_ros2.core import Cmd
 from packml_ros2.equipment_module import EquipmentModule, StateContext
 from packml_ros2.unit_node import UnitNode
@@ -273,3 +275,32 @@ def test_an_em_switched_active_mid_state_joins_it(ros, tmp_path: Path) -> None:
     wait_note(late, f"resetting {resetting.sequence}")
     release.set()
     client.wait_state("IDLE", timeout=5)
+
+
+def test_bytes_on_the_status_topic_that_are_no_status_are_refused_and_change_nothing(
+    ros, cell
+) -> None:
+    """An EM reads its unit's status straight from the bytes (packml_ros2.cdr_fields): what is
+    not a status (a raw writer on the topic) is refused with a warning, and the EM goes on."""
+    cell_name, client = cell
+    robot = em(ros, Robot, cell_name)
+    online(client)
+    before = robot.status
+    assert before is not None and robot.state.name == "STOPPED"
+    writer = ros.node.create_publisher(Status, f"/{cell_name}/u/status", qos.STATUS)
+    deadline = time.monotonic() + 10
+    while writer.get_subscription_count() < 2:  # the robot and the test's own client
+        assert time.monotonic() < deadline, "the writer never matched the EM"
+        time.sleep(0.01)
+    bad = (b"\x00\x01\x00\x00" + b"\xff" * 40, b"\x00\x07\x00\x00" + bytes(60), b"\x00")
+    for n, raw in enumerate(bad, 1):  # one by one: the status topic keeps the last message only
+        writer.publish(raw)
+        deadline = time.monotonic() + 10
+        while robot.refused_statuses < n:
+            assert time.monotonic() < deadline, f"{raw!r} not refused"
+            time.sleep(0.01)
+    assert robot.status == before and robot.unit_status is not None
+    assert robot.unit_status.state_current_name == "STOPPED"
+    ros.node.destroy_publisher(writer)
+    to_execute(client)
+    assert robot.names()[:2] == ["starting", "started"]

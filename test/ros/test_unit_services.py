@@ -8,6 +8,7 @@ match count), never a fixed sleep."""
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -29,6 +30,7 @@ from packml_interfaces.msg import (
     Result,
     Status,
     TransitionEvent,
+    UnitInput,
 )
 from packml_interfaces.srv import (
     AckAlarms,
@@ -889,3 +891,23 @@ def test_a_mode_change_waits_for_the_em_and_keeps_the_state(ros, make_unit) -> N
     assert (event.from_state, event.to_state) == (State.STOPPED, State.STOPPED)
     assert (event.from_mode, event.to_mode, event.source) == (1, 2, "hmi")
     em.stop_heartbeats()
+
+
+def test_the_input_log_goes_out_within_its_delay_while_inputs_keep_coming(ros, make_unit) -> None:
+    """A batch of the input log goes out INPUT_LOG_DELAY after its first input, however many
+    follow (an EM counting every 20 ms must not hold the log back until it pauses)."""
+    unit = make_unit({"equipment_modules": {"gripper": {}}})
+    log = ros.subscribe(UnitInput, f"/{unit.cell}/{UNIT}/input_log", qos.INPUT_LOG)
+    em = FakeEm(ros, unit, "gripper")
+    counts = lambda: [m for m in list(log.messages) if m.name == "em.count"]  # noqa: E731
+    sent, seen_while_sending = 0, 0
+    end = time.monotonic() + 1.0
+    while time.monotonic() < end:
+        em.send(EmReport.KIND_COUNT, counter=EmReport.COUNTER_PROCESSED, increment=1)
+        sent += 1
+        time.sleep(0.02)
+        seen_while_sending = len(counts())
+    assert sent >= 20
+    assert seen_while_sending > 0, "no count in the input log while counts kept coming"
+    assert all(json.loads(m.args_json)["increment"] == 1 for m in counts())
+    wait_until(lambda: len(counts()) == sent, what=f"{sent} counts logged")
