@@ -31,7 +31,7 @@ from packml_interfaces.srv import (
     SetProduct,
     SetUnitParameters,
 )
-from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
 
 from . import qos
@@ -119,7 +119,11 @@ class UnitProxy:
 
     def __post_init__(self) -> None:
         self.name = self.path.rsplit("/", 1)[-1]
-        self._group = ReentrantCallbackGroup()
+        self._group = ReentrantCallbackGroup()  # its service clients
+        # Its topics, one message at a time: under a MultiThreadedExecutor (the coordinator's) a
+        # reentrant group lets another thread take a topic's next message while the previous one
+        # waits for the consumer's lock, and ``on_change`` then sees them out of order.
+        self._topic_group = MutuallyExclusiveCallbackGroup()
         self._cond = threading.Condition()
         self._clients: dict[str, Any] = {}
         self._topics: dict[str, tuple[Any, Callable[[Any], None], Any]] = {
@@ -133,7 +137,7 @@ class UnitProxy:
     def _subscribe(self, topic: str) -> Any:
         msg_type, callback, profile = self._topics[topic]
         return self.node.create_subscription(
-            msg_type, f"{self.path}/{topic}", callback, profile, callback_group=self._group,
+            msg_type, f"{self.path}/{topic}", callback, profile, callback_group=self._topic_group,
             event_callbacks=qos.quiet_events(),
         )  # fmt: skip
 

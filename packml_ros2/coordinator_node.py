@@ -40,7 +40,7 @@ from packml_interfaces.msg import (
     UnitSummary,
 )
 from packml_interfaces.srv import Command, QueryEpisodes, QueryLosses, SetMode
-from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from std_srvs.srv import Trigger
@@ -122,8 +122,10 @@ class CoordinatorNode(Node):
         self.pub_inputs = self.create_publisher(UnitInput, "~/line/input_log", qos.LINE_INPUT_LOG)
         self.pub_episodes = self.create_publisher(LineEpisode, "~/line/episodes", qos.LINE_EPISODES)  # fmt: skip
         self.pub_losses = self.create_publisher(LineLosses, "~/line/losses", qos.LINE_LOSSES)
+        # (one message at a time, in order: a unit's stale and fresh entries must not swap, as
+        # the units' topics must not: UnitProxy)
         self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics,
-                                 qos.DIAGNOSTICS, callback_group=self._group,
+                                 qos.DIAGNOSTICS, callback_group=MutuallyExclusiveCallbackGroup(),
                                  event_callbacks=qos.quiet_events())  # fmt: skip
         serve = partial(responses.create_service, self, callback_group=self._group)
         serve(Command, "~/command", self._srv_command)

@@ -12,6 +12,13 @@ events:
 - ``True``: present (at least one live status writer),
 - ``False``: lost (liveliness lost, the writer left, or never seen within one lease of the start).
 
+The live writers are counted from the lowest ``alive_count`` seen, not from 0: Fast DDS (3.2)
+takes a writer that leaves while the reader is still matching it off ``alive_count`` although it
+never counted it alive; the count goes to -1 and stays one short for good (the next writer that
+asserts its liveliness is reported with ``alive_count`` 0, ``alive_count_change`` +1): taken as
+it is, a unit that is back would look lost until it goes again. The level only goes down, to a
+count reported below it: one at which no writer can be alive.
+
 The subscription is raw (no message is decoded here): consumers keep their own status
 subscriptions with the default QoS, which stays compatible with the unit's writer. A unit that
 offers a longer lease than ours does not match (DDS: requested < offered) and would look lost:
@@ -78,9 +85,11 @@ class Presence:
         self._seen: dict[str, Seen] = {}
         self._warned: set[str] = set()
         self._subs = []
+        #: per unit, the alive_count that means no live writer (0, less after a miscount)
+        self._none: dict[str, int] = {}
         profile = qos.with_lease(qos.STATUS, lease)
         for path in paths:
-            self._seen[path] = Seen(None, started)
+            self._seen[path], self._none[path] = Seen(None, started), 0
             events = SubscriptionEventCallbacks(
                 liveliness=lambda e, p=path: self._on_liveliness(p, e.alive_count),
                 incompatible_qos=lambda e, p=path: self._on_incompatible(p),
@@ -121,8 +130,9 @@ class Presence:
         if self.on_change is not None:
             self.on_change(path, seen)
 
-    def _on_liveliness(self, path: str, alive: int) -> None:
-        if alive > 0:
+    def _on_liveliness(self, path: str, alive_count: int) -> None:
+        none = self._none[path] = min(self._none[path], alive_count)  # (module docstring)
+        if alive_count > none:
             self._set(path, True, "")
         else:
             self._set(path, False, f"no sign of life for {self.lease:g} s (unit_lease)")

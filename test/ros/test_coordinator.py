@@ -18,13 +18,16 @@ from typing import Any
 import pytest
 from packml_interfaces.msg import CellStatus, Result, TransitionEvent
 from packml_interfaces.srv import Command, SetMode
+from rclpy.node import Node
 from std_srvs.srv import SetBool, Trigger
 
 from packml_ros2 import qos
+from packml_ros2.client import UnitProxy
 from packml_ros2.coordinator_node import SEVERITY, CoordinatorNode, aggregate_state
 from packml_ros2.core import Cmd, State, load_cell
 from packml_ros2.sim_em import SimulatedEm, parse_sim
 from packml_ros2.testing.harness import Collector
+from packml_ros2.testing.processes import wait_until
 from packml_ros2.unit_node import UnitNode
 from test.ros.cells import UnitClient, start_unit_process, write_cell
 
@@ -420,3 +423,30 @@ def test_concurrent_cell_stops_all_succeed_once_the_cell_stopped(ros, tmp_path: 
         a.message.startswith(("STOP done", "STOP joined the STOP in progress")) for a in answers
     )
     cell.wait(lambda m: m.state_current_name == "STOPPED" and not m.busy, "cell stopped")
+
+
+def test_a_units_messages_reach_the_coordinator_in_the_order_the_unit_sent_them(ros) -> None:
+    """The coordinator spins with a MultiThreadedExecutor (its services wait for sequences) and
+    follows each unit through a :class:`UnitProxy`: the next message of a topic must not be taken
+    by another thread while the previous one still waits for the coordinator's lock, else they
+    reach the line's accounting out of order. (A CI run lost a unit's return to Execute that way:
+    its following departure came first, and a stop episode of the line took a later stop as its
+    own.) The coordinator's handler is stood for by one that holds a lock a little while."""
+    node = ros.add(Node("order_probe", context=ros.context))
+    path = f"/order_probe_{id(node)}/u"
+    writer = node.create_publisher(TransitionEvent, f"{path}/transitions", qos.TRANSITIONS)
+    lock, seen = threading.Lock(), Collector[int]()
+
+    def on_change(_path: str, topic: str, msg: Any) -> None:
+        with lock:  # the coordinator's lock, held while a message is accounted for
+            time.sleep(0.002)  # (its work: the line's store commits under that lock)
+            seen(msg.sequence)
+
+    proxy = UnitProxy(node, path, on_change, topics=("transitions",))
+    wait_until(lambda: writer.get_subscription_count() > 0, 10, what="the proxy matched")
+    count = 60  # within the topic's history depth (100): none is dropped
+    for sequence in range(1, count + 1):
+        writer.publish(TransitionEvent(sequence=sequence))
+    received = seen.wait_count(count)
+    assert received == sorted(received), f"taken out of order: {received}"
+    proxy.destroy()
