@@ -415,6 +415,8 @@ class UnitNode(Node):
         )
 
     def _on_wake(self) -> None:
+        if self._closed:
+            return  # closed while this wake-up waited (a test's multi-threaded executor): no timer
         self._wake_at = math.inf  # fired: _arm sets it again
         self._wake.cancel()
         if run.shutting_down():
