@@ -78,7 +78,7 @@ FAULT_ALARM_ID = 9100  # default ID of the alarm raised when a hook fails
 _STATUS_FIELDS = ["state_current", "sequence", "unit_mode_current", "unit_mode_requested",
                   "unit_mode_change_in_process"]  # fmt: skip
 _EM_FIELDS = ["name", "active", "state_complete"]
-#: What an EM reads of each status, straight from its bytes (a third of a full decode's time;
+#: What an EM reads of each status, straight from its bytes (a quarter of a full decode's time;
 #: the full message is decoded only for who reads :attr:`EquipmentModule.unit_status`).
 _read_status = field_reader(Status, _STATUS_FIELDS, {"equipment_modules": _EM_FIELDS})
 
