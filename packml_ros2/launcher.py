@@ -333,7 +333,7 @@ def _stop_children(
     that stops with its EMs records no lost EM), then wait; 0 when every child exited cleanly.
     ``timeout``: SIGKILL after it, like ``ros2 launch`` (5 s to SIGTERM, 10 more to SIGKILL); a
     node whose exit is stuck ends itself before, with the stacks of its threads
-    (run.TEARDOWN_LIMIT + run.HELD_GIL_GRACE after its goodbye)."""
+    (run.TEARDOWN_LIMIT + run.HELD_GIL_GRACE after the stop)."""
     for _, c in children:
         if c.poll() is None:
             c.send_signal(signal.SIGINT)

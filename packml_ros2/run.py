@@ -94,7 +94,7 @@ def spin(
 ) -> int:
     """Spin ``nodes`` until Ctrl-C or SIGTERM, then shut down in order; returns the exit code.
     ``on_shutdown`` runs first, while the nodes can still publish (:func:`shutdown_reason` says
-    why); then the executors and the nodes are destroyed. From then on the process has
+    why); then the executors and the nodes are destroyed. From the stop on the process has
     :data:`TEARDOWN_LIMIT` to end, here and in the interpreter's exit after ``spin`` returns
     (then every thread's stack goes to stderr and the process exits): ``spin`` is the last thing
     a node process does.
@@ -133,11 +133,13 @@ def spin(
         # A second Ctrl-C (the terminal's and ros2 launch's arrive together) or a SIGTERM while
         # the nodes shut down changes nothing: the handler stays until they are gone.
         try:
+            # From here the shutdown may not hang: on_shutdown (its goodbyes are logged, and a
+            # log line is also a DDS write to /rosout: a node once hung right after its goodbye,
+            # before a guard armed after on_shutdown), the teardown below (executors, DDS) and
+            # the interpreter's exit after spin returns. What the nodes keep survives a kill.
+            _guard_teardown()
             if on_shutdown is not None:
                 on_shutdown()
-            # what the nodes keep is saved: the teardown below (executors, DDS) and the
-            # interpreter's exit after spin returns may not hang
-            _guard_teardown()
             for ex in (executor, side) if side is not None else (executor,):
                 _drain(ex, timeout=2.0)
                 ex.shutdown(timeout_sec=2)
@@ -153,9 +155,8 @@ def spin(
     return 0
 
 
-#: s: after ``on_shutdown`` (the nodes have saved what they keep) the executors, DDS and the
-#: interpreter's exit get this long; then the process writes every thread's stack to stderr and
-#: exits anyway, code 0 (a teardown stuck in the middleware once in a few runs: ros2 launch
+#: s: from the stop, ``on_shutdown``, the executors, DDS and the interpreter's exit get this
+#: long; then the process writes every thread's stack to stderr and exits anyway, code 0 (a teardown stuck in the middleware once in a few runs: ros2 launch
 #: would SIGKILL it, packml launch report it)
 TEARDOWN_LIMIT = 6.0
 #: s: the last resort, TEARDOWN_LIMIT + this: a C thread of faulthandler that needs no GIL (a

@@ -345,6 +345,27 @@ sys.exit(run.spin([node], on_shutdown=lambda: print("saved", flush=True)))
 """
 
 
+GOODBYE_STUCK = GIL_HELD.replace(  # on_shutdown hangs (in C, holding the GIL) after "saved"
+    'on_shutdown=lambda: print("saved", flush=True)',
+    "on_shutdown=lambda: (print('saved', flush=True), node.destroy_node())",
+)
+
+
+@pytest.mark.ros
+def test_a_goodbye_stuck_in_c_holding_the_gil_ends_with_the_stacks_and_code_1() -> None:
+    """Seen in a fresh-clone run: an EM logged its goodbye (a log line is a DDS write to /rosout
+    too) and hung inside on_shutdown, before a guard armed after it: the guard now runs from the
+    stop on."""
+    from packml_ros2.run import HELD_GIL_GRACE, TEARDOWN_LIMIT
+
+    t0 = time.monotonic()
+    out = subprocess.run([sys.executable, "-c", GOODBYE_STUCK], cwd=ROOT, capture_output=True,
+                         text=True, timeout=60, check=False)  # fmt: skip
+    assert out.returncode == 1 and out.stdout.split() == ["saved", "destroying"], out.stdout + out.stderr  # fmt: skip
+    assert "in <lambda>" in out.stderr and "in spin" in out.stderr, out.stderr
+    assert time.monotonic() - t0 < TEARDOWN_LIMIT + HELD_GIL_GRACE + 10
+
+
 @pytest.mark.ros
 def test_a_teardown_stuck_in_c_holding_the_gil_ends_with_the_stacks_and_code_1() -> None:
     """No Python thread runs while C code holds the GIL (nor the Python watchdog, nor a signal
