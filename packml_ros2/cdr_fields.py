@@ -113,8 +113,8 @@ def field_reader(
     gen.emit(1, "if p > len(b): raise X")
     gen.emit(1, f"return ({', '.join(out[f] for f in [*wanted, *per_entry])},)")
     source = "\n".join(gen.lines)
-    compiled: dict[bool, Any] = {}
-    for little in (True, False):
+    readers: dict[bytes, Any] = {}  # per encapsulation header
+    for header, little in _LITTLE.items():
         order = "<" if little else ">"
         env: dict[str, Any] = {
             **gen.env,  # the walkers of nested messages it skips
@@ -123,15 +123,14 @@ def field_reader(
             "X": Unreadable,
         }
         exec(compile(source, f"<cdr reader {cls.__name__}>", "exec"), env)
-        compiled[little] = env["read"]
-    read_le, read_be = compiled[True], compiled[False]
+        readers[header] = env["read"]
 
     def read(raw: bytes) -> tuple[Any, ...]:
-        little = _LITTLE.get(bytes(raw[:2]))
-        if little is None:
+        read_data = readers.get(bytes(raw[:2]))
+        if read_data is None:
             raise Unreadable("not a plain CDR serialization")
         try:
-            return read_le(memoryview(raw)[4:]) if little else read_be(memoryview(raw)[4:])  # type: ignore[no-any-return]
+            return read_data(memoryview(raw)[4:])  # type: ignore[no-any-return]
         except (struct.error, IndexError, UnicodeDecodeError, MemoryError) as exc:
             raise Unreadable(str(exc)) from None
 
