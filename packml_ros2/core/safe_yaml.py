@@ -17,6 +17,7 @@ Anchors, aliases and merge keys (``<<: *defaults``) of ordinary size are fine.
 from __future__ import annotations
 
 import os
+from contextlib import suppress
 from pathlib import Path
 from typing import Any
 
@@ -107,7 +108,24 @@ def parse_document(text: str, file: str = "<memory>") -> Any:
 def _depth_first(text: str) -> None:
     """Refuse a document nested deeper than MAX_DEPTH, from its events (the parser keeps its own
     stack; composing a deep document recurses: a RecursionError in Python, a crash in libyaml's
-    binding)."""
+    binding).
+
+    libyaml may stop a deep document first, in its own words (PyYAML 6.0.4: "exceeded maximum
+    nesting depth"): at 1000 levels, deeper than MAX_DEPTH, but scanning ahead of the events it has
+    given. So on any error, the text up to where it stopped is counted again: deeper than MAX_DEPTH
+    there, the refusal is ours whatever the library says; else its error stands (a plain syntax
+    error, with its line)."""
+    try:
+        _count_depth(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        if mark is not None and 0 < mark.index < len(text):
+            with suppress(yaml.YAMLError):  # (the text cut there ends in an error of its own)
+                _count_depth(text[: mark.index])
+        raise
+
+
+def _count_depth(text: str) -> None:
     probe = _LOADER(text)
     try:
         depth = 0

@@ -8,6 +8,7 @@ import json
 import subprocess
 import sys
 import time
+from contextlib import suppress
 from pathlib import Path
 
 import pytest
@@ -70,6 +71,44 @@ def test_a_key_written_twice_is_refused_with_both_lines(tmp_path: Path) -> None:
 
     ok = "cell: c\nbase: &b {em_lease: 1.0}\nunits:\n  u: {<<: *b, em_lease: 2.0}\n"
     assert parse_document(ok)["units"]["u"]["em_lease"] == 2.0
+
+
+def test_a_deep_document_is_refused_in_our_words_whatever_libyaml_says(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """PyYAML 6.0.4's libyaml stops a deep document at its own limit, scanning ahead, with its own
+    message ("exceeded maximum nesting depth"), before our count reaches MAX_DEPTH (a fresh clone
+    took 6.0.4): the refusal must not depend on the library's release or wording (issue 24)."""
+    import yaml
+
+    from packml_ros2.core import safe_yaml
+
+    class ScansAhead(yaml.SafeLoader):
+        """As libyaml does: refuses past its own limit (here 150 levels) in its own words, before
+        giving the events ahead of that point."""
+
+        def check_event(self, *choices: type[yaml.Event]) -> bool:
+            if not getattr(self, "looked_ahead", False):
+                self.looked_ahead, depth, past = True, 0, None
+                with suppress(yaml.YAMLError):  # (other errors: when the parser meets them)
+                    for event in yaml.parse(self.buffer.rstrip("\0"), Loader=yaml.SafeLoader):
+                        depth += isinstance(event, yaml.CollectionStartEvent)
+                        depth -= isinstance(event, yaml.CollectionEndEvent)
+                        if depth > 150:
+                            past = event.start_mark
+                            break
+                if past is not None:
+                    raise yaml.scanner.ScannerError("while increasing flow level", None,
+                                                    "the library's own words", past)  # fmt: skip
+            return bool(super().check_event(*choices))
+
+    monkeypatch.setattr(safe_yaml, "_LOADER", ScansAhead)
+    with pytest.raises(ConfigError) as refused:
+        safe_yaml.parse_document("a: " + "[" * 200_000 + "]" * 200_000 + "\n", "deep.yaml")
+    assert refused.value.problems == [("line 1", "nested more than 100 levels deep")]
+    with pytest.raises(ConfigError) as refused:  # a syntax error stays one, with its line
+        safe_yaml.parse_document("a: " + "[" * 20 + "\nb: ]\n", "bad.yaml")
+    assert "not valid YAML" in refused.value.problems[0][1], refused.value.problems
 
 
 def test_an_alarm_naming_an_em_that_does_not_exist_is_refused() -> None:
