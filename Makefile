@@ -39,7 +39,6 @@ pytest:
 	$(BIN)/pytest $(PYTEST_ARGS)
 
 bench: setup
-	$(BIN)/pip install --quiet -r requirements/bench.txt
 	$(BIN)/python bench/engine.py
 	$(BIN)/python bench/ros_latency.py
 	$(BIN)/python bench/replay.py

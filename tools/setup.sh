@@ -1,15 +1,19 @@
 #!/usr/bin/env bash
 # The one set-up step for a fresh Debian machine (no ROS installed):
 #   1. apt prerequisites, only if missing (cmake, g++, ninja, Python headers and venv, iproute2);
-#   2. .venv with the pinned ROS 2 Kilted wheels, the interface build tools and the dev tools;
+#   2. .venv with requirements/lock.txt: the whole closure, hashed (tools/lock.sh writes it), the
+#      same in every path (with or without --test, with or without ../shared): the ROS 2 Kilted
+#      wheels, the interface build tools, the dev tools, colcon and the PyPI parts of the ROS 2
+#      command line, pip and setuptools themselves; pip refuses any file whose hash it does not list;
 #   3. the packml_interfaces wheel, built from msg_defs/ once and kept in .cache/wheels/;
 #   4. packml_ros2 itself, editable, and the venv made an ament prefix (tools/ament_prefix.py:
 #      lib/packml_ros2/<executable>, share/packml_ros2/...), so `ros2 run` / `ros2 launch` find it;
 #   5. with --test: what only the tests need (Debian's chromium for the HMI browser tests, the npm
 #      packages of the independent OPC UA client in test/opcua_client/);
 #   6. with --test, when ../shared/vendor/ros2-tools exists: the real ROS 2 command line (ros2),
-#      launch and launch_ros built from its sources (composition_interfaces like msg_defs/), and
-#      colcon from PyPI (requirements/ros-tools.txt); the wheels are kept in .cache/wheels/.
+#      launch and launch_ros built from its sources (composition_interfaces like msg_defs/); the
+#      wheels are kept in .cache/wheels/. Like packml_interfaces and packml_ros2 they are built here
+#      and installed --no-deps, so they are not in the lock (their dependencies are).
 # Each step is skipped when its inputs did not change, so a second run takes seconds.
 set -euo pipefail
 for_tests=0
@@ -56,11 +60,16 @@ if [ ! -x "$VENV/bin/python" ]; then
   "$PYTHON" -m venv "$VENV"
 fi
 pip=("$VENV/bin/python" -m pip --disable-pip-version-check -q)
-deps_key=$(digest requirements/ros.txt requirements/build.txt requirements/dev.txt setup.py package.xml)
+deps_key=$(digest requirements/lock.txt setup.py package.xml)
 if [ "$(cat "$VENV/.packml-deps" 2>/dev/null)" != "$deps_key" ]; then
-  say "installing the pinned ROS 2 wheels and tools into $VENV"
-  "${pip[@]}" install --upgrade pip
-  "${pip[@]}" install -r requirements/ros.txt -r requirements/build.txt -r requirements/dev.txt
+  say "installing requirements/lock.txt into $VENV (every package pinned and hashed)"
+  # --no-deps: the lock is the whole closure (pip's resolver would take a dependency that asks for
+  # an extra, coverage[toml], as unpinned); pip check then proves nothing is missing from it
+  "${pip[@]}" install --require-hashes --no-deps -r requirements/lock.txt
+  "$VENV/bin/python" -m pip check >/dev/null || { "$VENV/bin/python" -m pip check; exit 1; }
+  # what an older lock installed and this one does not have (pip freeze must equal the lock)
+  mapfile -t stale < <("$VENV/bin/python" tools/lock_check.py --stale)
+  if ((${#stale[@]})); then "${pip[@]}" uninstall -y "${stale[@]}"; fi
   echo "$deps_key" > "$VENV/.packml-deps"
   rm -f "$VENV/.packml-self"
 fi
@@ -86,7 +95,7 @@ fi
 # --- 4. packml_ros2, editable ---------------------------------------------------------------------
 if [ "$(cat "$VENV/.packml-self" 2>/dev/null)" != "$deps_key" ]; then
   say "installing packml_ros2 (editable)"
-  "${pip[@]}" install --no-build-isolation -e .
+  "${pip[@]}" install --no-build-isolation --no-deps -e .
   echo "$deps_key" > "$VENV/.packml-self"
 fi
 prefix_key=$(digest setup.py setup.cfg tools/ament_prefix.py <(ls launch config))
@@ -106,11 +115,10 @@ fi
 # --- 6. the real ros2 CLI, launch, launch_ros and colcon (tests only) --------------------------------
 vendor=../shared/vendor/ros2-tools
 if ((for_tests)) && [ -d "$vendor" ]; then
-  tools_key=$(digest "$vendor"/*.tar.gz requirements/ros-tools.txt requirements/ros.txt requirements/build.txt \
+  tools_key=$(digest "$vendor"/*.tar.gz requirements/lock.txt \
     tools/ros2-tools/* msg_defs/cmake/ros_wheels.cmake)
   if [ "$(cat "$VENV/.packml-ros2-tools" 2>/dev/null)" != "$tools_key" ]; then
-    say "installing the ROS 2 command line, launch and colcon (requirements/ros-tools.txt, $vendor)"
-    "${pip[@]}" install -r requirements/ros-tools.txt
+    say "installing the ROS 2 command line, launch and launch_ros ($vendor)"
     wheel_dir="$CACHE/ros2-tools-$tools_key"
     if ! ls "$wheel_dir"/*.whl >/dev/null 2>&1; then
       say "building ros2cli, launch, launch_ros, rosidl_runtime_py and composition_interfaces (once)"
