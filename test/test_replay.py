@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -608,3 +609,19 @@ def test_bags_from_other_writers_are_accepted(tmp_path: Path) -> None:
     shutil.copy(BAGS / "independent_writer.mcap", d / "x.mcap")
     r = replay(d).assert_matches()
     assert r.digest() == replay(BAGS / "normal_production").digest()
+
+
+def test_the_readme_replay_example_prints_what_the_readme_shows(tmp_path: Path) -> None:
+    """Run verbatim; the README showed other counts than it printed (issue 24) and no test ran it.
+    Only the time taken may differ."""
+    from test.workspace.tools import ROOT, code_blocks, console_commands, shell
+
+    found = [(command, shown) for block in code_blocks("console")
+             for command, shown in console_commands(block)
+             if command.startswith("packml replay test/bags/")]  # fmt: skip
+    assert found, "the README's replay example was not found"
+    for command, shown in found:
+        result = shell(command, tmp_path, ROOT)
+        assert result.returncode == 0, result.stdout
+        timeless = [re.sub(r"\d+(\.\d+)? s\)", "TIME s)", line) for line in (result.stdout, *shown)]
+        assert timeless[0].splitlines() == timeless[1:], (command, result.stdout, shown)

@@ -35,11 +35,14 @@ def pins(text: str) -> dict[str, str]:
     return {canonical(m[1]): m[2] for m in _PIN.finditer(text)}
 
 
-def frozen(python: str = sys.executable) -> dict[str, str]:
-    """What ``pip freeze --all`` lists in the venv of ``python``, less the local builds."""
-    out = subprocess.run([python, "-m", "pip", "freeze", "--all"],
+def frozen() -> dict[str, str]:
+    """What ``pip freeze --all`` lists in this venv, less the local builds and what they carry
+    (the packml_interfaces wheel holds a packml_interfaces egg-info, as the ros-* wheels do)."""
+    out = subprocess.run([sys.executable, "-m", "pip", "freeze", "--all"],
                          capture_output=True, text=True, check=True).stdout  # fmt: skip
-    return pins("\n".join(line for line in out.splitlines() if " @ " not in line))
+    local = {canonical(line.split(" @ ")[0]) for line in out.splitlines() if " @ " in line}
+    listed = pins("\n".join(line for line in out.splitlines() if " @ " not in line))
+    return {name: v for name, v in listed.items() if name not in carried(local)}
 
 
 def differences(installed: dict[str, str], locked: dict[str, str]) -> list[str]:
@@ -62,11 +65,14 @@ def expected() -> dict[str, str]:
     return pins(LOCK.read_text()) | pins(EMBEDDED.read_text())
 
 
-def carried() -> set[str]:
-    """Names whose metadata directory is a file of another installed distribution."""
+def carried(owners: set[str] | None = None) -> set[str]:
+    """Names whose metadata directory is a file of another installed distribution (of one of
+    ``owners`` only, when given)."""
     names = set()
     for dist in metadata.distributions():
         own = canonical(dist.metadata["Name"])
+        if owners is not None and own not in owners:
+            continue
         for file in dist.files or ():
             top = file.parts[0] if file.parts else ""
             if top.endswith((".egg-info", ".dist-info")) and canonical(top.split("-")[0]) != own:

@@ -1,4 +1,7 @@
-"""``packml alarms [list|ack|reset] [unit]``: the alarm list, acknowledge, reset."""
+"""``packml alarms [list|ack|reset] [unit]``: the alarm list, acknowledge, reset.
+
+The unit may come first and the action be left out, as people type it: ``packml alarms robot_cell``,
+``packml alarms --history robot_cell``, ``packml alarms robot_cell ack``."""
 
 from __future__ import annotations
 
@@ -19,6 +22,7 @@ STATES = {
     Alarm.INACTIVE_UNACKNOWLEDGED: "cleared",
     Alarm.ACKNOWLEDGED: "acked",
 }
+ACTIONS = ("list", "ack", "reset")
 SORTS = {"time": QueryAlarms.Request.SORT_TIME, "category": QueryAlarms.Request.SORT_CATEGORY_TIME,
          "newest": QueryAlarms.Request.SORT_TIME_NEWEST}  # fmt: skip
 
@@ -30,7 +34,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         description="list (default): alarms and warnings of a unit or of every unit; ack: "
         "acknowledge (all, or --id/--value); reset: clear latched alarms that are no longer active.",
     )
-    p.add_argument("action", nargs="?", choices=["list", "ack", "reset"], default="list")
+    p.add_argument("action", nargs="?", default="list", metavar="{list,ack,reset}",
+                   help="what to do (default list); the unit may also come first")  # fmt: skip
     p.add_argument("unit", nargs="?", help="a unit (default: every unit of the cell)")
     p.add_argument("--id", type=int, help="ack: only this alarm ID")
     p.add_argument("--value", type=int, default=0, help="ack: the alarm's Value (default 0)")
@@ -48,7 +53,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.set_defaults(func=alarms)
 
 
+def words(args: argparse.Namespace) -> str | None:
+    """Put the positional words in order (``robot_cell ack`` is ``ack robot_cell``, a lone unit
+    lists); the usage error when they are not an action and a unit."""
+    if args.action in ACTIONS:
+        return None
+    if args.unit is not None and args.unit not in ACTIONS:
+        return (f"alarms: neither {args.action!r} nor {args.unit!r} is one of {', '.join(ACTIONS)}"
+                " (packml alarms [ACTION] [UNIT])")  # fmt: skip
+    args.action, args.unit = args.unit or "list", args.action
+    return None
+
+
 def alarms(args: argparse.Namespace) -> int:
+    refused = words(args)
+    if refused:
+        return fail(refused, EXIT_USAGE)
     # the current list is on the units' latched alarms topic: no service round trip (only the
     # history, and a list longer than the topic holds, ask query_alarms)
     latched = args.action == "list" and not args.history

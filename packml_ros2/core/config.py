@@ -616,10 +616,14 @@ def _coordinator(n: Node, units: Mapping[str, UnitConfig]) -> CoordinatorConfig:
     )
 
 
+#: The top-level keys of a cell file (config/reference_cell.yaml shows each).
+CELL_KEYS = ("cell", "defaults", "units", "coordinator", "line", "hmi", "opcua")
+
+
 def parse_cell(data: Any, file: str = "<memory>", base_dir: Path | None = None) -> CellConfig:
     """Validate a cell document (already parsed YAML). Raises ConfigError listing every problem."""
     root = Node(data, "")
-    root.check_keys({"cell", "defaults", "units", "coordinator", "hmi", "opcua", "line"})
+    root.check_keys(set(CELL_KEYS))
     cell = root.get("cell", sc.name, "")
     if "cell" not in root.mapping():
         root.error("missing key 'cell' (the cell namespace, e.g. demo_cell)")

@@ -12,7 +12,7 @@ import yaml
 
 from packml_ros2.core import Cmd, ConfigError, Mode, State, load_cell, parse_cell
 from packml_ros2.core.config import _UNIT_KEYS as UNIT_KEYS
-from packml_ros2.core.config import ArraySizes, SystemAlarms
+from packml_ros2.core.config import CELL_KEYS, ArraySizes, SystemAlarms
 
 REPO = Path(__file__).resolve().parents[2]
 REFERENCE = REPO / "config" / "reference_cell.yaml"
@@ -334,6 +334,46 @@ def test_reference_cell_shows_every_option() -> None:
     for key in line:
         i = next(i for i, text in enumerate(lines) if i > start and re.match(rf"  {key}:", text))
         documented(lines, i, key)
+
+
+def test_reference_cell_shows_every_top_level_key_and_valid_hmi_and_opcua_blocks(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """It had no hmi: and no opcua: block (issue 24). Every key of those blocks is shown, set or,
+    where it needs a file of the user's or excludes another, in a commented example."""
+    from packml_ros2.hmi.settings import KEYS as HMI_KEYS
+    from packml_ros2.hmi.settings import hmi_settings
+    from packml_ros2.opcua.config import KEYS as OPCUA_KEYS
+    from packml_ros2.opcua.config import parse_opcua
+
+    text = REFERENCE.read_text()
+    doc, lines = yaml.safe_load(text), text.splitlines()
+    assert list(doc) == list(CELL_KEYS)
+    for key in CELL_KEYS:
+        documented(lines, next(i for i, x in enumerate(lines) if x.startswith(f"{key}:")), key)
+    for block, keys in (("hmi", HMI_KEYS), ("opcua", OPCUA_KEYS)):
+        start = lines.index(f"{block}:")
+        end = next(
+            (i for i in range(start + 1, len(lines)) if re.match(r"\S", lines[i])), len(lines)
+        )
+        own = [x for x in lines[start + 1 : end] if x.startswith("  ") and not x.startswith("   ")]
+        set_keys = {x.split(":")[0].strip() for x in own if not x.lstrip().startswith("#")}
+        commented = {m[1] for x in lines[start + 1 : end] for m in re.finditer(r"[`#] *(\w+): ", x)}
+        assert set_keys <= keys and keys <= set_keys | commented, (
+            block,
+            keys - set_keys - commented,
+        )
+        for i in range(start + 1, end):
+            if lines[i] in own and not lines[i].lstrip().startswith("#"):
+                documented(lines, i, f"{block}.{lines[i].split(':')[0].strip()}")
+    for variable in ("REFERENCE_HMI_ANNA_PW", "REFERENCE_HMI_BEN_PW", "REFERENCE_OPCUA_SCADA_PW"):
+        monkeypatch.setenv(variable, "a password of the reference cell")
+    cell = load_cell(REFERENCE)
+    hmi = hmi_settings(cell)
+    assert set(hmi.users) == {"anna", "ben"} and hmi.allowed_hosts == ("hmi.line3.example",)
+    opcua = parse_opcua(cell)
+    assert opcua.units == ("filler", "capper", "wrapper") and set(opcua.users) == {"scada"}
+    assert opcua.max_mach_speed == {"filler": 120, "capper": 120}
 
 
 def documented(lines: list[str], i: int, key: str) -> None:

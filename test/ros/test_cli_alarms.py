@@ -9,9 +9,11 @@ import argparse
 import itertools
 from typing import Any
 
+import pytest
 from packml_interfaces.srv import AckAlarms, SetAlarm
 
 from packml_ros2.cli import alarms as cli
+from packml_ros2.cli.main import build_parser
 from packml_ros2.client import UnitProxy
 from packml_ros2.core.alarms import ORDERS
 from test.ros.test_unit_services import make_unit
@@ -71,3 +73,30 @@ def test_an_overflowing_list_is_asked_for(ros: Any, make_unit: Any) -> None:
     text, _ = cli._listed(proxy, args(), 10)
     assert [line.split()[1].split("/")[0] for line in text.splitlines()[1:]] == [
         "21", "22", "23", "24"]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("typed", "action", "unit"),
+    [
+        ("", "list", None),
+        ("robot_cell", "list", "robot_cell"),  # was a usage error (issue 24)
+        ("--history robot_cell", "list", "robot_cell"),  # was a usage error (issue 24)
+        ("robot_cell --history", "list", "robot_cell"),
+        ("list robot_cell --history", "list", "robot_cell"),
+        ("ack robot_cell", "ack", "robot_cell"),
+        ("robot_cell ack", "ack", "robot_cell"),
+        ("reset", "reset", None),
+    ],
+)
+def test_the_forms_people_type(typed: str, action: str, unit: str | None) -> None:
+    args = build_parser("alarms").parse_args(["alarms", *typed.split()])
+    assert cli.words(args) is None
+    assert (args.action, args.unit, args.history) == (action, unit, "--history" in typed)
+
+
+def test_two_words_that_are_not_an_action_and_a_unit_are_a_usage_error() -> None:
+    args = build_parser("alarms").parse_args(["alarms", "lsit", "robot_cell"])
+    assert cli.words(args) == (
+        "alarms: neither 'lsit' nor 'robot_cell' is one of list, ack, reset"
+        " (packml alarms [ACTION] [UNIT])"
+    )

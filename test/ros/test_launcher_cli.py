@@ -187,6 +187,12 @@ def test_launch_in_one_process_and_the_cli_verbs(launched, tmp_path: Path) -> No
     assert packml("fault", "filler/nozzle", "clog", "on").returncode == 0
     alarms = wait_for(("alarms", "list", "filler"), "Nozzle clogged")
     assert "201" in alarms.stdout and "ACTIVE" in alarms.stdout
+    # the forms people type (issue 24: usage errors before), the same list and the history
+    typed = packml("alarms", "filler")
+    assert typed.returncode == 0 and typed.stdout == alarms.stdout, typed.stdout + typed.stderr
+    history = packml("alarms", "--history", "filler")
+    assert history.returncode == 0 and "filler:" in history.stdout, history.stdout + history.stderr
+    assert "Nozzle clogged" in history.stdout
     stopped = wait_for(("status", "filler"), "STOPPED")
     assert "STOPPED" in stopped.stdout
     refused = packml("cmd", "filler", "reset")
