@@ -12,6 +12,7 @@
     packml opcua <cell.yaml>                 the cell as OPC UA (OPC 30050) objects
     packml policy <cell.yaml>                the SROS2 permission policy of the cell
     packml report [cell]                     the line's losses, OEE and stop episodes
+    packml doctor [cell.yaml]                check this host's DDS setup, say what to change
 
 Exit codes: 0 done, 1 refused by the unit (the reason is printed), 2 usage or configuration
 error, 3 a unit or service did not answer.
@@ -36,6 +37,7 @@ VERB_MODULES = {
     "opcua": ("opcua",),
     "policy": ("policy",),
     "report": ("report",),
+    "doctor": ("doctor",),
 }
 
 EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_UNAVAILABLE = 0, 1, 2, 3
