@@ -19,14 +19,11 @@ lock_check = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(lock_check)
 
 
-@pytest.mark.timeout(
-    600
-)  # pip freeze reads every installed package's metadata: slow on a busy machine
 def test_pip_freeze_is_the_lock() -> None:
     """``pip freeze --all`` of this venv against the lock (and what the ros-* wheels carry), less
     what setup.sh builds here: packml_ros2, packml_interfaces, the vendored ROS 2 command line."""
     result = subprocess.run([sys.executable, str(REPO / "tools" / "lock_check.py")],
-                            capture_output=True, text=True, timeout=540, check=False)  # fmt: skip
+                            capture_output=True, text=True, timeout=100, check=False)  # fmt: skip
     assert result.returncode == 0, (
         "pip freeze --all differs from requirements/lock.txt (run tools/setup.sh; after changing "
         f"requirements/*.txt or setup.py, tools/lock.sh):\n{result.stdout}{result.stderr}"

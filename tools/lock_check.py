@@ -42,7 +42,8 @@ def frozen() -> dict[str, str]:
                          capture_output=True, text=True, check=True).stdout  # fmt: skip
     local = {canonical(line.split(" @ ")[0]) for line in out.splitlines() if " @ " in line}
     listed = pins("\n".join(line for line in out.splitlines() if " @ " not in line))
-    return {name: v for name, v in listed.items() if name not in carried(local)}
+    inside = carried(local)  # once: it reads every installed distribution's RECORD
+    return {name: v for name, v in listed.items() if name not in inside}
 
 
 def differences(installed: dict[str, str], locked: dict[str, str]) -> list[str]:
