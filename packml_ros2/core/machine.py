@@ -42,7 +42,15 @@ from .counters import Counters
 from .deadlines import Deadlines
 from .durable import Durable, document
 from .equipment import Equipment
-from .interlocks import STOP_ID_BLOCKED, STOP_ID_STARVED, Interlocks, interlock_refusal
+from .interlocks import (
+    EXTERNAL_KEY,
+    LEGACY_SOURCE,
+    STOP_ID_BLOCKED,
+    STOP_ID_STARVED,
+    Interlocks,
+    interlock_refusal,
+    interlock_source,
+)
 from .mode_change import ModeChanges
 from .numbers import Cmd, State, command_name, state_name
 from .outputs import Outputs, Transition
@@ -177,6 +185,8 @@ class UnitMachine(ModeChanges):
         "_t", "_advance_to", "_internal", "_step_winner", "_restart_detail", "_handlers", "_out",
         # caches
         "_valid_cache", "_rev", "_strays",
+        # compatibility
+        "legacy_interlock_source",
     )  # fmt: skip
 
     def __init__(self, config: UnitConfig, clock: Clock, store: Store | None = None) -> None:
@@ -231,6 +241,9 @@ class UnitMachine(ModeChanges):
         self._rev = 0  # +1 on status-relevant changes not covered by other version counters
         self._step_winner: tuple[int, str] | None = None
         self._restart_detail = "unit started"
+        #: interlock transitions name their source "interlock", as input logs of schema 1 and
+        #: before recorded it (replay sets it for those; core/interlocks.py)
+        self.legacy_interlock_source = False
         self._handlers: Mapping[str, Callable[[Any], None]] = {
             kind: getattr(self, f"_on_{kind}") for kind in _HANDLERS
         }
@@ -472,9 +485,11 @@ class UnitMachine(ModeChanges):
         return answer
 
     def _set_interlock(self, active: bool, reason: str, source: str) -> Answer:
-        key = f"ext:{source}"
+        key = f"{EXTERNAL_KEY}{source}"
         name = self.config.name
-        held = [k[4:] for k in self.interlocks.active if k.startswith("ext:")]
+        held = [
+            k[len(EXTERNAL_KEY) :] for k in self.interlocks.active if k.startswith(EXTERNAL_KEY)
+        ]
         refused = interlock_refusal(held, active, source, self.remote_enabled, name)
         if refused is not None:
             return refused
@@ -846,8 +861,9 @@ class UnitMachine(ModeChanges):
         action = self.interlocks.action(self.state, self.sequence)
         if action is None:
             return False
-        cmd, detail, stop_id = action
-        self._internal.append(_Cmd(cmd, "interlock", Trigger.INTERLOCK, detail, stop_id=stop_id))
+        cmd, detail, stop_id, key = action
+        source = LEGACY_SOURCE if self.legacy_interlock_source else interlock_source(key)
+        self._internal.append(_Cmd(cmd, source, Trigger.INTERLOCK, detail, stop_id=stop_id))
         return True
 
     # -- modes (the rest of a mode change: core/mode_change.py) ---------------------------------
