@@ -250,7 +250,7 @@ class UnitMachine(ModeChanges):
         self._durable = (
             None
             if store is None
-            else Durable(store, self.times, self.counters, self.alarms, self.stops)
+            else Durable(store, self.times, self.counters, self.alarms, self.stops, self._producing)
         )
         self._restore(now)
         self._transition(S.STOPPED, Trigger.RESTART, source="unit", detail=self._restart_detail)
@@ -977,16 +977,28 @@ class UnitMachine(ModeChanges):
     def document(self) -> dict[str, Any]:
         """What persistence stores: everything of the admin data, never the state."""
         return document(self.times, self.counters, self.alarms, self.stops, self.sequence,
-                        self.mach_speed, self._t)  # fmt: skip
+                        self.mach_speed, self._t, self._producing())  # fmt: skip
+
+    def _producing(self) -> bool:
+        """In Execute or on its way there, with the StopReason armed: a crash now is a stop
+        (core/durable.py). A shutdown records its StopReason, which disarms it."""
+        return self.stops.armed and SETTLE.get(self.state) is S.EXECUTE
+
+    def checkpoint(self, now: float) -> None:
+        """Journal the times as of ``now`` (the node calls this every
+        :data:`~.durable.TIME_CHECKPOINT` seconds): a process killed between inputs loses at most
+        that much time. Not an input: nothing changes, nothing is published or recorded."""
+        if self._durable is not None:
+            self._durable.checkpoint(max(now, self._t))
 
     def _journal(self) -> None:
         """Write-ahead: the input's durable changes reach the store before it is answered."""
         if self._durable is not None:
             self._durable.journal(self.sequence, self.mode, self.mach_speed, self._t)
 
-    def _snapshot(self) -> None:
+    def _snapshot(self, closing: bool = False) -> None:
         if self._durable is not None:
-            self._durable.snapshot(self.sequence, self.mode, self.mach_speed, self._t)
+            self._durable.snapshot(self.sequence, self.mode, self.mach_speed, self._t, closing)
 
     def _restore(self, now: float) -> None:
         self.restored: dict[str, Any] | None = None
@@ -1001,6 +1013,11 @@ class UnitMachine(ModeChanges):
             self._restart_detail = "unit restarted"
             gap = now - float(data.get("saved_at", now))
             self.alarms.log_event(f"unit restarted (last saved {gap:.1f} s before)", now, source="unit")  # fmt: skip
+            if restored.producing:  # it crashed: why it stopped is that, not the last stop
+                self.stops.set(self.stops.of_crash(
+                    f"unit process ended without shutting down (crash or kill) while producing; "
+                    f"restarted {gap:.1f} s after its last save", now))  # fmt: skip
+                self.stops.armed = False
         sa = self.config.system_alarms
         for n, problem in enumerate(restored.problems, 1):
             self._log("warn", f"persistence: {problem}")
@@ -1010,8 +1027,8 @@ class UnitMachine(ModeChanges):
             self.alarms.clear(d.id, d.value, now)
 
     def close(self) -> None:
-        """Save a last snapshot and close the store."""
-        self._snapshot()
+        """Save a last snapshot and close the store (an orderly end: not a crash)."""
+        self._snapshot(closing=True)
         if self.store is not None:
             self.store.close()
 
