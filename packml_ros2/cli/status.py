@@ -47,15 +47,12 @@ def status(args: argparse.Namespace) -> int:
 
 
 def lost_units(cell: CellProxy) -> dict[str, str]:
-    """The units the coordinator's cell status reports lost (or not online): name -> why."""
+    """The units the coordinator's cell status reports lost: name -> why. (A unit it has not
+    seen yet, just after its start, is not online but not lost either: it is waited for.)"""
     cs = cell.cell_status
     if cs is None:
         return {}
-    out = dict.fromkeys(cs.lost_units, "lost (the coordinator has no sign of life from it)")
-    for u in cs.units:
-        if not u.online and u.name not in out:
-            out[u.name] = f"offline ({u.health or 'no status'})"
-    return out
+    return dict.fromkeys(cs.lost_units, "lost (the coordinator has no sign of life from it)")
 
 
 def wait_cell(cell: CellProxy, timeout: float) -> dict[str, str]:
@@ -77,11 +74,12 @@ def wait_cell(cell: CellProxy, timeout: float) -> dict[str, str]:
         if not waiting or remaining <= 0:
             break
         changed.wait(min(remaining, 0.25))  # (a lease the coordinator ends sends a cell status)
-    out = {}
-    for u in cell.units.values():
-        if u.status is None or u.name in (cell.cell_status.lost_units if cell.cell_status else ()):
-            out[u.name] = lost.get(u.name, f"no status within {timeout:g} s (not reachable?)")
-    return out
+    lost = lost_units(cell)
+    return {
+        u.name: lost.get(u.name, f"no status within {timeout:g} s (not reachable?)")
+        for u in cell.units.values()
+        if u.status is None or u.name in lost
+    }
 
 
 def counts(unit: UnitProxy) -> str:
