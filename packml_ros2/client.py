@@ -8,6 +8,7 @@ on it from a thread that is not spinning the node.
 
 from __future__ import annotations
 
+import re
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -300,9 +301,11 @@ class CellProxy:
         return self.units[name]
 
     def discover(self, timeout: float = 3.0, expect: int = 0) -> list[str]:
-        """Add the units of this cell that appear on the graph; returns their names. It stops as
-        soon as the cell is complete: ``expect`` units known, or every unit the coordinator's
-        (latched) cell status lists; without a coordinator, once no new unit has appeared for
+        """Add the units of this cell that appear on the graph, and every unit the coordinator's
+        (latched) cell status lists (a lost unit too: a killed unit or a PLC that is gone has no
+        status writer on the graph, but it is still a unit of the cell); returns their names. It
+        stops as soon as the cell is complete: ``expect`` units known, or the coordinator's cell
+        status arrived; without a coordinator, once no new unit has appeared for
         :data:`DISCOVERY_SETTLE` seconds; at the latest after ``timeout``."""
         deadline = time.monotonic() + timeout
         coordinator = f"/{self.cell}/coordinator/status"
@@ -310,15 +313,20 @@ class CellProxy:
         while True:
             graph = _graph_units(self.node)
             before = len(self.units)
-            for unit in sorted(graph.get(self.cell, ())):
+            status = self.cell_status
+            listed = (
+                [u.name for u in status.units if _UNIT_NAME.fullmatch(u.name)]
+                if status is not None
+                else []
+            )
+            for unit in sorted({*graph.get(self.cell, ()), *listed}):
                 self.add(unit)
             now = time.monotonic()
             if len(self.units) != before:
                 changed = now
-            status = self.cell_status
             if expect and len(self.units) >= expect:
                 break
-            if status is not None and {u.name for u in status.units} <= set(self.units):
+            if status is not None:
                 break
             settled = self.units and now - changed >= DISCOVERY_SETTLE
             # a coordinator on the graph lists the cell's units: wait a little for its status
@@ -336,6 +344,9 @@ class CellProxy:
             return self.add(path)
         return self.units[key]
 
+
+#: A unit name as a ROS node name (what a coordinator's cell status may add to a proxy).
+_UNIT_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,254}")
 
 #: Graph discovery ends this long after the last new unit appeared (when no coordinator lists a
 #: cell's units): the participants of a running cell all answer a newcomer's first announcement,

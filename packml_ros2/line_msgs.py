@@ -122,6 +122,15 @@ def _float(x: float) -> float | None:
 
 
 def scope_dict(s: Any) -> dict[str, Any]:
+    """A LossScope as a dict; a factor with nothing to divide by is None ("no data", not 0 %):
+    availability and OEE without planned production time (an empty shift, a window before
+    anything was recorded), performance without running time (or without a design speed),
+    quality without a count."""
+    planned_production = s.elapsed_ns - s.planned_stop_ns
+
+    def factor(x: float, defined: bool) -> float | None:
+        return _float(x) if defined else None
+
     return {
         "scope": s.scope or "line", "elapsed": s.elapsed_ns / NS,
         "planned_stop": s.planned_stop_ns / NS, "unplanned_stop": s.unplanned_stop_ns / NS,
@@ -129,8 +138,11 @@ def scope_dict(s: Any) -> dict[str, Any]:
         "running": s.running_ns / NS, "speed_loss": s.speed_loss_ns / NS,
         "quality_loss": s.quality_loss_ns / NS, "productive": s.productive_ns / NS,
         "processed": s.processed, "defective": s.defective,
-        "mach_design_speed": s.mach_design_speed, "availability": _float(s.availability),
-        "performance": _float(s.performance), "quality": _float(s.quality), "oee": _float(s.oee),
+        "mach_design_speed": s.mach_design_speed,
+        "availability": factor(s.availability, planned_production > 0),
+        "performance": factor(s.performance, s.running_ns > 0),
+        "quality": factor(s.quality, s.processed > 0),
+        "oee": factor(s.oee, planned_production > 0),
         "buckets": [{"bucket": b.bucket, "reason": b.reason, "seconds": b.nanoseconds / NS}
                     for b in s.buckets],
         "nanoseconds": {k: getattr(s, f"{k}_ns") for k in (

@@ -69,6 +69,7 @@ from .core import (
     state_name,
 )
 from .core.config import CoordinatorConfig
+from .core.durable import TIME_CHECKPOINT
 from .core.limits import LogLimiter, printable
 from .core.liveliness import Liveliness
 from .core.reports import LEAVE, Writers, report_problem
@@ -160,6 +161,8 @@ class UnitNode(Node):
             self._wake,
             self.create_timer(DIAGNOSTICS_PERIOD, self._publish_diagnostics),
         ]
+        if self.store is not None:  # the times since the last input survive a SIGKILL
+            self._timers.append(self.create_timer(TIME_CHECKPOINT, self._checkpoint))
         self._closed = False
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.remote_lock = RemoteLock(
@@ -522,6 +525,10 @@ class UnitNode(Node):
             self.get_logger().warning(text)
         else:
             self.get_logger().info(text)
+
+    def _checkpoint(self) -> None:
+        if not self._closed:
+            self.unit.checkpoint(self._now())
 
     def _publish_diagnostics(self) -> None:
         unit = self.unit

@@ -552,6 +552,12 @@ def upgraded(inputs: list[Input], schema: int, rec: UnitRecording, bag: Path,
     return out
 
 
+def _before_holders(schema: Any) -> bool:
+    """Whether a unit of input log ``schema`` named its interlock transitions' source
+    ``interlock`` (core/inputlog.py): the replayed engine does the same."""
+    return not isinstance(schema, int) or schema < inputlog.INTERLOCK_HOLDER_SCHEMA
+
+
 class UnitReplay:
     """An engine on the recording's clock, driven like the node drives it: a fresh one at the
     unit's start, or the one a snapshot describes."""
@@ -571,6 +577,8 @@ class UnitReplay:
                 self.unit = snapshot.restore(config, self.clock, origin.state["engine"], self.store)
             except snapshot.SnapshotError as exc:
                 raise RecordingError(f"the snapshot of {config.name} after input #{origin.index}: {exc}") from None  # fmt: skip
+            schema = origin.state.get("input_schema", inputlog.SCHEMA)
+            self.unit.legacy_interlock_source = _before_holders(schema)
             self.clock.frozen = None
             self.driver = UnitDriver(self.unit, self.clock, self._emit)
             return
@@ -581,6 +589,7 @@ class UnitReplay:
             persistence = document is not None or bool(config.persistence_path)
         self.store = MemoryStore(document) if persistence else None
         self.unit = Unit(config, clock=self.clock, store=self.store)  # type: ignore[arg-type]
+        self.unit.legacy_interlock_source = _before_holders(inputlog.schema_of(args))
         self.clock.frozen = None
         self.driver = UnitDriver(self.unit, self.clock, self._emit)
         # what UnitNode._publish_start publishes: the start-up outputs, then the admin data

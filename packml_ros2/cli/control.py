@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import threading
 import time
 from typing import Any
 
 from packml_interfaces.srv import Command, SetMode
 from std_srvs.srv import SetBool
 
-from ..client import Unavailable, call_blocking, command_number
+from ..client import Unavailable, call_blocking, call_future, command_number
 from .main import EXIT_OK, EXIT_REFUSED, EXIT_UNAVAILABLE, EXIT_USAGE
 from .session import Session, add_common, fail, session
+from .status import wait_cell
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -80,6 +82,42 @@ def _coordinator(
     return call_blocking(client, request, timeout, f"/{cell}/coordinator/{service}")
 
 
+def _cell_command(s: Session, cell_name: str, request: Any, timeout: float) -> Any:
+    """The cell command through the coordinator; while its sequence runs, one line per unit
+    state change as it happens (``  robot_cell: STOPPING (0.05 s)``), flushed at once, on a
+    terminal and in a pipe alike: a cell Stop takes seconds per unit."""
+    cell = s.cell(cell_name)
+    wait_cell(cell, s.timeout)  # the states before (a lost unit is not waited for)
+    path = f"/{cell_name}/coordinator/command"
+    client = s.node.create_client(Command, path)
+    if not client.wait_for_service(timeout_sec=s.timeout):
+        raise Unavailable(f"the coordinator of cell {cell_name} does not answer ({path})")
+    changed = threading.Event()
+    cell.on_change = lambda *_: changed.set()
+    for u in cell.units.values():
+        u.on_change = cell.on_change
+    shown = {
+        name: u.status.state_current_name if u.status else "" for name, u in cell.units.items()
+    }
+    t0 = time.monotonic()
+    answer = call_future(client, request, path)
+    deadline = t0 + timeout
+    while not answer.done() and time.monotonic() < deadline:
+        changed.wait(0.25)
+        changed.clear()
+        for name, u in cell.units.items():
+            st = u.status
+            if st is not None and st.state_current_name != shown[name]:
+                shown[name] = st.state_current_name
+                print(
+                    f"  {name}: {st.state_current_name} ({time.monotonic() - t0:.2f} s)", flush=True
+                )
+    try:
+        return answer.result(max(0.0, deadline - time.monotonic()))
+    except TimeoutError:
+        raise Unavailable(f"{path} did not answer within {timeout:g} s") from None
+
+
 def _settled(unit: Any, resp: Command.Response, before: int, timeout: float) -> int:
     """Wait until the unit, past the sequence it had before the command, is no longer on its way
     (StateChangeInProcess false): statuses of different topics are not ordered with the answer."""
@@ -106,9 +144,7 @@ def cmd(args: argparse.Namespace) -> int:
             if s.is_cell(args.target):
                 req = Command.Request(command=number, source=args.source)
                 # a cell sequence waits for every unit: allow a step timeout per unit
-                return _report(
-                    _coordinator(s, args.target, "command", Command, req, 120.0), "accepted"
-                )
+                return _report(_cell_command(s, args.target, req, 120.0), "accepted")
             unit = s.unit(args.target)
             before = unit.wait_status(timeout=s.timeout).sequence
             resp = unit.command(number, args.source, timeout=s.timeout)

@@ -15,7 +15,8 @@
     packml doctor [cell.yaml]                check this host's DDS setup, say what to change
 
 Exit codes: 0 done, 1 refused by the unit (the reason is printed), 2 usage or configuration
-error, 3 a unit or service did not answer.
+error, 3 a unit or service did not answer (``packml status`` still prints the cell, the lost units
+marked).
 """
 
 from __future__ import annotations

@@ -5,8 +5,13 @@ packml report --shift previous      the shift before; --shift 2025-06-16 early: 
 packml report --since 2h            the last two hours (also 30min, 90s, 2025-06-16T06:00)
 packml report --window lifetime     15min, 1h, reset (since reset_losses), lifetime
 packml report --format csv          the loss rows (they add up to each scope's elapsed time)
+packml report --format episodes-csv the episodes of the window, one row each (all: up to 1000)
 packml report --format json         everything (windows and episodes) as JSON
 packml report --episodes 20         the 20 newest episodes in the table (default 10)
+
+CSV times are ISO 8601 with the local UTC offset (2025-06-16T10:31:13.250+02:00), durations
+seconds. A factor with nothing to divide by (an empty shift, no running time, no count) is
+"no data" (empty in CSV, null in JSON), never 0 %.
 """
 
 from __future__ import annotations
@@ -46,8 +51,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     which.add_argument("--since", metavar="TIME", help="a span back from now (2h, 30min) or an ISO time")  # fmt: skip
     which.add_argument("--window", choices=("15min", "1h", "reset", "lifetime"), help="a running window")  # fmt: skip
     p.add_argument("--until", metavar="TIME", help="with --since: the end (ISO time; default now)")
-    p.add_argument("--format", choices=("table", "csv", "json"), default="table")
-    p.add_argument("--episodes", type=int, default=10, metavar="N", help="episodes listed (default 10)")  # fmt: skip
+    p.add_argument("--format", choices=("table", "csv", "episodes-csv", "json"), default="table")
+    p.add_argument("--episodes", type=int, default=None, metavar="N",
+                   help="episodes listed (default 10; episodes-csv: all, up to 1000)")  # fmt: skip
     add_common(p)
     p.set_defaults(func=report)
 
@@ -105,7 +111,8 @@ def report(args: argparse.Namespace) -> int:
             if not losses.accepted:
                 return fail(f"{cell}: {losses.message}", EXIT_REFUSED)
             window = losses.windows[0]
-            ep_req = QueryEpisodes.Request(limit=max(1, min(args.episodes, 1000)))
+            wanted = args.episodes if args.episodes is not None else (1000 if args.format == "episodes-csv" else 10)  # fmt: skip
+            ep_req = QueryEpisodes.Request(limit=max(1, min(wanted, 1000)))
             ep_req.since = window.start if (window.start.sec or window.start.nanosec) else Time()
             ep_req.until = window.end
             episodes = call_blocking(s.node.create_client(QueryEpisodes, f"{base}/query_episodes"),
@@ -118,6 +125,8 @@ def report(args: argparse.Namespace) -> int:
         print(json.dumps({"cell": cell, **data, "episodes": eps, "episodes_total": episodes.total}, indent=2))  # fmt: skip
     elif args.format == "csv":
         sys.stdout.write(to_csv(data))
+    elif args.format == "episodes-csv":
+        sys.stdout.write(episodes_csv(eps))
     else:
         print(table(cell, data, eps, episodes.total))
     return 0
@@ -133,11 +142,29 @@ def duration(seconds: float) -> str:
 
 
 def percent(x: float | None) -> str:
-    return "-" if x is None or math.isnan(x) else f"{100 * x:.1f}%"
+    return "no data" if x is None or math.isnan(x) else f"{100 * x:.1f}%"
 
 
 def clock(t: float | None) -> str:
     return dt.datetime.fromtimestamp(t).strftime("%Y-%m-%d %H:%M:%S") if t else "-"
+
+
+def iso(t: float | None) -> str:
+    """ISO 8601, local time with its UTC offset, to the millisecond ('' for none)."""
+    if not t:
+        return ""
+    return dt.datetime.fromtimestamp(t).astimezone().isoformat(timespec="milliseconds")
+
+
+def affected(e: dict[str, Any]) -> str:
+    """The units an episode affected, each once, with how it left Execute each time
+    (``robot_cell (internal, propagated)``), in the order they first left."""
+    hows: dict[str, list[str]] = {}
+    for a in e["affected"]:
+        seen = hows.setdefault(a["unit"], [])
+        if a["how"] not in seen:
+            seen.append(a["how"])
+    return ", ".join(f"{unit} ({', '.join(how)})" for unit, how in hows.items())
 
 
 def rows_of(scope: dict[str, Any]) -> list[tuple[str, str, float]]:
@@ -153,10 +180,25 @@ def to_csv(data: dict[str, Any]) -> str:
     out = io.StringIO()
     w = csv.writer(out)
     w.writerow(["window", "start", "end", "scope", "bucket", "reason", "seconds"])
+    start, end = iso(data["start"]), iso(data["end"])
     for scope in data["scopes"]:
         for bucket, reason, seconds in rows_of(scope):
-            w.writerow([data["window"], data["start"] or "", data["end"], scope["scope"], bucket, reason, f"{seconds:.3f}"])  # fmt: skip
-        w.writerow([data["window"], data["start"] or "", data["end"], scope["scope"], "elapsed", "", f"{scope['elapsed']:.3f}"])  # fmt: skip
+            w.writerow([data["window"], start, end, scope["scope"], bucket, reason, f"{seconds:.3f}"])  # fmt: skip
+        w.writerow([data["window"], start, end, scope["scope"], "elapsed", "", f"{scope['elapsed']:.3f}"])  # fmt: skip
+    return out.getvalue()
+
+
+def episodes_csv(episodes: list[dict[str, Any]]) -> str:
+    """One row per episode, oldest first; ``end`` empty while it is open."""
+    out = io.StringIO()
+    w = csv.writer(out)
+    w.writerow(["id", "start", "end", "seconds", "open", "root_cause", "bucket", "reason",
+                "source", "stop_reason_id", "affected"])  # fmt: skip
+    for e in sorted(episodes, key=lambda x: x["id"]):
+        reason_id = e["stop_reason"]["id"] if e["stop_reason"] else ""
+        w.writerow([e["id"], iso(e["start"]), "" if e["open"] else iso(e["end"]),
+                    f"{e['duration']:.3f}", "yes" if e["open"] else "no", e["root_unit"],
+                    e["bucket"], e["reason"], e["source"], reason_id, affected(e)])  # fmt: skip
     return out.getvalue()
 
 
@@ -180,18 +222,17 @@ def table(cell: str, data: dict[str, Any], episodes: list[dict[str, Any]], total
     lines += ["", "LOSSES OF THE LINE (they add up to its elapsed time)"]
     loss_rows: list[tuple[str, ...]] = [("BUCKET", "REASON", "TIME", "SHARE")]
     for bucket, reason, seconds in rows_of(line):
-        share = seconds / line["elapsed"] if line["elapsed"] else 0.0
+        share = seconds / line["elapsed"] if line["elapsed"] else None
         loss_rows.append((BUCKET_NAMES.get(bucket, bucket.replace("_", " ")), reason or "-", duration(seconds), percent(share)))  # fmt: skip
-    loss_rows.append(("total", "", duration(sum(r[2] for r in rows_of(line))), percent(1.0 if line["elapsed"] else 0.0)))  # fmt: skip
+    loss_rows.append(("total", "", duration(sum(r[2] for r in rows_of(line))), percent(1.0 if line["elapsed"] else None)))  # fmt: skip
     loss_rows.append(("elapsed", "", duration(line["elapsed"]), ""))
     lines += ["  " + x for x in _grid(loss_rows, {2, 3})]
     lines += ["", f"STOP EPISODES ({len(episodes)} of {total}, newest first)"]
     if episodes:
         ep_rows: list[tuple[str, ...]] = [("#", "START", "DURATION", "ROOT CAUSE", "BUCKET", "REASON", "AFFECTED")]  # fmt: skip
         for e in episodes:
-            affected = ", ".join(f"{a['unit']} ({a['how']})" for a in e["affected"])
             dur = duration(e["duration"]) + (" open" if e["open"] else "")
-            ep_rows.append((str(e["id"]), clock(e["start"]), dur, e["root_unit"], BUCKET_NAMES.get(e["bucket"], e["bucket"]), e["reason"], affected))  # fmt: skip
+            ep_rows.append((str(e["id"]), clock(e["start"]), dur, e["root_unit"], BUCKET_NAMES.get(e["bucket"], e["bucket"]), e["reason"], affected(e)))  # fmt: skip
         lines += ["  " + x for x in _grid(ep_rows, {0, 2})]
     else:
         lines.append("  none")

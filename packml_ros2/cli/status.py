@@ -3,8 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import threading
+import time
+from collections.abc import Mapping
 
-from ..client import Unavailable, UnitProxy
+from packml_interfaces.msg import CellStatus
+
+from ..client import CellProxy, Unavailable, UnitProxy
 from .main import EXIT_UNAVAILABLE, EXIT_USAGE
 from .session import add_common, fail, session
 
@@ -30,15 +35,51 @@ def status(args: argparse.Namespace) -> int:
             cell = s.cell()
             if not cell.units:
                 return fail(f"no unit found in cell {cell.cell}", EXIT_UNAVAILABLE)
-            for unit in cell.units.values():
-                unit.wait_status(timeout=s.timeout)
-                unit.wait_admin(timeout=s.timeout)  # the counts
-            print(table(cell.cell, list(cell.units.values()), cell.cell_status))
+            lost = wait_cell(cell, s.timeout)
+            print(table(cell.cell, list(cell.units.values()), cell.cell_status, lost), flush=True)
+            if lost:
+                return fail("; ".join(f"{u}: {why}" for u, why in lost.items()), EXIT_UNAVAILABLE)
             return 0
         except LookupError as exc:
             return fail(str(exc), EXIT_USAGE)
         except Unavailable as exc:
             return fail(str(exc), EXIT_UNAVAILABLE)
+
+
+def lost_units(cell: CellProxy) -> dict[str, str]:
+    """The units the coordinator's cell status reports lost: name -> why. (A unit it has not
+    seen yet, just after its start, is not online but not lost either: it is waited for.)"""
+    cs = cell.cell_status
+    if cs is None:
+        return {}
+    return dict.fromkeys(cs.lost_units, "lost (the coordinator has no sign of life from it)")
+
+
+def wait_cell(cell: CellProxy, timeout: float) -> dict[str, str]:
+    """Wait until every unit's status (and admin data, if its proxy follows it) arrived, or the
+    coordinator reports the unit lost (then it is not waited for: a killed unit or a frozen PLC
+    never answers); at the latest after ``timeout``. Returns the units without an answer or
+    lost: name -> why."""
+    changed = threading.Event()
+    cell.on_change = lambda *_: changed.set()
+    for u in cell.units.values():
+        u.on_change = cell.on_change
+    deadline = time.monotonic() + timeout
+    while True:
+        changed.clear()
+        lost = lost_units(cell)
+        waiting = [u for u in cell.units.values()
+                   if u.name not in lost and (u.status is None or ("admin" in u.topics and u.admin is None))]  # fmt: skip
+        remaining = deadline - time.monotonic()
+        if not waiting or remaining <= 0:
+            break
+        changed.wait(min(remaining, 0.25))  # (a lease the coordinator ends sends a cell status)
+    lost = lost_units(cell)
+    return {
+        u.name: lost.get(u.name, f"no status within {timeout:g} s (not reachable?)")
+        for u in cell.units.values()
+        if u.status is None or u.name in lost
+    }
 
 
 def counts(unit: UnitProxy) -> str:
@@ -50,24 +91,40 @@ def counts(unit: UnitProxy) -> str:
     return f"{processed} processed, {defective} defective"
 
 
-def table(cell: str, units: list[UnitProxy], cell_status: object | None = None) -> str:
+def table(cell: str, units: list[UnitProxy], cell_status: CellStatus | None = None,
+          lost: Mapping[str, str] | None = None) -> str:  # fmt: skip
+    """One row per unit; a unit in ``lost`` (name -> why) is marked LOST, with what the
+    coordinator last knew of it (or its own last status) on a line below the table."""
+    lost = lost or {}
+    summaries = {u.name: u for u in cell_status.units} if cell_status is not None else {}
     rows = [("UNIT", "STATE", "MODE", "SEQ", "EMS", "ALARMS", "COUNTS")]
+    notes = []
     for u in units:
         st = u.status
-        assert st is not None
+        if u.name in lost:
+            last = st or summaries.get(u.name)
+            was = f"last seen in {last.state_current_name}" if last is not None else "never seen"
+            notes.append(f"  LOST {u.name}: {lost[u.name]}; {was}")
+        if st is None:
+            rows.append((u.name, "LOST", "-", "-", "-", "-", "-"))
+            continue
         online = sum(e.online for e in st.equipment_modules)
         alarms = st.alarm_banner or (f"{st.active_alarms} active" if st.active_alarms else "-")
-        rows.append((u.name, st.state_current_name, st.unit_mode_current_name, str(st.sequence),
+        state = f"LOST ({st.state_current_name})" if u.name in lost else st.state_current_name
+        rows.append((u.name, state, st.unit_mode_current_name, str(st.sequence),
                      f"{online}/{len(st.equipment_modules)}", alarms, counts(u) or "-"))  # fmt: skip
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]) - 1)]
-    lines = [
-        f"cell {cell}" + (f": {cell_status.state_current_name}" if cell_status is not None else "")
-    ]  # type: ignore[attr-defined]
+    head = f"cell {cell}" + (
+        f": {cell_status.state_current_name}" if cell_status is not None else ""
+    )
+    if lost:
+        head += f"  LOST: {', '.join(lost)}"
+    lines = [head]
     for r in rows:
         lines.append(
             "  " + "  ".join(c.ljust(w) for c, w in zip(r[:-1], widths, strict=True)) + "  " + r[-1]
         )
-    return "\n".join(lines)
+    return "\n".join(lines + notes)
 
 
 def detail(unit: UnitProxy) -> str:

@@ -6,10 +6,21 @@ input's changes, written before the unit answers or publishes (:meth:`Durable.jo
 write-ahead), and the restore at start-up (:meth:`Durable.restore`). It remembers what it last
 wrote, so an input journals only what changed: counters, alarm occurrences (by serial), the stop
 reason, the machine speed, and the sequence and times after state and mode changes.
+
+Two things a process killed between inputs (SIGKILL, a crash) would otherwise lose:
+
+- **time**: times accumulate between inputs, so the unit node journals them every
+  :data:`TIME_CHECKPOINT` seconds (:meth:`Durable.checkpoint`, one ``write()``): a killed unit
+  loses at most that much of its mode and state times (plus the executor's delay of the timer);
+- **why it stopped**: ``producing`` is journaled with every change of it (the unit is in Execute
+  or on its way there, and its StopReason is armed). A unit that restores ``producing`` true
+  did not shut down (a shutdown records its StopReason first): it crashed, and that is its
+  StopReason now (:data:`~.stopreason.STOP_ID_CRASH`, unplanned), not the last stop's.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -36,11 +47,19 @@ class Restored:
     sequence: int = 0
     mach_speed: float | None = None
     problems: list[str] = field(default_factory=list)
+    #: the unit was producing when it last journaled: it ended without shutting down
+    producing: bool = False
+
+
+#: s: the unit node journals the times this often (what a SIGKILL loses of them at most).
+TIME_CHECKPOINT = 1.0
 
 
 def document(times: ModeStateTimes, counters: Counters, alarms: AlarmManager, stops: StopReasons,
-             sequence: int, mach_speed: float, now: float) -> dict[str, Any]:  # fmt: skip
-    """What persistence stores of a unit: everything of the admin data, never the state."""
+             sequence: int, mach_speed: float, now: float,
+             producing: bool = False) -> dict[str, Any]:  # fmt: skip
+    """What persistence stores of a unit: everything of the admin data, never the state (only
+    whether it was ``producing``: see the module docstring)."""
     stop_reason = stops.reason
     return {
         "sequence": sequence,
@@ -50,36 +69,60 @@ def document(times: ModeStateTimes, counters: Counters, alarms: AlarmManager, st
         "stop_reason": stop_reason.to_dict() if stop_reason else None,
         "mach_speed": mach_speed,
         "saved_at": now,
+        "producing": producing,
     }
 
 
 class Durable:
-    __slots__ = ("_append", "_written", "alarms", "counters", "stops", "store", "times")
+    __slots__ = (
+        "_append",
+        "_producing",
+        "_written",
+        "alarms",
+        "counters",
+        "stops",
+        "store",
+        "times",
+    )
 
     def __init__(self, store: StoreLike, times: ModeStateTimes, counters: Counters,
-                 alarms: AlarmManager, stops: StopReasons) -> None:  # fmt: skip
+                 alarms: AlarmManager, stops: StopReasons,
+                 producing: Callable[[], bool] = lambda: False) -> None:  # fmt: skip
         self.store = store
+        self._producing = producing  #: whether the unit is producing now (module docstring)
         #: None for a store that keeps no journal (a replay's): journal() then only forgets
         self._append = getattr(store, "append", None)
         self.times, self.counters, self.alarms, self.stops = times, counters, alarms, stops
-        #: (sequence, mode, times resets, counters version, stop reason, speed) as last written
+        #: (sequence, mode, times resets, counters version, stop reason, speed, producing) as
+        #: last written
         self._written: tuple[Any, ...] = ()
         alarms.take_changed()  # from now on the alarms note which occurrences change
 
     def document(self, sequence: int, mach_speed: float, now: float) -> dict[str, Any]:
         """The snapshot: everything of the admin data, never the state."""
-        return document(
-            self.times, self.counters, self.alarms, self.stops, sequence, mach_speed, now
-        )
+        return document(self.times, self.counters, self.alarms, self.stops, sequence,
+                        mach_speed, now, self._producing())  # fmt: skip
 
-    def snapshot(self, sequence: int, mode: int, mach_speed: float, now: float) -> None:
-        self.store.save(self.document(sequence, mach_speed, now), now)
+    def snapshot(self, sequence: int, mode: int, mach_speed: float, now: float,
+                 closing: bool = False) -> None:  # fmt: skip
+        """The snapshot; ``closing``: the unit's last, at an orderly end (never a crash, so it
+        is not ``producing`` whatever its state)."""
+        document = self.document(sequence, mach_speed, now)
+        if closing:
+            document["producing"] = False
+        self.store.save(document, now)
         self.alarms.take_changed()
         self._written = self._state(sequence, mode, mach_speed)
 
     def _state(self, sequence: int, mode: int, mach_speed: float) -> tuple[Any, ...]:
         times, counters, stops = self.times, self.counters, self.stops
-        return (sequence, mode, times.resets, counters.version, stops.reason, mach_speed)
+        return (sequence, mode, times.resets, counters.version, stops.reason, mach_speed,
+                self._producing())  # fmt: skip
+
+    def checkpoint(self, now: float) -> None:
+        """Journal the times as of ``now`` (one ``write()``; not an input: nothing changes)."""
+        if self._append is not None:
+            self._append([{"set": {"times": self.times.to_dict(now), "saved_at": now}}])
 
     def journal(self, sequence: int, mode: int, mach_speed: float, now: float) -> None:
         """Write what changed since the last call (one ``write()``): before the unit answers."""
@@ -104,6 +147,8 @@ class Durable:
             changes["stop_reason"] = state[4].to_dict() if state[4] is not None else None
         if state[5] != written[5]:
             changes["mach_speed"] = mach_speed
+        if state[6] != written[6]:
+            changes["producing"] = state[6]
         if changes:
             records.append({"set": changes})
         alarms = self.alarms
@@ -131,6 +176,7 @@ class Durable:
             if data.get("stop_reason"):
                 self.stops.set(AlarmEvent.from_dict(data["stop_reason"]))
             out.mach_speed = float(data.get("mach_speed", 0.0))
+            out.producing = data.get("producing") is True
         except (TypeError, ValueError, KeyError) as exc:
             problems.append(f"the stored admin data could not be restored ({one_line(exc)}): the unit starts without it")  # fmt: skip
         self.alarms.take_changed()

@@ -23,7 +23,12 @@ from .reasons import Answer
 if TYPE_CHECKING:
     from .unit import Request, Unit
 
-SCHEMA = 1
+#: 2: the inputs of schema 1; the outputs name an interlock's holder in the source of the
+#: transitions it causes (``interlock:<holder>``, core/interlocks.py), where schema 1 and 0 said
+#: ``interlock`` (replay makes their outputs so: :data:`INTERLOCK_HOLDER_SCHEMA`).
+SCHEMA = 2
+#: The first schema whose units name the interlock's holder in the source.
+INTERLOCK_HOLDER_SCHEMA = 2
 START = "start"  #: the first record of a unit's log (written by the node, not an engine input)
 
 
@@ -188,8 +193,9 @@ def schema_of(start_fields: Mapping[str, Any]) -> int:
 
 
 def upgrade(name: str, fields: Mapping[str, Any], schema: int) -> tuple[str, dict[str, Any]]:
-    """A record of ``schema`` as a schema 1 record (name, fields)."""
-    if schema == SCHEMA or name == START:
+    """A record of ``schema`` as a record of the current schema (name, fields): the inputs of
+    schemas 1 and 2 are the same."""
+    if 1 <= schema <= SCHEMA or name == START:
         return name, dict(fields)
     if schema != 0:
         raise ValueError(f"input log schema {schema} is newer than this version reads ({SCHEMA})")

@@ -6,6 +6,12 @@ cleared, if the unit was suspended by one (``interlock_reaction: suspend``; the 
 :class:`Interlocks` owns the active interlocks, whether the unit's suspension is theirs, and which
 (state, sequence) it last acted in (one attempt per state entry). It keeps the ``INTERLOCK`` bit of
 the unit's :class:`~.rules.Alert`.
+
+The transitions an interlock causes name whose interlock it is in their source,
+``interlock:<holder>`` (:func:`interlock_source`): ``interlock:em:<name>`` when the unit's own EM
+reports Blocked/Starved, ``interlock:<source>`` when ``<source>`` set it from outside
+(``interlock:coordinator``: propagated by the cell coordinator from a neighbour). Suspend names
+the interlock that caused it, Unsuspend the one whose clearing released the unit.
 """
 
 from __future__ import annotations
@@ -21,6 +27,20 @@ STOP_ID_BLOCKED = 3002  # downstream: discharge blocked
 STOP_ID_STARVED = 2499  # upstream: undefined upstream reason
 #: Interlocks set from outside (``set_interlock``) a unit holds at most: one per source.
 MAX_EXTERNAL = 16
+#: Keys of :attr:`Interlocks.active`: ``em:<name>`` (the unit's own EM), ``ext:<source>`` (set from
+#: outside by ``source``).
+EXTERNAL_KEY = "ext:"
+#: The source kind of the transitions an interlock causes (rules.SOURCE_KINDS: local).
+INTERLOCK_KIND = "interlock"
+#: The source of interlock transitions in input logs of schema 1 and before (one for all).
+LEGACY_SOURCE = INTERLOCK_KIND
+
+
+def interlock_source(key: str) -> str:
+    """The source of a transition caused by the interlock ``key``: ``interlock:em:<name>`` for the
+    unit's own EM, ``interlock:<source>`` for one set from outside by ``source``."""
+    holder = key[len(EXTERNAL_KEY) :] if key.startswith(EXTERNAL_KEY) else key
+    return f"{INTERLOCK_KIND}:{holder}" if holder else INTERLOCK_KIND
 
 
 def external_refusal(held: Collection[str], active: bool, source: str,
@@ -61,7 +81,7 @@ def interlock_refusal(held: Collection[str], active: bool, source: str, remote_e
 
 
 class Interlocks:
-    __slots__ = ("active", "alert", "attempt", "busy", "suspended")
+    __slots__ = ("active", "alert", "attempt", "busy", "released", "suspended")
 
     def __init__(self, alert: Alert) -> None:
         self.alert = alert
@@ -69,6 +89,7 @@ class Interlocks:
         self.suspended = False  #: the unit is in Suspending/Suspended because of an interlock
         self.attempt: tuple[int, int] = (-1, -1)  #: (state, sequence) of the last action
         self.busy = False  #: an interlock is active or holds the suspension: the unit must look
+        self.released = ""  #: the key of the interlock cleared last (the Unsuspend's holder)
 
     def __bool__(self) -> bool:
         return bool(self.active)
@@ -79,7 +100,8 @@ class Interlocks:
         self.busy = True
 
     def clear(self, key: str) -> None:
-        self.active.pop(key, None)
+        if self.active.pop(key, None) is not None:
+            self.released = key
         self.alert.set(Watch.INTERLOCK, bool(self.active))
         self.busy = bool(self.active) or self.suspended
 
@@ -90,20 +112,20 @@ class Interlocks:
         """Whether an interlock's reason contains ``word`` (``blocked``/``starved``)."""
         return any(word in reason for reason, _ in self.active.values())
 
-    def action(self, state: State, sequence: int) -> tuple[Cmd, str, int] | None:
+    def action(self, state: State, sequence: int) -> tuple[Cmd, str, int, str] | None:
         """The command an interlock asks for now, once per (state, sequence): Suspend in Execute
         while one is active, Unsuspend in Suspended once all are cleared (if they suspended
-        the unit). (command, detail, stop-reason ID) or None."""
-        key = (int(state), sequence)
-        if self.attempt == key:
+        the unit). (command, detail, stop-reason ID, the interlock's key) or None."""
+        at = (int(state), sequence)
+        if self.attempt == at:
             return None
         if self.active and state is INTERLOCK_SUSPEND[0]:
-            self.attempt = key
-            reason, stop_id = next(iter(self.active.values()))
-            return INTERLOCK_SUSPEND[1], reason, stop_id
+            self.attempt = at
+            key, (reason, stop_id) = next(iter(self.active.items()))
+            return INTERLOCK_SUSPEND[1], reason, stop_id, key
         if not self.active and self.suspended and state is INTERLOCK_RESUME[0]:
-            self.attempt = key
-            return INTERLOCK_RESUME[1], "interlock cleared", 0
+            self.attempt = at
+            return INTERLOCK_RESUME[1], "interlock cleared", 0, self.released
         return None
 
     def entered(self, state: State, skipped: tuple[State, ...], by_interlock: bool) -> None:

@@ -42,7 +42,15 @@ from .counters import Counters
 from .deadlines import Deadlines
 from .durable import Durable, document
 from .equipment import Equipment
-from .interlocks import STOP_ID_BLOCKED, STOP_ID_STARVED, Interlocks, interlock_refusal
+from .interlocks import (
+    EXTERNAL_KEY,
+    LEGACY_SOURCE,
+    STOP_ID_BLOCKED,
+    STOP_ID_STARVED,
+    Interlocks,
+    interlock_refusal,
+    interlock_source,
+)
 from .mode_change import ModeChanges
 from .numbers import Cmd, State, command_name, state_name
 from .outputs import Outputs, Transition
@@ -177,6 +185,8 @@ class UnitMachine(ModeChanges):
         "_t", "_advance_to", "_internal", "_step_winner", "_restart_detail", "_handlers", "_out",
         # caches
         "_valid_cache", "_rev", "_strays",
+        # compatibility
+        "legacy_interlock_source",
     )  # fmt: skip
 
     def __init__(self, config: UnitConfig, clock: Clock, store: Store | None = None) -> None:
@@ -231,13 +241,16 @@ class UnitMachine(ModeChanges):
         self._rev = 0  # +1 on status-relevant changes not covered by other version counters
         self._step_winner: tuple[int, str] | None = None
         self._restart_detail = "unit started"
+        #: interlock transitions name their source "interlock", as input logs of schema 1 and
+        #: before recorded it (replay sets it for those; core/interlocks.py)
+        self.legacy_interlock_source = False
         self._handlers: Mapping[str, Callable[[Any], None]] = {
             kind: getattr(self, f"_on_{kind}") for kind in _HANDLERS
         }
         self._durable = (
             None
             if store is None
-            else Durable(store, self.times, self.counters, self.alarms, self.stops)
+            else Durable(store, self.times, self.counters, self.alarms, self.stops, self._producing)
         )
         self._restore(now)
         self._transition(S.STOPPED, Trigger.RESTART, source="unit", detail=self._restart_detail)
@@ -472,9 +485,11 @@ class UnitMachine(ModeChanges):
         return answer
 
     def _set_interlock(self, active: bool, reason: str, source: str) -> Answer:
-        key = f"ext:{source}"
+        key = f"{EXTERNAL_KEY}{source}"
         name = self.config.name
-        held = [k[4:] for k in self.interlocks.active if k.startswith("ext:")]
+        held = [
+            k[len(EXTERNAL_KEY) :] for k in self.interlocks.active if k.startswith(EXTERNAL_KEY)
+        ]
         refused = interlock_refusal(held, active, source, self.remote_enabled, name)
         if refused is not None:
             return refused
@@ -846,8 +861,9 @@ class UnitMachine(ModeChanges):
         action = self.interlocks.action(self.state, self.sequence)
         if action is None:
             return False
-        cmd, detail, stop_id = action
-        self._internal.append(_Cmd(cmd, "interlock", Trigger.INTERLOCK, detail, stop_id=stop_id))
+        cmd, detail, stop_id, key = action
+        source = LEGACY_SOURCE if self.legacy_interlock_source else interlock_source(key)
+        self._internal.append(_Cmd(cmd, source, Trigger.INTERLOCK, detail, stop_id=stop_id))
         return True
 
     # -- modes (the rest of a mode change: core/mode_change.py) ---------------------------------
@@ -961,16 +977,28 @@ class UnitMachine(ModeChanges):
     def document(self) -> dict[str, Any]:
         """What persistence stores: everything of the admin data, never the state."""
         return document(self.times, self.counters, self.alarms, self.stops, self.sequence,
-                        self.mach_speed, self._t)  # fmt: skip
+                        self.mach_speed, self._t, self._producing())  # fmt: skip
+
+    def _producing(self) -> bool:
+        """In Execute or on its way there, with the StopReason armed: a crash now is a stop
+        (core/durable.py). A shutdown records its StopReason, which disarms it."""
+        return self.stops.armed and SETTLE.get(self.state) is S.EXECUTE
+
+    def checkpoint(self, now: float) -> None:
+        """Journal the times as of ``now`` (the node calls this every
+        :data:`~.durable.TIME_CHECKPOINT` seconds): a process killed between inputs loses at most
+        that much time. Not an input: nothing changes, nothing is published or recorded."""
+        if self._durable is not None:
+            self._durable.checkpoint(max(now, self._t))
 
     def _journal(self) -> None:
         """Write-ahead: the input's durable changes reach the store before it is answered."""
         if self._durable is not None:
             self._durable.journal(self.sequence, self.mode, self.mach_speed, self._t)
 
-    def _snapshot(self) -> None:
+    def _snapshot(self, closing: bool = False) -> None:
         if self._durable is not None:
-            self._durable.snapshot(self.sequence, self.mode, self.mach_speed, self._t)
+            self._durable.snapshot(self.sequence, self.mode, self.mach_speed, self._t, closing)
 
     def _restore(self, now: float) -> None:
         self.restored: dict[str, Any] | None = None
@@ -985,6 +1013,11 @@ class UnitMachine(ModeChanges):
             self._restart_detail = "unit restarted"
             gap = now - float(data.get("saved_at", now))
             self.alarms.log_event(f"unit restarted (last saved {gap:.1f} s before)", now, source="unit")  # fmt: skip
+            if restored.producing:  # it crashed: why it stopped is that, not the last stop
+                self.stops.set(self.stops.of_crash(
+                    f"unit process ended without shutting down (crash or kill) while producing; "
+                    f"restarted {gap:.1f} s after its last save", now))  # fmt: skip
+                self.stops.armed = False
         sa = self.config.system_alarms
         for n, problem in enumerate(restored.problems, 1):
             self._log("warn", f"persistence: {problem}")
@@ -994,8 +1027,8 @@ class UnitMachine(ModeChanges):
             self.alarms.clear(d.id, d.value, now)
 
     def close(self) -> None:
-        """Save a last snapshot and close the store."""
-        self._snapshot()
+        """Save a last snapshot and close the store (an orderly end: not a crash)."""
+        self._snapshot(closing=True)
         if self.store is not None:
             self.store.close()
 

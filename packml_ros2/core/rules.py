@@ -251,7 +251,13 @@ SOURCE_KINDS: Mapping[str, SourceKind] = {
         SourceKind("em", False, False, "an EM's command request or alarm, em:<name>"),
         SourceKind("unit", False, False, "the unit itself (State Complete, timeouts)"),
         SourceKind("alarm", False, False, "an alarm's reaction, alarm:<id>"),
-        SourceKind("interlock", False, False, "a line interlock's Suspend or Unsuspend"),
+        SourceKind(
+            "interlock",
+            False,
+            False,
+            "a line interlock's Suspend or Unsuspend, "
+            "interlock:em:<name> (the unit's own EM) or interlock:<setter>",
+        ),
         SourceKind("plc", False, False, "a PLC unit's own transitions"),
     )
 }

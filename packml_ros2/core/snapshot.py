@@ -55,6 +55,7 @@ NOT_STATE: Mapping[str, str] = {
     "Unit._internal": "commands queued inside one input: empty between inputs",
     "Unit._valid_cache": "a cache",
     "Unit._restart_detail": "read only while the unit starts",
+    "Unit.legacy_interlock_source": "set by the replay from the recording's input log schema",
     "AlarmManager.defs": "the configuration",
     "AlarmManager.reactions": "the configuration",
     "AlarmManager.alarm_capacity": "the configuration",
@@ -199,6 +200,7 @@ def capture(unit: Unit) -> dict[str, Any]:
             "suspended": unit.interlocks.suspended,
             "attempt": list(unit.interlocks.attempt),
             "busy": unit.interlocks.busy,
+            "released": unit.interlocks.released,
         },
         "deadlines": {
             "heap": [[when, order, kind, _plain(data)] for when, order, kind, data in dl.heap],
@@ -385,6 +387,7 @@ def _restore(unit: Unit, d: Mapping[str, Any]) -> None:
     interlocks.suspended = bool(i["suspended"])
     interlocks.attempt = (int(i["attempt"][0]), int(i["attempt"][1]))
     interlocks.busy = bool(i["busy"])
+    interlocks.released = str(i.get("released", ""))
 
     dl = unit.deadlines
     heap = [(float(w), int(o), str(kind), _DEADLINE_DATA[kind](data))

@@ -16,6 +16,7 @@ from .rules import PLANNED_STOP_STATES, is_remote
 STOP_ID_OPERATOR = 33  # operator action: cycle stop button
 STOP_ID_REMOTE = 4006  # out of service: remote stop requested
 STOP_ID_SHUTDOWN = 1000  # machine internal, vendor defined: the unit's own process shut down
+STOP_ID_CRASH = 1001  # machine internal, vendor defined: its process ended without shutting down
 
 
 def stopped_as_planned(mode: int, state: int) -> bool:
@@ -69,6 +70,15 @@ class StopReasons:
         """The stop reason of the unit's own process shutting down while producing."""
         return AlarmEvent(
             STOP_ID_SHUTDOWN, 0, message, 9, Kind.EVENT, t,
+            source="unit", trigger=False, latched=False,
+        )  # fmt: skip
+
+    @staticmethod
+    def of_crash(message: str, t: float) -> AlarmEvent:
+        """The stop reason of a unit whose process ended while producing without shutting down
+        (a crash, SIGKILL, a power loss): found at its restart (core/durable.py)."""
+        return AlarmEvent(
+            STOP_ID_CRASH, 0, message, 9, Kind.EVENT, t,
             source="unit", trigger=False, latched=False,
         )  # fmt: skip
 

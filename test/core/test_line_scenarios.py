@@ -345,7 +345,7 @@ def test_the_coordinator_releases_its_own_interlock_on_a_unit_switched_to_local(
     assert filler.state is State.EXECUTE and not filler.interlock_active, filler.state
     moves = [m for _, unit, topic, m in sim.messages if unit == "filler" and topic == "transitions"]
     resumed = [m for m in moves if m.from_state_name == "SUSPENDED"]
-    assert resumed[-1].source == "interlock"  # the interlock's own Unsuspend
+    assert resumed[-1].source == "interlock:coordinator"  # the coordinator's interlock released it
     assert "Log(level='info', text='interlock cleared on filler')" in sim.log
     assert not [line for line in sim.log if "level='info'" not in line], sim.log
 

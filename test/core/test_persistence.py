@@ -19,6 +19,7 @@ import pytest
 
 from packml_ros2.core import Cmd as C
 from packml_ros2.core import Mode, Reason, State, Store, Trigger, Unit
+from packml_ros2.core.stopreason import STOP_ID_CRASH, STOP_ID_REMOTE
 
 from .helpers import FakeClock, cell_unit, transitions
 
@@ -161,6 +162,49 @@ def test_reset_counters_and_times_are_saved(tmp_path: Path) -> None:
     assert doc is not None
     assert doc["counters"]["processed"][0] == [0, 4]
     assert doc["times"]["acc_time_since_reset"] == 0.0
+
+
+def test_a_unit_killed_while_producing_keeps_its_time_and_says_it_crashed(tmp_path: Path) -> None:
+    """Issue 24 item 5: killed in Execute (no shutdown, no snapshot), the restarted unit's
+    StopReason is the crash (unplanned), not the planned remote Stop before it; and its Execute
+    time is kept up to the last checkpoint (the node journals one every TIME_CHECKPOINT s).
+    Killed while stopped, the stop it had stays its StopReason."""
+    path = tmp_path / "u.sqlite3"
+    clock = FakeClock(1_000.0)
+    unit = open_unit(path, clock, persistence={"period": 60.0})
+    assert unit.command(C.RESET).accepted and unit.command(C.START).accepted
+    assert unit.command(C.STOP, "remote:mes").accepted
+    unit.advance()
+    assert unit.stop_reason is not None and unit.stop_reason.id == STOP_ID_REMOTE
+    assert unit.command(C.RESET).accepted and unit.command(C.START).accepted
+    assert unit.state is S.EXECUTE
+    execute = Mode.PRODUCTION * 18 + S.EXECUTE
+    for _ in range(7):  # 3.5 s in Execute, the node's checkpoints every 0.5 s
+        clock.advance(0.5)
+        unit.checkpoint(clock())
+    clock.advance(0.4)  # killed 0.4 s after the last checkpoint
+    assert unit.store is not None
+    unit.store.close()  # SIGKILL: no shutdown, no snapshot; only the journal is left
+
+    clock.advance(10.0)
+    again = open_unit(path, clock, persistence={"period": 60.0})
+    admin = again.admin()
+    assert admin.stop_reason is not None and admin.stop_reason.id == STOP_ID_CRASH
+    assert admin.stop_reason.message.startswith("unit process ended without shutting down")
+    assert not again.stops.planned(again.mode, again.state)  # the restart is an unplanned stop
+    assert again.times.state_cumulative[execute] == pytest.approx(3.5)
+    assert admin.times.state_cumulative[execute] == 3
+
+    # stopped by a remote Stop (planned), then killed: that Stop stays why it stopped
+    assert again.command(C.RESET).accepted and again.command(C.START).accepted
+    assert again.command(C.STOP, "remote:mes").accepted
+    again.advance()
+    assert again.store is not None
+    again.store.close()
+    third = open_unit(path, clock, persistence={"period": 60.0})
+    assert third.stop_reason is not None and third.stop_reason.id == STOP_ID_REMOTE
+    assert third.stops.planned(third.mode, third.state)
+    third.close()
 
 
 # -- the kill test --------------------------------------------------------------------------------------------

@@ -18,8 +18,9 @@ from packml_ros2.core.interlocks import MAX_EXTERNAL
 from packml_ros2.core.limits import LogLimiter, printable, speed_limit
 from packml_ros2.core.numbers import parse_command, parse_state
 from packml_ros2.core.reports import Writers
-from test.core.helpers import FakeClock
-from test.core.test_scenarios import make, online, to_execute
+from packml_ros2.core.rules import Trigger
+from test.core.helpers import FakeClock, transitions
+from test.core.test_scenarios import complete, make, online, to_execute
 
 S, C = State, Cmd
 #: Sources the lock must hold back: remote kinds, and what no kind names (it fails closed).
@@ -256,3 +257,43 @@ def test_one_writer_speaks_for_an_em_until_it_leaves_the_graph_or_the_em_is_lost
     writers.release("nozzle")
     assert writers.claim("nozzle", b"other", 1002.0, left.__contains__) == (True, None)
     assert writers.bound("nozzle") == b"other" and writers.refused == 1
+
+
+def test_interlock_transitions_name_whose_interlock_it_is() -> None:
+    """Issue 24 item 8: the unit's own EM Blocked and the coordinator's propagated suspend both
+    said source ``interlock``; the source names the holder now (``interlock:em:<name>``,
+    ``interlock:<setter>``), in the transition and in the StopReason. A replay of a recording
+    of input log schema 1 says ``interlock`` as it did (legacy_interlock_source)."""
+
+    def run(legacy: bool) -> tuple[list[tuple[State, str]], str]:
+        unit, _ = make({"remote_commands_enabled": True, "equipment_modules": {"loader": {}}})
+        unit.legacy_interlock_source = legacy
+        online(unit, "loader")
+        to_execute(unit, "loader")
+        unit.drain()
+        assert unit.em_interlock("loader", True, False, 0).accepted  # its own EM: Blocked
+        complete(unit, "loader")
+        assert unit.state is S.SUSPENDED
+        reason = unit.stop_reason
+        assert reason is not None
+        assert unit.set_interlock(True, "case_packer blocked", "coordinator").accepted
+        assert unit.em_interlock("loader", False, False, 0).accepted
+        assert unit.state is S.SUSPENDED  # the coordinator's interlock still holds it
+        assert unit.set_interlock(False, "", "coordinator").accepted
+        complete(unit, "loader")
+        assert unit.state is S.EXECUTE
+        assert unit.set_interlock(True, "case_packer blocked", "coordinator").accepted
+        complete(unit, "loader")
+        assert unit.state is S.SUSPENDED
+        found = [
+            (t.to_state, t.source) for t in transitions(unit) if t.trigger is Trigger.INTERLOCK
+        ]
+        return found, reason.source
+
+    found, stop_source = run(legacy=False)
+    assert found == [(S.SUSPENDING, "interlock:em:loader"), (S.UNSUSPENDING, "interlock:coordinator"),
+                     (S.SUSPENDING, "interlock:coordinator")]  # fmt: skip
+    assert stop_source == "interlock:em:loader"
+    assert not R.is_remote("interlock:coordinator") and not R.is_remote("interlock:em:loader")
+    found, stop_source = run(legacy=True)
+    assert [source for _, source in found] == ["interlock"] * 3 and stop_source == "interlock"

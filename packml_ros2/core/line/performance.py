@@ -21,6 +21,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+from ..interlocks import INTERLOCK_KIND
 from ..numbers import Mode, State, command_name, state_name
 from ..rules import Trigger
 from ..stopreason import planned_stop
@@ -432,9 +433,7 @@ class Performance:
             return
         if s.trigger < 0:
             d.kind = PENDING
-        elif s.trigger == Trigger.INTERLOCK and (
-            s.source == INTERLOCK_SOURCE or s.detail in self.sent.get(tr.name, ())
-        ):
+        elif s.trigger == Trigger.INTERLOCK and self._propagated(tr, s):
             first = s.detail.split(";")[0].strip()
             cause_unit, _, condition = first.rpartition(" ")
             d.kind, d.cause_unit, d.condition = PROPAGATED, cause_unit, condition
@@ -455,6 +454,16 @@ class Performance:
         else:
             d.kind = INTERNAL
         d.bucket = self._bucket(tr, s, d)
+
+    def _propagated(self, tr: Tracker, s: Step) -> bool:
+        """Whether an interlock step of ``tr`` is the coordinator's: its source names the holder
+        (``interlock:coordinator``; ``interlock:em:<name>`` is the unit's own EM). Units of input
+        log schema 1 said ``interlock`` for both: then by the reason the coordinator sent (a PLC
+        bridge names the setter itself: ``coordinator``)."""
+        kind, _, holder = s.source.partition(":")
+        if kind == INTERLOCK_KIND and holder:
+            return holder == INTERLOCK_SOURCE
+        return s.source == INTERLOCK_SOURCE or s.detail in self.sent.get(tr.name, ())
 
     # ================================================================================================
     # Inside
