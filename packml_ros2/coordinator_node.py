@@ -113,6 +113,7 @@ class CoordinatorNode(Node):
         }
         self._last_msg: CellStatus | None = None
         self._closed = False
+        self._not_durable = ""  # why the line's store cannot be written now ('' = it can)
 
         # with the units' liveliness lease: faces see a coordinator that is gone within it
         # (packml_ros2.presence); subscribers with the default QoS are unaffected
@@ -262,8 +263,25 @@ class CoordinatorNode(Node):
                                               name=r.name, args_json=r.args_json))  # fmt: skip
         for view in episodes:
             self.pub_episodes.publish(line_msgs.episode_msg(view, self.cell.cell))
+        self._persistence()
         self._publish()
         self._arm()
+
+    def _persistence(self) -> None:
+        """Log when the line's store starts or stops failing (a full disk: the coordinator runs
+        on, holds what it could not write and writes it with the next commit that succeeds)."""
+        store = self.line.store
+        failing = store.failing if store is not None else ""
+        if failing == self._not_durable:
+            return
+        if failing and not self._not_durable:
+            self.get_logger().error(f"line store: persistence failing: {failing}; the line's losses since are held in memory, not durable (retried at each input)")  # fmt: skip
+        elif not failing:
+            self.get_logger().info("line store: persistence recovered: the held losses are on the disk")  # fmt: skip
+        self._not_durable = failing
+
+    def _durability_note(self) -> str:
+        return f" (not durable: {self._not_durable})" if self._not_durable else ""
 
     def _arm(self) -> None:
         """Arm the timer for the next thing due (nothing: no timer runs; lock held)."""
@@ -308,7 +326,7 @@ class CoordinatorNode(Node):
             cell=v.cell, units=[self._summary(u) for u in v.units], state_current=v.state_current,
             state_current_name=state_name(v.state_current), unit_mode_current=v.unit_mode_current,
             all_online=v.all_online, busy=v.busy, sequence_step=v.sequence_step,
-            lost_units=list(v.lost_units), detail=v.detail, commands_valid=list(v.commands_valid),
+            lost_units=list(v.lost_units), detail=v.detail + self._durability_note(), commands_valid=list(v.commands_valid),
             commands_valid_names=[command_name(c) for c in v.commands_valid],
         )  # fmt: skip
         previous = self._last_msg
@@ -484,7 +502,10 @@ class CoordinatorNode(Node):
         with self._cond:
             self.line.reset_losses()
             self._flush()
-        resp.success, resp.message = True, "the since-reset window of the line's losses begins now"
+        resp.success, resp.message = (
+            True,
+            "the since-reset window of the line's losses begins now" + self._durability_note(),
+        )
         self.get_logger().info("line losses: since-reset window reset")
         return resp
 

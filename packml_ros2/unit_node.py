@@ -235,12 +235,16 @@ class UnitNode(Node):
         for srv_type, name, handler in services:
             responses.create_service(self, srv_type, f"~/{name}", handler)
 
-    @staticmethod
-    def _answer(resp: Any, answer: Any, message_field: str = "message") -> Any:
+    def _answer(self, resp: Any, answer: Any, message_field: str = "message") -> Any:
         resp.accepted = answer.accepted
         resp.result = int(answer.reason)
-        setattr(resp, message_field, answer.message)
+        setattr(resp, message_field, answer.message + self._not_durable())
         return resp
+
+    def _not_durable(self) -> str:
+        """What an answer adds while the admin store cannot be written (a full disk)."""
+        why = self.unit.not_durable
+        return f" (not durable: {why})" if why else ""
 
     def _srv_command(self, req: Command.Request, resp: Command.Response) -> Command.Response:
         answer = self._run(self.unit.command, req.command, req.source or "operator")
@@ -254,7 +258,7 @@ class UnitNode(Node):
     ) -> Trigger.Response:
         answer = self._run(self.unit.command, cmd, "operator")
         resp.success = answer.accepted
-        resp.message = answer.message
+        resp.message = answer.message + self._not_durable()
         if answer.accepted and not answer.message.endswith(state_name(self.unit.state)):
             resp.message += f" (now {state_name(self.unit.state)})"
         return resp
@@ -565,6 +569,8 @@ class UnitNode(Node):
         self.unit.store = None  # a callback still running after this must not touch the file
         if self.context.ok():
             saved = f"; admin data saved to {self.store.path}" if self.store else ""
+            if self.unit.not_durable:
+                saved = f"; admin data NOT saved ({self.unit.not_durable})"
             self.get_logger().info(
                 f"PackML unit {self.get_fully_qualified_name()} shut down ({reason}) in "
                 f"{state_name(self.unit.state)}{saved}"

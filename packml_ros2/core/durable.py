@@ -15,7 +15,7 @@ from typing import Any, Protocol
 
 from .alarms import AlarmEvent, AlarmManager
 from .counters import Counters
-from .persistence import one_line
+from .persistence import NotWritten, one_line
 from .stopreason import StopReasons
 from .times import ModeStateTimes
 
@@ -53,8 +53,19 @@ def document(times: ModeStateTimes, counters: Counters, alarms: AlarmManager, st
     }
 
 
+#: Seconds between tries to write a store that failed (a full disk): each try is a snapshot.
+RETRY = 1.0
+
+
 class Durable:
-    __slots__ = ("_append", "_written", "alarms", "counters", "stops", "store", "times")
+    """The admin data's persistence. A write that fails (a full disk) does not stop the unit:
+    :attr:`failing` says why (the unit raises its ``persistence_failing`` alarm and says in its
+    answers that they are not durable), no journal record is written after a lost one (its
+    changes would be missing under them), and a snapshot, which holds everything, is tried every
+    :data:`RETRY` seconds until one is written: then the store is whole again."""
+
+    __slots__ = ("_append", "_retry_at", "_written", "alarms", "counters", "failing", "stops",
+                 "store", "times")  # fmt: skip
 
     def __init__(self, store: StoreLike, times: ModeStateTimes, counters: Counters,
                  alarms: AlarmManager, stops: StopReasons) -> None:  # fmt: skip
@@ -64,6 +75,10 @@ class Durable:
         self.times, self.counters, self.alarms, self.stops = times, counters, alarms, stops
         #: (sequence, mode, times resets, counters version, stop reason, speed) as last written
         self._written: tuple[Any, ...] = ()
+        #: why the admin data is not on the disk ('' = it is): what the unit answered since is
+        #: in memory only until a snapshot is written
+        self.failing: str = getattr(store, "failing", "") or ""
+        self._retry_at = -float("inf")
         alarms.take_changed()  # from now on the alarms note which occurrences change
 
     def document(self, sequence: int, mach_speed: float, now: float) -> dict[str, Any]:
@@ -73,9 +88,18 @@ class Durable:
         )
 
     def snapshot(self, sequence: int, mode: int, mach_speed: float, now: float) -> None:
-        self.store.save(self.document(sequence, mach_speed, now), now)
+        try:
+            self.store.save(self.document(sequence, mach_speed, now), now)
+        except NotWritten as exc:
+            self._failed(str(exc), now)
+            return
+        self.failing = ""
         self.alarms.take_changed()
         self._written = self._state(sequence, mode, mach_speed)
+
+    def _failed(self, why: str, now: float) -> None:
+        self.failing = why
+        self._retry_at = now + RETRY
 
     def _state(self, sequence: int, mode: int, mach_speed: float) -> tuple[Any, ...]:
         times, counters, stops = self.times, self.counters, self.stops
@@ -87,6 +111,12 @@ class Durable:
         if self._append is None:
             if changed:
                 changed.clear()
+            return
+        if self.failing:
+            if changed:
+                changed.clear()  # (the snapshot holds every occurrence)
+            if now >= self._retry_at:  # a snapshot holds all the journal would
+                self.snapshot(sequence, mode, mach_speed, now)
             return
         state = self._state(sequence, mode, mach_speed)
         if state == self._written and not changed:
@@ -113,7 +143,11 @@ class Durable:
             for ev in alarms.take_changed()
         ]
         if records:
-            self._append(records)
+            try:
+                self._append(records)
+            except NotWritten as exc:
+                self._failed(str(exc), now)
+                return
         self._written = state
 
     def restore(self, now: float) -> Restored:
