@@ -13,7 +13,6 @@ Run: ``unit_node <cell.yaml> [unit] [--ros-args -p remote_commands_enabled:=true
 
 from __future__ import annotations
 
-import inspect
 import json
 import math
 import sys
@@ -74,6 +73,7 @@ from .core.liveliness import Liveliness
 from .core.reports import LEAVE, Writers, report_problem
 from .core.secrets import redacted_yaml
 from .driver import FrozenClock, UnitDriver
+from .presence import with_info
 from .remote_lock import RemoteLock
 
 T = TypeVar("T")
@@ -149,6 +149,12 @@ class UnitNode(Node):
         ) if self._record else None  # fmt: skip
         self._reports = self.create_subscription(
             EmReport, "~/em_reports", with_info(self._on_report), qos.EM_REPORTS
+        )
+        #: heartbeats on their own best-effort channel (qos.EM_HEARTBEATS), from the writer
+        #: bound for each EM there (a forger cannot keep a dead EM alive)
+        self.beat_writers = Writers()
+        self._beats = self.create_subscription(
+            EmReport, "~/em_heartbeats", with_info(self._on_heartbeat), qos.EM_HEARTBEATS
         )
         self._create_services()
         # No polling: one timer, armed for the engine's next deadline, the next lease that can
@@ -387,12 +393,42 @@ class UnitNode(Node):
         leaving = msg.kind == LEAVE
         if leaving or msg.em not in self.unit.equipment.modules:
             self.writers.release(msg.em)  # left, or not an EM of the unit: keep nothing
+            self.beat_writers.release(msg.em)
         if leaving:
             self._leave(msg, now)
         else:
             self._leaving.pop(msg.em, None)  # anything else from it: it is back (or never left)
             self.driver.report(now, msg, self.liveliness)
         self._arm(now)
+
+    def _on_heartbeat(self, msg: EmReport, info: MessageInfo) -> None:
+        """A heartbeat on the best-effort channel: it renews the EM's lease however long a
+        reliable report ahead of it on ``em_reports`` waits for its repair (a network blip
+        shorter than the lease never loses an EM). Nothing but heartbeats is taken here."""
+        now = self._now()
+        problem = report_problem(msg, self.unit.sequence)
+        if problem is None and msg.kind != EmReport.KIND_HEARTBEAT:
+            problem = f"a report of kind {msg.kind} on em_heartbeats (only heartbeats go there)"
+        if problem is not None:
+            self.refused_reports += 1
+            self.unit.stats.bad_reports += 1
+            self._log("warn", f"EM heartbeat refused: {problem}")
+            return
+        if msg.em not in self.unit.equipment.modules or msg.em in self._leaving:
+            return  # (registration and goodbyes go by em_reports, in order)
+        gid = info.get("publisher_gid")
+        writer = bytes(gid["data"]) if gid else b""
+        taken, note = self.beat_writers.claim(msg.em, writer, now, self._beat_writer_gone)
+        if note is not None and not taken:
+            self._log("warn", note)
+        if not taken:
+            self.refused_reports += 1
+            return
+        if msg.em in self.liveliness.alive:  # (the wake-up due at the old expiry re-arms)
+            self.liveliness.seen(msg.em, now)
+
+    def _beat_writer_gone(self, writer: bytes) -> bool:
+        return self._writer_gone(writer, self._beats.topic_name)
 
     def _leave(self, msg: EmReport, now: float) -> None:
         """An EM's goodbye counts after a grace: when a whole cell is stopped (Ctrl-C under
@@ -410,9 +446,9 @@ class UnitNode(Node):
                 del self._leaving[name]
                 self.driver.report(now, msg, self.liveliness)
 
-    def _writer_gone(self, writer: bytes) -> bool:
+    def _writer_gone(self, writer: bytes, topic: str = "") -> bool:
         """Whether ``writer`` no longer publishes EM reports here (its node or process ended)."""
-        topic = self._reports.topic_name
+        topic = topic or self._reports.topic_name
         return all(
             bytes(bytearray(e.endpoint_gid))[: len(writer)] != writer
             for e in self.get_publishers_info_by_topic(topic)
@@ -429,6 +465,7 @@ class UnitNode(Node):
         self._apply_leaves(now)
         for name, lease in self.liveliness.expired(now):
             self.writers.release(name)
+            self.beat_writers.release(name)
             self._leaving.pop(name, None)
             self.driver.call(now, self.unit.em_lost, name, f"no report for {lease:g} s")
         summary = self._log_limiter.due(now)
@@ -579,21 +616,6 @@ class UnitNode(Node):
     def destroy_node(self) -> None:
         self.close()
         super().destroy_node()
-
-
-def with_info(callback: Callable[[Any, MessageInfo], None]) -> Callable[..., None]:
-    """``callback(msg, info)`` as a subscription callback every executor calls right: rclpy's
-    Python executors pass (msg, info), its EventsExecutor (rclpy 9.1) one (msg, info) tuple."""
-
-    def call(*args: Any) -> None:
-        msg, info = args if len(args) == 2 else args[0]
-        callback(msg, info)
-
-    two = inspect.Parameter.POSITIONAL_ONLY
-    call.__signature__ = inspect.Signature(  # type: ignore[attr-defined]  # what rclpy inspects
-        [inspect.Parameter("msg", two), inspect.Parameter("info", two)]
-    )
-    return call
 
 
 def pick_unit(cell: CellConfig, cell_file: str, unit: str | None) -> UnitConfig:
