@@ -232,6 +232,27 @@ class LineStore:
             raise
         self.commits += 1
 
+    def note(self, key: str, value: Mapping[str, Any] | None) -> None:
+        """Keep a small document under ``key`` (None removes it), committed at once: the cell
+        command in flight (``command``), which a restarted coordinator reports. Best effort: a
+        store that cannot be written (a full disk) keeps nothing (:attr:`failing` says why)."""
+        try:
+            if value is None:
+                self.db.execute("DELETE FROM meta WHERE key = ?", (f"note:{key}",))
+            else:
+                self.db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)",
+                                (f"note:{key}", json.dumps(value)))  # fmt: skip
+        except sqlite3.Error as exc:
+            if not not_writable(exc):
+                raise
+            self.failing = f"{self.path.name} cannot be written ({one_line(exc)})"
+
+    def noted(self, key: str) -> dict[str, Any] | None:
+        """The document :meth:`note` kept under ``key`` (None: none, or not one)."""
+        row = self.db.execute("SELECT value FROM meta WHERE key = ?", (f"note:{key}",)).fetchone()
+        doc = _document(row[0]) if row is not None else None
+        return doc if isinstance(doc, dict) else None
+
     # -- reading --------------------------------------------------------------------------------------
     def state(self) -> dict[str, Any] | None:
         """The open state; ValueError when it is not one (the line moves the store aside)."""
