@@ -108,11 +108,14 @@ class CoordinatorNode(Node):
         self.line = Line(cell, time.monotonic, self._wall, store)
         for problem in store.problems if store else ():
             self.get_logger().warning(f"line store: {problem}")
+        self._report_interrupted()
         self._proxies = {
             name: UnitProxy(self, f"/{cell.cell}/{name}", self._on_unit) for name in cell.units
         }
         self._last_msg: CellStatus | None = None
         self._closed = False
+        self._not_durable = ""  # why the line's store cannot be written now ('' = it can)
+        self._flight: dict[str, Any] | None = None  # the cell command in flight (line store)
 
         # with the units' liveliness lease: faces see a coordinator that is gone within it
         # (packml_ros2.presence); subscribers with the default QoS are unaffected
@@ -262,8 +265,25 @@ class CoordinatorNode(Node):
                                               name=r.name, args_json=r.args_json))  # fmt: skip
         for view in episodes:
             self.pub_episodes.publish(line_msgs.episode_msg(view, self.cell.cell))
+        self._persistence()
         self._publish()
         self._arm()
+
+    def _persistence(self) -> None:
+        """Log when the line's store starts or stops failing (a full disk: the coordinator runs
+        on, holds what it could not write and writes it with the next commit that succeeds)."""
+        store = self.line.store
+        failing = store.failing if store is not None else ""
+        if failing == self._not_durable:
+            return
+        if failing and not self._not_durable:
+            self.get_logger().error(f"line store: persistence failing: {failing}; the line's losses since are held in memory, not durable (retried at each input)")  # fmt: skip
+        elif not failing:
+            self.get_logger().info("line store: persistence recovered: the held losses are on the disk")  # fmt: skip
+        self._not_durable = failing
+
+    def _durability_note(self) -> str:
+        return f" (not durable: {self._not_durable})" if self._not_durable else ""
 
     def _arm(self) -> None:
         """Arm the timer for the next thing due (nothing: no timer runs; lock held)."""
@@ -308,7 +328,7 @@ class CoordinatorNode(Node):
             cell=v.cell, units=[self._summary(u) for u in v.units], state_current=v.state_current,
             state_current_name=state_name(v.state_current), unit_mode_current=v.unit_mode_current,
             all_online=v.all_online, busy=v.busy, sequence_step=v.sequence_step,
-            lost_units=list(v.lost_units), detail=v.detail, commands_valid=list(v.commands_valid),
+            lost_units=list(v.lost_units), detail=v.detail + self._durability_note(), commands_valid=list(v.commands_valid),
             commands_valid_names=[command_name(c) for c in v.commands_valid],
         )  # fmt: skip
         previous = self._last_msg
@@ -355,7 +375,49 @@ class CoordinatorNode(Node):
                             int(getattr(r, "state_current", 0)), int(getattr(r, "state_requested", 0)))  # fmt: skip
         with self._cond:
             run.answer(unit, service, answer)
+            self._in_flight_reached(unit)
             self._cond.notify_all()
+
+    # -- the cell command in flight, kept in the line store (issue 25): a coordinator killed in
+    # the middle of one says after its restart which command it was and which units it had
+    # reached, and never resumes it (a restart sets no machine in motion)
+    def _in_flight(self, command: str, caller: str) -> None:
+        self._flight = {"command": command, "caller": caller, "since": time.time(), "reached": []}
+        self._keep_flight()
+
+    def _in_flight_reached(self, unit: str) -> None:
+        flight = self._flight
+        if flight is not None and unit not in flight["reached"]:
+            flight["reached"].append(unit)
+            self._keep_flight()
+
+    def _in_flight_end(self) -> None:
+        self._flight = None
+        self._keep_flight()
+
+    def _keep_flight(self) -> None:
+        if self.line.store is not None:
+            self.line.store.note("command", self._flight)
+
+    def _report_interrupted(self) -> None:
+        """At start: a cell command the last coordinator did not finish, said (log, the cell
+        status's detail) and forgotten; nothing is sent to the units."""
+        store = self.line.store
+        flight = store.noted("command") if store is not None else None
+        if flight is None:
+            return
+        reached = [u for u in flight.get("reached", []) if isinstance(u, str)][:64]
+        others = [u for u in self.cell.units if u not in reached]
+        when = time.strftime("%H:%M:%S", time.localtime(float(flight.get("since", 0) or 0)))
+        text = (
+            f"{str(flight.get('command'))[:20]} from {str(flight.get('caller'))[:80]} at {when} was "
+            f"interrupted (the coordinator ended): it had reached {', '.join(reached) or 'no unit'}"
+            f"{'; not ' + ', '.join(others) if others else ''}; not resumed"
+        )
+        self.get_logger().warning(f"cell command {text}")
+        self.line.last_result = text
+        if store is not None:
+            store.note("command", None)
 
     def _not_blocking_executor(self) -> str:
         """Why the handlers may not block here ('' = they may)."""
@@ -392,10 +454,12 @@ class CoordinatorNode(Node):
                 outcome = begun
             else:
                 run_id, run = begun
+                self._in_flight(command.name, caller)
                 try:
                     outcome = self._drive(run)
                 finally:
                     self.line.end(run_id)
+                    self._in_flight_end()
             text = f"{command.name} from {caller}: {outcome.message}"
             if outcome.accepted:  # rclpy ties a severity to each call site: one call per level
                 self.get_logger().info(text)
@@ -484,7 +548,10 @@ class CoordinatorNode(Node):
         with self._cond:
             self.line.reset_losses()
             self._flush()
-        resp.success, resp.message = True, "the since-reset window of the line's losses begins now"
+        resp.success, resp.message = (
+            True,
+            "the since-reset window of the line's losses begins now" + self._durability_note(),
+        )
         self.get_logger().info("line losses: since-reset window reset")
         return resp
 

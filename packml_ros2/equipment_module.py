@@ -56,6 +56,8 @@ from rclpy.serialization import deserialize_message
 from . import qos, run
 from .cdr_fields import Unreadable, field_reader
 from .core.numbers import ACTING, Cmd, State, state_name
+from .core.reports import Writers
+from .presence import with_info
 
 T = TypeVar("T")
 
@@ -75,6 +77,9 @@ HOOKS: dict[State, str] = {
 COUNTERS = {"consumed": EmReport.COUNTER_CONSUMED, "processed": EmReport.COUNTER_PROCESSED,
             "defective": EmReport.COUNTER_DEFECTIVE}  # fmt: skip
 FAULT_ALARM_ID = 9100  # default ID of the alarm raised when a hook fails
+#: Heartbeats per lease on ``em_heartbeats`` (best effort): a cut of the link up to the lease less
+#: one period (and the transit) never loses the EM.
+BEATS_PER_LEASE = 10
 _STATUS_FIELDS = ["state_current", "sequence", "unit_mode_current", "unit_mode_requested",
                   "unit_mode_change_in_process"]  # fmt: skip
 _EM_FIELDS = ["name", "active", "state_complete"]
@@ -144,8 +149,14 @@ class StateContext:
 class EquipmentModule(Node):
     """An EM node ``name`` under its unit: ``/<cell>/<unit>/<name>``."""
 
+    #: The hook an EM runs when its unit is gone (its status writer left the graph: the unit's
+    #: process died, or the network to it is cut): the EM's safe state. None: nothing runs (the
+    #: running hook is still cancelled). A constructor argument overrides it.
+    unit_lost_state: State | None = State.ABORTING
+
     def __init__(self, name: str, unit: str, cell: str = "", *, lease: float = 2.0,
-                 fault_alarm_id: int = FAULT_ALARM_ID, **node_kwargs: Any) -> None:  # fmt: skip
+                 fault_alarm_id: int = FAULT_ALARM_ID, unit_lost_state: State | str | None = "",
+                 **node_kwargs: Any) -> None:  # fmt: skip
         namespace = "/" + "/".join(p for p in (cell, unit) if p)
         super().__init__(name, namespace=namespace, **node_kwargs)
         self.em_name = name
@@ -159,8 +170,10 @@ class EquipmentModule(Node):
         self.active = True
         self._key: tuple[int, int] | None = None  # (state, sequence) being worked on
         self._pub = self.create_publisher(EmReport, "em_reports", qos.EM_REPORTS)
-        self.create_subscription(Status, "status", self._on_raw_status, qos.STATUS, raw=True)
+        self._beats = self.create_publisher(EmReport, "em_heartbeats", qos.EM_HEARTBEATS)
+        self._follow_unit(unit_lost_state)
         self.create_timer(lease / 4.0, self._heartbeat)
+        self.create_timer(lease / BEATS_PER_LEASE, self._beat)
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(
             target=self._loop.run_forever, name=f"em-{name}", daemon=True
@@ -247,6 +260,8 @@ class EquipmentModule(Node):
 
     # -- plumbing ------------------------------------------------------------------------------------------
     def _send(self, kind: int, **fields: Any) -> None:
+        if self.unit_lost and kind == EmReport.KIND_STATE_COMPLETE:
+            return  # (the safe state's hook ended: nobody to tell; the unit is gone)
         msg = EmReport(em=self.em_name, kind=kind, lease=self.lease, **fields)
         msg.stamp = self._stamp()
         self._pub.publish(msg)
@@ -259,6 +274,7 @@ class EquipmentModule(Node):
         it did not take: lost, or refused while it checked who speaks for this EM after a
         restart, core.reports.Writers)."""
         self._send(EmReport.KIND_HEARTBEAT)
+        self._watch_unit()
         reported, status = self._reported, self.status
         if reported is None or status is None:
             return
@@ -271,6 +287,87 @@ class EquipmentModule(Node):
             and time.monotonic() - when >= self.lease / 4
         ):
             self.report_complete(state, sequence)
+
+    # -- the unit this EM follows: its one status writer, and its loss (issue 25) ------------------------
+    def _follow_unit(self, unit_lost_state: State | str | None) -> None:
+        if unit_lost_state != "":
+            self.unit_lost_state = None if unit_lost_state is None else State[str(unit_lost_state).upper()] if isinstance(unit_lost_state, str) else State(unit_lost_state)  # fmt: skip
+        #: the unit's status writer (DDS publisher GID), as the unit binds each EM's writer: a
+        #: status from another writer (a forger, a second node of the name) is refused
+        self._unit_writer = Writers()
+        self._candidate: tuple[bytes, bytes] | None = None  # (writer, raw) last refused
+        self.unit_lost = False  # the unit's status writer is gone: in the safe state
+        self._status_sub = self.create_subscription(
+            Status, "status", with_info(self._on_status_from), qos.STATUS, raw=True
+        )
+
+    def _on_status_from(self, raw: bytes, info: Any) -> None:
+        """Executor thread: a status taken only from the writer bound for the unit."""
+        gid = info.get("publisher_gid")
+        writer = bytes(gid["data"]) if gid else b""
+        taken, _ = self._unit_writer.claim(self.unit_name, writer, time.monotonic(), self._status_writer_gone)  # fmt: skip
+        if not taken:
+            self.refused_statuses += 1
+            self._candidate = (writer, raw)  # (taken when the bound writer is found gone)
+            self.get_logger().warning(
+                f"status of unit {self.unit_name} from another writer refused (a forger, or a "
+                "restarted unit while its old writer is still on the graph)",
+                throttle_duration_sec=10.0,
+            )
+            return
+        self._candidate = None
+        self._on_status_from_bound(raw)
+
+    def _status_writer_gone(self, writer: bytes) -> bool:
+        return all(
+            bytes(bytearray(e.endpoint_gid))[: len(writer)] != writer
+            for e in self.get_publishers_info_by_topic(self._status_sub.topic_name)
+        )
+
+    def _watch_unit(self) -> None:
+        """Timer: the unit's status writer left the graph (its process died: DDS drops it
+        within the participant lease): go to the safe state, say so; a status refused from a
+        new writer meanwhile (the restarted unit) is taken now."""
+        bound = self._unit_writer.bound(self.unit_name)
+        if bound is None or not self._status_writer_gone(bound):
+            return
+        self._unit_writer.release(self.unit_name)
+        candidate, self._candidate = self._candidate, None
+        if candidate is not None:  # the restarted unit spoke while its old writer was listed
+            self._unit_writer.claim(self.unit_name, candidate[0], time.monotonic())
+            self._on_status_from_bound(candidate[1])
+            return
+        self._unit_gone()
+
+    def _on_status_from_bound(self, raw: bytes) -> None:
+        if self.unit_lost:
+            self.unit_lost = False
+            self.get_logger().info(f"unit {self.unit_name} is back: following it again")
+        self._on_raw_status(raw)
+
+    def _unit_gone(self) -> None:
+        """The unit is gone: cancel the running hook and run the safe state's hook; no State
+        Complete goes out until the unit is back (it rejoins with the unit's next status)."""
+        if self.unit_lost or self.status is None:
+            return
+        self.unit_lost = True
+        safe = self.unit_lost_state
+        what = f"running its {state_name(safe)} hook" if safe is not None else "hooks stopped"
+        self.get_logger().warning(f"unit {self.unit_name} lost (its status writer left): {what} until it is back")  # fmt: skip
+        now = self.status
+        view = now._replace(state=int(safe) if safe is not None else int(State.STOPPED),
+                            mode_changing=False, mine=(True, False))  # fmt: skip
+        self._on_status(view)
+
+    def _beat(self) -> None:
+        """The heartbeat on the best-effort channel the unit's lease follows (qos.EM_HEARTBEATS),
+        :data:`BEATS_PER_LEASE` times a lease: the one on ``em_reports`` waits behind a lost
+        reliable report for as long as its repair takes; this one arrives as soon as the link is
+        back, so a cut of up to 9/10 of the lease never loses the EM. (The one on ``em_reports``
+        stays: it registers the EM, and recordings and older units read heartbeats there.)"""
+        msg = EmReport(em=self.em_name, kind=EmReport.KIND_HEARTBEAT, lease=self.lease)
+        msg.stamp = self._stamp()
+        self._beats.publish(msg)
 
     def hook_for(self, state: State) -> Callable[[StateContext], Any] | None:
         """The hook for an acting state (None: nothing to do, complete at once). Override to

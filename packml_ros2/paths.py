@@ -35,6 +35,12 @@ def config_dir() -> Path:
     return share_dir() / "config"
 
 
-def fastdds_profile() -> Path:
-    """The Fast DDS profile for quick, predictable discovery (config/fastdds_localhost.xml)."""
+def fastdds_profile(discovery_range: str = "") -> Path:
+    """The Fast DDS profile for quick, predictable discovery (config/fastdds_localhost.xml); for
+    ``discovery_range`` LOCALHOST, the one that also keeps every transport on this host
+    (config/fastdds_loopback.xml: UDPv4 on 127.0.0.1 and shared memory): the discovery range
+    alone leaves the sockets listening on every interface, and a host that names this one as a
+    static peer (ROS_STATIC_PEERS) discovered and commanded the cell."""
+    if discovery_range.strip().upper() == "LOCALHOST":
+        return config_dir() / "fastdds_loopback.xml"
     return config_dir() / "fastdds_localhost.xml"

@@ -33,6 +33,7 @@ to your own loop (``loop.call_soon_threadsafe``).
 
 from __future__ import annotations
 
+import inspect
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -42,6 +43,7 @@ from typing import Any
 from packml_interfaces.msg import Status
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
+from rclpy.subscription import MessageInfo
 
 from . import qos
 
@@ -159,3 +161,18 @@ class Presence:
 
 def _ignore(msg: Any) -> None:
     """Status messages are the consumers' business; presence needs only the liveliness events."""
+
+
+def with_info(callback: Callable[[Any, MessageInfo], None]) -> Callable[..., None]:
+    """``callback(msg, info)`` as a subscription callback every executor calls right: rclpy's
+    Python executors pass (msg, info), its EventsExecutor (rclpy 9.1) one (msg, info) tuple."""
+
+    def call(*args: Any) -> None:
+        msg, info = args if len(args) == 2 else args[0]
+        callback(msg, info)
+
+    two = inspect.Parameter.POSITIONAL_ONLY
+    call.__signature__ = inspect.Signature(  # type: ignore[attr-defined]  # what rclpy inspects
+        [inspect.Parameter("msg", two), inspect.Parameter("info", two)]
+    )
+    return call

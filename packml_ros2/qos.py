@@ -34,6 +34,16 @@ CELL_STATUS = LATCHED
 TRANSITIONS = _profile(100, latched=True)
 #: ``<unit>/em_reports``: EM -> unit events (State Complete, counts, alarms, heartbeats).
 EM_REPORTS = _profile(200, latched=False)
+#: ``<unit>/em_heartbeats``: EM -> unit heartbeats (EmReport KIND_HEARTBEAT), best effort and
+#: keep-last: a heartbeat is never held behind a reliable report whose loss is being repaired
+#: (after a network blip, reliable ``em_reports`` deliver nothing until the gap is filled, which
+#: took longer than the lease), and a lost one is replaced by the next.
+EM_HEARTBEATS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=20,
+    reliability=ReliabilityPolicy.BEST_EFFORT,
+    durability=DurabilityPolicy.VOLATILE,
+)
 #: ``<unit>/input_log``: every input the unit's engine applied, for record/replay; latched deep
 #: so a recorder that starts late still gets the inputs since the unit started.
 INPUT_LOG = _profile(5000, latched=True)

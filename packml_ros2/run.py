@@ -61,8 +61,8 @@ def shutdown_reason() -> str:
 
 def default_environment() -> None:
     """Keep DDS on this machine unless the user chose otherwise, and discover quickly."""
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    profile = fastdds_profile()
+    discovery_range = os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    profile = fastdds_profile(discovery_range)  # LOCALHOST: transports on loopback only
     if profile.exists():
         os.environ.setdefault("FASTDDS_DEFAULT_PROFILES_FILE", str(profile))
 

@@ -13,7 +13,6 @@ Run: ``unit_node <cell.yaml> [unit] [--ros-args -p remote_commands_enabled:=true
 
 from __future__ import annotations
 
-import inspect
 import json
 import math
 import sys
@@ -75,6 +74,7 @@ from .core.liveliness import Liveliness
 from .core.reports import LEAVE, Writers, report_problem
 from .core.secrets import redacted_yaml
 from .driver import FrozenClock, UnitDriver
+from .presence import with_info
 from .remote_lock import RemoteLock
 
 T = TypeVar("T")
@@ -150,6 +150,12 @@ class UnitNode(Node):
         ) if self._record else None  # fmt: skip
         self._reports = self.create_subscription(
             EmReport, "~/em_reports", with_info(self._on_report), qos.EM_REPORTS
+        )
+        #: heartbeats on their own best-effort channel (qos.EM_HEARTBEATS), from the writer
+        #: bound for each EM there (a forger cannot keep a dead EM alive)
+        self.beat_writers = Writers()
+        self._beats = self.create_subscription(
+            EmReport, "~/em_heartbeats", with_info(self._on_heartbeat), qos.EM_HEARTBEATS
         )
         self._create_services()
         # No polling: one timer, armed for the engine's next deadline, the next lease that can
@@ -238,12 +244,16 @@ class UnitNode(Node):
         for srv_type, name, handler in services:
             responses.create_service(self, srv_type, f"~/{name}", handler)
 
-    @staticmethod
-    def _answer(resp: Any, answer: Any, message_field: str = "message") -> Any:
+    def _answer(self, resp: Any, answer: Any, message_field: str = "message") -> Any:
         resp.accepted = answer.accepted
         resp.result = int(answer.reason)
-        setattr(resp, message_field, answer.message)
+        setattr(resp, message_field, answer.message + self._not_durable())
         return resp
+
+    def _not_durable(self) -> str:
+        """What an answer adds while the admin store cannot be written (a full disk)."""
+        why = self.unit.not_durable
+        return f" (not durable: {why})" if why else ""
 
     def _srv_command(self, req: Command.Request, resp: Command.Response) -> Command.Response:
         answer = self._run(self.unit.command, req.command, req.source or "operator")
@@ -257,7 +267,7 @@ class UnitNode(Node):
     ) -> Trigger.Response:
         answer = self._run(self.unit.command, cmd, "operator")
         resp.success = answer.accepted
-        resp.message = answer.message
+        resp.message = answer.message + self._not_durable()
         if answer.accepted and not answer.message.endswith(state_name(self.unit.state)):
             resp.message += f" (now {state_name(self.unit.state)})"
         return resp
@@ -386,12 +396,42 @@ class UnitNode(Node):
         leaving = msg.kind == LEAVE
         if leaving or msg.em not in self.unit.equipment.modules:
             self.writers.release(msg.em)  # left, or not an EM of the unit: keep nothing
+            self.beat_writers.release(msg.em)
         if leaving:
             self._leave(msg, now)
         else:
             self._leaving.pop(msg.em, None)  # anything else from it: it is back (or never left)
             self.driver.report(now, msg, self.liveliness)
         self._arm(now)
+
+    def _on_heartbeat(self, msg: EmReport, info: MessageInfo) -> None:
+        """A heartbeat on the best-effort channel: it renews the EM's lease however long a
+        reliable report ahead of it on ``em_reports`` waits for its repair (a network blip
+        shorter than the lease never loses an EM). Nothing but heartbeats is taken here."""
+        now = self._now()
+        problem = report_problem(msg, self.unit.sequence)
+        if problem is None and msg.kind != EmReport.KIND_HEARTBEAT:
+            problem = f"a report of kind {msg.kind} on em_heartbeats (only heartbeats go there)"
+        if problem is not None:
+            self.refused_reports += 1
+            self.unit.stats.bad_reports += 1
+            self._log("warn", f"EM heartbeat refused: {problem}")
+            return
+        if msg.em not in self.unit.equipment.modules or msg.em in self._leaving:
+            return  # (registration and goodbyes go by em_reports, in order)
+        gid = info.get("publisher_gid")
+        writer = bytes(gid["data"]) if gid else b""
+        taken, note = self.beat_writers.claim(msg.em, writer, now, self._beat_writer_gone)
+        if note is not None and not taken:
+            self._log("warn", note)
+        if not taken:
+            self.refused_reports += 1
+            return
+        if msg.em in self.liveliness.alive:  # (the wake-up due at the old expiry re-arms)
+            self.liveliness.seen(msg.em, now)
+
+    def _beat_writer_gone(self, writer: bytes) -> bool:
+        return self._writer_gone(writer, self._beats.topic_name)
 
     def _leave(self, msg: EmReport, now: float) -> None:
         """An EM's goodbye counts after a grace: when a whole cell is stopped (Ctrl-C under
@@ -409,9 +449,9 @@ class UnitNode(Node):
                 del self._leaving[name]
                 self.driver.report(now, msg, self.liveliness)
 
-    def _writer_gone(self, writer: bytes) -> bool:
+    def _writer_gone(self, writer: bytes, topic: str = "") -> bool:
         """Whether ``writer`` no longer publishes EM reports here (its node or process ended)."""
-        topic = self._reports.topic_name
+        topic = topic or self._reports.topic_name
         return all(
             bytes(bytearray(e.endpoint_gid))[: len(writer)] != writer
             for e in self.get_publishers_info_by_topic(topic)
@@ -428,6 +468,7 @@ class UnitNode(Node):
         self._apply_leaves(now)
         for name, lease in self.liveliness.expired(now):
             self.writers.release(name)
+            self.beat_writers.release(name)
             self._leaving.pop(name, None)
             self.driver.call(now, self.unit.em_lost, name, f"no report for {lease:g} s")
         summary = self._log_limiter.due(now)
@@ -572,6 +613,8 @@ class UnitNode(Node):
         self.unit.store = None  # a callback still running after this must not touch the file
         if self.context.ok():
             saved = f"; admin data saved to {self.store.path}" if self.store else ""
+            if self.unit.not_durable:
+                saved = f"; admin data NOT saved ({self.unit.not_durable})"
             self.get_logger().info(
                 f"PackML unit {self.get_fully_qualified_name()} shut down ({reason}) in "
                 f"{state_name(self.unit.state)}{saved}"
@@ -580,21 +623,6 @@ class UnitNode(Node):
     def destroy_node(self) -> None:
         self.close()
         super().destroy_node()
-
-
-def with_info(callback: Callable[[Any, MessageInfo], None]) -> Callable[..., None]:
-    """``callback(msg, info)`` as a subscription callback every executor calls right: rclpy's
-    Python executors pass (msg, info), its EventsExecutor (rclpy 9.1) one (msg, info) tuple."""
-
-    def call(*args: Any) -> None:
-        msg, info = args if len(args) == 2 else args[0]
-        callback(msg, info)
-
-    two = inspect.Parameter.POSITIONAL_ONLY
-    call.__signature__ = inspect.Signature(  # type: ignore[attr-defined]  # what rclpy inspects
-        [inspect.Parameter("msg", two), inspect.Parameter("info", two)]
-    )
-    return call
 
 
 def pick_unit(cell: CellConfig, cell_file: str, unit: str | None) -> UnitConfig:

@@ -104,9 +104,12 @@ class SystemAlarms:
     state_timeout: int = 9002
     mode_change_timeout: int = 9003
     store_unreadable: int = 9004  #: the persistence store could not be read (moved aside)
+    #: the persistence store cannot be written (a full disk): the admin data since is not durable
+    persistence_failing: int = 9005
     state_timeout_category: int = 2
     mode_change_timeout_category: int = 5
     store_unreadable_category: int = 5
+    persistence_failing_category: int = 5
 
 
 @dataclass(frozen=True)

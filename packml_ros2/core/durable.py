@@ -26,7 +26,7 @@ from typing import Any, Protocol
 
 from .alarms import AlarmEvent, AlarmManager
 from .counters import Counters
-from .persistence import one_line
+from .persistence import NotWritten, one_line
 from .stopreason import StopReasons
 from .times import ModeStateTimes
 
@@ -73,13 +73,25 @@ def document(times: ModeStateTimes, counters: Counters, alarms: AlarmManager, st
     }
 
 
+#: Seconds between tries to write a store that failed (a full disk): each try is a snapshot.
+RETRY = 1.0
+
+
 class Durable:
+    """The admin data's persistence. A write that fails (a full disk) does not stop the unit:
+    :attr:`failing` says why (the unit raises its ``persistence_failing`` alarm and says in its
+    answers that they are not durable), no journal record is written after a lost one (its
+    changes would be missing under them), and a snapshot, which holds everything, is tried every
+    :data:`RETRY` seconds until one is written: then the store is whole again."""
+
     __slots__ = (
         "_append",
         "_producing",
+        "_retry_at",
         "_written",
         "alarms",
         "counters",
+        "failing",
         "stops",
         "store",
         "times",
@@ -96,6 +108,10 @@ class Durable:
         #: (sequence, mode, times resets, counters version, stop reason, speed, producing) as
         #: last written
         self._written: tuple[Any, ...] = ()
+        #: why the admin data is not on the disk ('' = it is): what the unit answered since is
+        #: in memory only until a snapshot is written
+        self.failing: str = getattr(store, "failing", "") or ""
+        self._retry_at = -float("inf")
         alarms.take_changed()  # from now on the alarms note which occurrences change
 
     def document(self, sequence: int, mach_speed: float, now: float) -> dict[str, Any]:
@@ -110,9 +126,18 @@ class Durable:
         document = self.document(sequence, mach_speed, now)
         if closing:
             document["producing"] = False
-        self.store.save(document, now)
+        try:
+            self.store.save(document, now)
+        except NotWritten as exc:
+            self._failed(str(exc), now)
+            return
+        self.failing = ""
         self.alarms.take_changed()
         self._written = self._state(sequence, mode, mach_speed)
+
+    def _failed(self, why: str, now: float) -> None:
+        self.failing = why
+        self._retry_at = now + RETRY
 
     def _state(self, sequence: int, mode: int, mach_speed: float) -> tuple[Any, ...]:
         times, counters, stops = self.times, self.counters, self.stops
@@ -121,8 +146,12 @@ class Durable:
 
     def checkpoint(self, now: float) -> None:
         """Journal the times as of ``now`` (one ``write()``; not an input: nothing changes)."""
-        if self._append is not None:
+        if self._append is None or self.failing:  # (failing: the retried snapshot holds them)
+            return
+        try:
             self._append([{"set": {"times": self.times.to_dict(now), "saved_at": now}}])
+        except NotWritten as exc:
+            self._failed(str(exc), now)
 
     def journal(self, sequence: int, mode: int, mach_speed: float, now: float) -> None:
         """Write what changed since the last call (one ``write()``): before the unit answers."""
@@ -130,6 +159,12 @@ class Durable:
         if self._append is None:
             if changed:
                 changed.clear()
+            return
+        if self.failing:
+            if changed:
+                changed.clear()  # (the snapshot holds every occurrence)
+            if now >= self._retry_at:  # a snapshot holds all the journal would
+                self.snapshot(sequence, mode, mach_speed, now)
             return
         state = self._state(sequence, mode, mach_speed)
         if state == self._written and not changed:
@@ -158,7 +193,11 @@ class Durable:
             for ev in alarms.take_changed()
         ]
         if records:
-            self._append(records)
+            try:
+                self._append(records)
+            except NotWritten as exc:
+                self._failed(str(exc), now)
+                return
         self._written = state
 
     def restore(self, now: float) -> Restored:

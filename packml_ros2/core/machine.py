@@ -176,7 +176,7 @@ class UnitMachine(ModeChanges):
         "remote_enabled", "cntrl_cmd", "mach_speed", "parameters", "products",
         "remote_commands",
         # parts
-        "config", "rules", "_clock", "store", "_durable", "on_input", "restored", "alert", "stats",
+        "config", "rules", "_clock", "store", "_durable", "_not_durable", "on_input", "restored", "alert", "stats",
         "times",
         "counters", "alarms", "equipment", "interlocks", "stops", "deadlines", "publication",
         # the compiled rules the hot paths index, and configuration they test
@@ -252,6 +252,7 @@ class UnitMachine(ModeChanges):
             if store is None
             else Durable(store, self.times, self.counters, self.alarms, self.stops, self._producing)
         )
+        self._not_durable = ""  # why the admin data is not on the disk, as the alarm says
         self._restore(now)
         self._transition(S.STOPPED, Trigger.RESTART, source="unit", detail=self._restart_detail)
         self._journal()
@@ -993,12 +994,42 @@ class UnitMachine(ModeChanges):
 
     def _journal(self) -> None:
         """Write-ahead: the input's durable changes reach the store before it is answered."""
-        if self._durable is not None:
-            self._durable.journal(self.sequence, self.mode, self.mach_speed, self._t)
+        durable = self._durable
+        if durable is not None:
+            durable.journal(self.sequence, self.mode, self.mach_speed, self._t)
+            if durable.failing != self._not_durable:
+                self._persistence_changed(durable.failing)
 
     def _snapshot(self, closing: bool = False) -> None:
-        if self._durable is not None:
-            self._durable.snapshot(self.sequence, self.mode, self.mach_speed, self._t, closing)
+        durable = self._durable
+        if durable is not None:
+            durable.snapshot(self.sequence, self.mode, self.mach_speed, self._t, closing)
+            if durable.failing != self._not_durable:
+                self._persistence_changed(durable.failing)
+
+    @property
+    def not_durable(self) -> str:
+        """Why what the unit answers now is not on the disk ('' = it is): a store that cannot
+        be written (a full disk); the node says so in every answer."""
+        return self._not_durable
+
+    def _persistence_changed(self, why: str) -> None:
+        """The store started or stopped failing: the ``persistence_failing`` alarm follows."""
+        sa = self.config.system_alarms
+        was, self._not_durable = self._not_durable, why
+        if why and not was:
+            self._log("warn", f"persistence failing: {why}; retrying (the admin data since is not durable)")  # fmt: skip
+            message = f"persistence failing: {why}"[:240]
+            self._raise(AlarmDef(sa.persistence_failing, 1, message, sa.persistence_failing_category), source="unit")  # fmt: skip
+        elif not why:
+            self._log("info", "persistence recovered: the admin data is on the disk again")
+            self.alarms.clear(sa.persistence_failing, 1, self._t)
+        else:
+            return
+        self._settle()
+        self.publication.flush(self._t, self.sequence)
+        if self._durable is not None:  # (the alarm's events, once the store takes them)
+            self._durable.journal(self.sequence, self.mode, self.mach_speed, self._t)
 
     def _restore(self, now: float) -> None:
         self.restored: dict[str, Any] | None = None

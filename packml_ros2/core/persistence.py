@@ -22,6 +22,11 @@ another schema, a document of the wrong types) or a damaged journal does not sto
 is moved aside (``path.unreadable-<UTC time>``), the unit starts with what could be read (or
 empty), and :attr:`Store.problems` says what happened (the unit logs it and raises its
 ``store_unreadable`` alarm).
+
+A store that cannot be *written* now (a full disk, an I/O error: :func:`not_writable`) is not
+unreadable: it is never moved aside. It opens read-only (:attr:`Store.failing` says why), a
+journal write that fails leaves no torn line, and a write raises :class:`NotWritten`, which the
+unit's :class:`~.durable.Durable` turns into its ``persistence_failing`` alarm and retries.
 """
 
 from __future__ import annotations
@@ -44,6 +49,10 @@ from typing import Any
 
 SCHEMA_VERSION = 1
 TABLE = "unit_admin"
+_CREATE = (
+    f"CREATE TABLE IF NOT EXISTS {TABLE} (unit TEXT PRIMARY KEY, schema INTEGER NOT NULL,"
+    " saved_at REAL NOT NULL, document TEXT NOT NULL)"
+)
 #: Bounds of what a unit reads from its files (memory stays bounded whatever is on the disk): a
 #: snapshot document (the alarm history's ring, the counters, the times: well under a megabyte)
 #: and the journal (the changes of one ``persistence.period``).
@@ -58,6 +67,25 @@ class StoreError(RuntimeError):
 
 class StoreLocked(StoreError):
     """The store is held by another unit (another process, or another store object here)."""
+
+
+class NotWritten(RuntimeError):
+    """A write to a store failed for a reason outside its content (a full disk, an I/O error, a
+    file system turned read-only): what was to be written is not on the disk. One line."""
+
+
+#: SQLite's primary result codes of a store that cannot be written *now* (not of a file that is
+#: not a store): full, I/O error, cannot open, read-only, permission, busy, locked, no memory.
+_TRANSIENT = frozenset({13, 10, 14, 8, 3, 5, 6, 7})
+
+
+def not_writable(exc: BaseException) -> bool:
+    """Whether ``exc`` says the store cannot be written now (its content may be intact): such a
+    store is retried, never moved aside."""
+    if isinstance(exc, OSError):
+        return True
+    code = getattr(exc, "sqlite_errorcode", None)
+    return isinstance(exc, sqlite3.OperationalError) and (code is None or code & 0xFF in _TRANSIENT)
 
 
 def os_reason(exc: BaseException) -> str:
@@ -120,6 +148,9 @@ class Store:
         self.problems: list[str] = []
         self.saves = 0
         self.appends = 0
+        #: why the store cannot be written now ('' = it can): it opened on a full disk
+        self.failing = ""
+        self._db: sqlite3.Connection | None = None
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             for where in (self.path, lock_path(self.path)):
@@ -173,6 +204,10 @@ class Store:
         except (sqlite3.Error, ValueError, UnicodeDecodeError) as exc:
             with contextlib.suppress(Exception):
                 db.close()
+            if not_writable(exc):
+                # A full disk (no room for the -wal and -shm files), an I/O error: the file may
+                # be intact. Read it as it is, write nothing, and try again at the next save.
+                return self._open_unwritable(exc)
             aside = move_aside(self.path, "-wal", "-shm")
             self.problems.append(
                 f"{self.path.name} could not be read ({one_line(exc)}): moved aside to {aside.name}; the "
@@ -181,10 +216,7 @@ class Store:
             self._db = _configured(
                 sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
             )
-        self._db.execute(
-            f"CREATE TABLE IF NOT EXISTS {TABLE} (unit TEXT PRIMARY KEY, schema INTEGER NOT NULL,"
-            " saved_at REAL NOT NULL, document TEXT NOT NULL)"
-        )
+        self._db.execute(_CREATE)
         journal = _journal(self.path)
         records, damage = _read_journal(journal)
         if damage is not None:
@@ -206,6 +238,45 @@ class Store:
             n = max(n, int(document.get("journal", 0)))
         return document, n
 
+    def _open_unwritable(self, exc: BaseException) -> tuple[dict[str, Any] | None, int]:
+        """Open a store that cannot be written now: its document read-only (SQLite's read-only
+        mode, or the main file alone when even that needs room the disk does not have), no
+        connection for writing (:meth:`save` makes one when it can); :attr:`failing` says why."""
+        self.failing = f"{self.path.name} cannot be written ({one_line(exc)})"
+        self._db = None
+        document = None
+        for query in ("mode=ro", "immutable=1"):
+            with contextlib.suppress(sqlite3.Error, ValueError, UnicodeDecodeError):
+                db = sqlite3.connect(f"file:{self.path}?{query}", uri=True)
+                try:
+                    document = _row(db, self.unit, str(self.path))
+                finally:
+                    db.close()
+                break
+        else:
+            raise StoreError(
+                f"{self.path}: cannot read the admin store of unit {self.unit}: {one_line(exc)}"
+            )
+        records, _ = _read_journal(_journal(self.path))
+        document = _replay(document, records)
+        n = max((int(r["n"]) for r in records), default=0)
+        if document is not None:
+            n = max(n, int(document.get("journal", 0)))
+        return document, n
+
+    def _writable(self) -> sqlite3.Connection:
+        """The connection for writing, made now if the store opened unwritable."""
+        if self._db is None:
+            db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+            try:
+                _configured(db)
+                db.execute(_CREATE)
+            except BaseException:
+                db.close()
+                raise
+            self._db = db
+        return self._db
+
     # -- writing -------------------------------------------------------------------------------------
     def append(self, records: Iterable[Mapping[str, Any]]) -> None:
         """Journal changes (each a record: ``{"set": {key: value}}`` or ``{"event": {...}}``),
@@ -216,30 +287,42 @@ class Store:
             lines.append(_line({"n": self._n, **record}))
         if lines:
             data = "".join(lines).encode()
-            while data:
-                data = data[os.write(self._journal, data) :]
+            end = os.fstat(self._journal).st_size
+            try:
+                while data:
+                    data = data[os.write(self._journal, data) :]
+            except OSError as exc:  # (a full disk): no torn line stays behind the records before
+                with contextlib.suppress(OSError):
+                    os.ftruncate(self._journal, end)
+                raise NotWritten(f"{_journal(self.path).name}: {os_reason(exc)}") from None
             self.appends += 1
 
     def save(self, document: dict[str, Any], now: float) -> None:
-        """A snapshot of the whole document; the journal up to it is dropped."""
+        """A snapshot of the whole document; the journal up to it is dropped. Raises
+        :class:`NotWritten` when it cannot be written (a full disk): the store is as it was."""
         text = json.dumps({**document, "journal": self._n}, separators=(",", ":"))
-        self._db.execute(
-            f"INSERT INTO {TABLE} (unit, schema, saved_at, document) VALUES (?, ?, ?, ?)"
-            " ON CONFLICT(unit) DO UPDATE SET schema = excluded.schema,"
-            " saved_at = excluded.saved_at, document = excluded.document",
-            (self.unit, SCHEMA_VERSION, now, text),
-        )
+        try:
+            self._writable().execute(
+                f"INSERT INTO {TABLE} (unit, schema, saved_at, document) VALUES (?, ?, ?, ?)"
+                " ON CONFLICT(unit) DO UPDATE SET schema = excluded.schema,"
+                " saved_at = excluded.saved_at, document = excluded.document",
+                (self.unit, SCHEMA_VERSION, now, text),
+            )
+        except (sqlite3.Error, OSError) as exc:
+            raise NotWritten(f"{self.path.name}: {one_line(exc)}") from None
+        self.failing = ""
         os.ftruncate(self._journal, 0)  # records up to the snapshot's number are skipped anyway
         self.saves += 1
 
     def integrity_ok(self) -> bool:
-        return bool(self._db.execute("PRAGMA integrity_check").fetchone()[0] == "ok")
+        return bool(self._writable().execute("PRAGMA integrity_check").fetchone()[0] == "ok")
 
     def close(self) -> None:
         """Close the files and release the lock (idempotent)."""
         if self._lock < 0:
             return
-        self._db.close()
+        if self._db is not None:
+            self._db.close()
         os.close(self._journal)
         os.close(self._lock)
         self._lock = -1
@@ -270,8 +353,9 @@ def lock_store(path: Path, unit: str) -> int:
         raise
     since = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime())
     text = f"process {os.getpid()} on {socket.gethostname()} (unit {unit}, since {since} UTC)\n"
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, text.encode(), 0)
+    with contextlib.suppress(OSError):  # (the holder's name only: a full disk holds the lock too)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, text.encode(), 0)
     return fd
 
 

@@ -2,7 +2,8 @@
 
 - ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``: DDS traffic never leaves the machine
   (``ROS_LOCALHOST_ONLY`` is ignored since Kilted).
-- ``FASTDDS_DEFAULT_PROFILES_FILE``: quick discovery (config/fastdds_localhost.xml).
+- ``FASTDDS_DEFAULT_PROFILES_FILE``: quick discovery, transports on loopback and shared memory
+  only (config/fastdds_loopback.xml).
 - ``ROS_DOMAIN_ID``: a domain nobody else on this machine holds, so parallel runs (and pytest-xdist
   workers) never see each other; allocated with a lock file per domain.
 """
@@ -27,7 +28,7 @@ def localhost_environment(env: dict[str, str] | None = None) -> dict[str, str]:
     LOCALHOST is enforced, other variables are only defaulted."""
     target = os.environ if env is None else env
     target["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    profile = fastdds_profile()
+    profile = fastdds_profile("LOCALHOST")  # transports on loopback only
     if profile.exists():
         target.setdefault("FASTDDS_DEFAULT_PROFILES_FILE", str(profile))
     return dict(target)

@@ -12,7 +12,7 @@ from packml_interfaces.msg import Status
 from packml_interfaces.srv import SetEmActive
 
 from packml_ros2 import qos
-from packml_ros2.core import Cmd
+from packml_ros2.core import Cmd, State
 from packml_ros2.equipment_module import EquipmentModule, StateContext
 from packml_ros2.unit_node import UnitNode
 from test.ros.cells import UnitClient, unit_config_of, write_cell
@@ -304,3 +304,37 @@ def test_bytes_on_the_status_topic_that_are_no_status_are_refused_and_change_not
     ros.node.destroy_publisher(writer)
     to_execute(client)
     assert robot.names()[:2] == ["starting", "started"]
+
+
+class Resetter(Recorder):
+    def on_resetting(self, ctx: StateContext) -> None:
+        self.note(f"resetting {ctx.sequence}")
+
+
+def test_a_status_from_a_second_writer_does_not_drive_the_em(ros, cell) -> None:
+    """Issue 25 item 7: an EM binds its unit's status writer as the unit binds its EMs'
+    writers: a forged Status (a state the unit never entered) from another writer runs no hook."""
+    cell_name, client = cell
+    robot = em(ros, Resetter, cell_name)
+    online(client)
+    real = client.status.last
+    assert real is not None and real.state_current_name == "STOPPED"
+    forger = ros.node.create_publisher(Status, f"/{cell_name}/u/status", qos.STATUS)
+    deadline = time.monotonic() + 10
+    while forger.get_subscription_count() < 2:  # the robot and the test's own client
+        assert time.monotonic() < deadline, "the forger never matched the EM"
+        time.sleep(0.01)
+    forged = Status(state_current=int(State.RESETTING), state_current_name="RESETTING", sequence=real.sequence + 1,
+                    unit_mode_current=real.unit_mode_current)  # fmt: skip
+    forged.equipment_modules = list(real.equipment_modules)
+    for entry in forged.equipment_modules:
+        entry.state_complete = False  # the unit waits for this EM's Resetting
+    forger.publish(forged)
+    deadline = time.monotonic() + 10
+    while robot.refused_statuses < 1 and not robot.names():  # refused, or followed
+        assert time.monotonic() < deadline, "the forged status was neither refused nor followed"
+        time.sleep(0.01)
+    assert robot.names() == [] and robot.state.name == "STOPPED", robot.names()
+    client.trigger("reset")  # the real unit's Resetting runs the hook
+    client.wait_state("IDLE")
+    assert robot.names() == [f"resetting {real.sequence + 1}"]

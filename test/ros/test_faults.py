@@ -9,8 +9,9 @@ import pytest
 from packml_interfaces.msg import Admin, EmReport, Result, Status, TransitionEvent
 from packml_interfaces.srv import SetEmActive, SetMode
 
+from packml_ros2 import qos
 from packml_ros2.core import Cmd, State
-from packml_ros2.testing.processes import NodeProcess
+from packml_ros2.testing.processes import NodeProcess, wait_until
 from test.ros.cells import UnitClient, start_em_process, start_unit_process, write_cell
 
 FAST = {"durations": {"resetting": 0.05, "starting": 0.05, "completing": 0.05, "stopping": 0.05,
@@ -340,3 +341,41 @@ def test_a_flaky_link_repeats_state_complete_and_the_unit_ignores_the_repeat(
 
     off = ros.call(SetBool, fault, SetBool.Request(data=False))
     assert off.success and off.message == "flaky off (repeat_complete)", off.message
+
+
+def test_ems_whose_unit_is_killed_go_to_their_safe_state_and_rejoin(ros, processes, tmp_path: Path) -> None:  # fmt: skip
+    """Issue 25 item 3: the unit SIGKILLed in Execute; its EM (another process) stops producing
+    within the DDS participant lease (its unit's status writer leaves the graph), runs its
+    Aborting hook, says so, and follows the unit again when it is restarted."""
+    ems = {"robot": _em(cycle_time=0.05, counter="processed")}
+    cell_file, cell = write_cell(tmp_path, {"packer": {"equipment_modules": ems}})
+    unit = start_unit_process(processes, cell_file, "packer")
+    em = start_em_process(processes, cell_file, "packer", "robot")
+    client = UnitClient(ros, cell, "packer")
+    client.ready()
+    reports = ros.subscribe(EmReport, f"/{cell}/packer/em_reports", qos.EM_REPORTS)
+    client.wait_status(lambda s: _online(s, "robot"), 15, "robot online")
+    client.trigger("reset")
+    client.wait_state("IDLE")
+    client.trigger("start")
+    client.wait_state("EXECUTE")
+    reports.wait_for(lambda r: r.kind == EmReport.KIND_COUNT, 5, "production")
+    unit.kill()
+    wait_until(lambda: "lost (its status writer left)" in em.output(), 15, what="the EM noticing")
+    assert "running its ABORTING hook" in em.output()
+    counted = sum(r.kind == EmReport.KIND_COUNT for r in reports.messages)
+    # what was on its way when the EM noticed arrives; then nothing more for a while
+    deadline = time.monotonic() + 1.5
+    while time.monotonic() < deadline:
+        time.sleep(0.05)
+    later = sum(r.kind == EmReport.KIND_COUNT for r in reports.messages) - counted
+    assert later <= 1, f"{later} counts after the EM lost its unit"
+    assert em.running()
+
+    client.forget()
+    start_unit_process(processes, cell_file, "packer")
+    client.ready()
+    client.wait_status(lambda s: _online(s, "robot"), 15, "robot re-joined")
+    wait_until(lambda: "is back: following it again" in em.output(), 15, what="the EM following")
+    assert client.trigger("reset").success
+    client.wait_state("IDLE")

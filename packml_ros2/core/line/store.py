@@ -35,6 +35,7 @@ from ..persistence import (
     lock_store,
     move_aside,
     not_a_file,
+    not_writable,
     one_line,
     os_reason,
     sqlite_damage,
@@ -47,6 +48,8 @@ from .losses import Totals
 SCHEMA_VERSION = 1
 _TABLES = {"segments", "counts", "episodes", "state", "meta"}
 _FAR = 2**62
+#: Inputs a line store that cannot be written (a full disk) holds in memory until it can.
+PENDING_MAX = 100_000
 TEXT_MAX = (
     2**20
 )  #: bytes of a stored text (a reason, an episode, the open state): memory stays bounded
@@ -77,6 +80,12 @@ class LineStore:
         self.cell = cell
         self.problems: list[str] = []
         self.commits = 0
+        #: why the store cannot be written now ('' = it can): what the line committed since is
+        #: held in :attr:`pending` (bounded) and written with the next commit that succeeds
+        self.failing = ""
+        self.pending: list[tuple[Sequence[Fact], Sequence[tuple[Episode, str, str, str]], Mapping[str, Any] | None]] = []  # fmt: skip
+        self.pending_dropped = 0
+        self._read_only = False
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             for where in (self.path, lock_path(self.path)):
@@ -100,16 +109,41 @@ class LineStore:
         try:
             problem = _foreign(db)
         except sqlite3.DatabaseError as exc:
+            if not_writable(exc):
+                db.close()
+                return self._unwritable(exc)
             problem = one_line(exc)
         if problem:
             with contextlib.suppress(Exception):
                 db.close()
             db = self._aside(f"is not a line store ({problem})")
-        db.execute("PRAGMA journal_mode=WAL")
-        db.execute("PRAGMA synchronous=NORMAL")
+        try:
+            _prepare(db)
+        except sqlite3.Error as exc:
+            db.close()
+            if not_writable(exc):
+                return self._unwritable(exc)
+            raise
+        return db
+
+    def _unwritable(self, exc: BaseException) -> sqlite3.Connection:
+        """A store that cannot be written now (a full disk: no room for its -wal and -shm): it
+        is read as it is (never moved aside) and the next commit tries to open it for writing."""
+        self.failing = f"{self.path.name} cannot be written ({one_line(exc)})"
+        self._read_only = True
+        for query in ("mode=ro", "immutable=1"):
+            db = sqlite3.connect(f"file:{self.path}?{query}", uri=True, check_same_thread=False)
+            try:
+                if not _foreign(db) and "meta" in _tables(db):
+                    return db
+            except sqlite3.Error:
+                db.close()
+                continue
+            db.close()  # (empty: the line starts with an empty store in memory)
+            break
+        db = sqlite3.connect(":memory:", isolation_level=None, check_same_thread=False)
         for statement in _SCHEMA:
             db.execute(statement)
-        db.execute("INSERT OR IGNORE INTO meta (key, value) VALUES ('schema', ?)", (str(SCHEMA_VERSION),))  # fmt: skip
         return db
 
     def _aside(self, why: str) -> sqlite3.Connection:
@@ -129,7 +163,54 @@ class LineStore:
     def commit(self, facts: Sequence[Fact], episodes: Sequence[tuple[Episode, str, str, str]],
                state: Mapping[str, Any] | None) -> None:  # fmt: skip
         """One input's facts, episodes ((episode, root unit, bucket, reason)) and open state, in
-        one transaction."""
+        one transaction. A store that cannot be written (a full disk) keeps them in
+        :attr:`pending` (:attr:`failing` says why) and writes them with the next commit that
+        succeeds."""
+        if self.failing:
+            self._hold(facts, episodes, state)
+            try:
+                if self._read_only:
+                    db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+                    try:
+                        _prepare(db)
+                    except BaseException:
+                        db.close()
+                        raise
+                    self.db.close()
+                    self.db, self._read_only = db, False
+                held, self.pending = self.pending, []
+                try:
+                    for f, e, s in held:
+                        self._write(f, e, s)
+                except BaseException:
+                    self.pending = held + self.pending
+                    raise
+            except sqlite3.Error as exc:
+                if not not_writable(exc):
+                    raise
+                self.failing = f"{self.path.name} cannot be written ({one_line(exc)})"
+                return
+            self.failing = ""
+            return
+        try:
+            self._write(facts, episodes, state)
+        except sqlite3.Error as exc:
+            if not not_writable(exc):
+                raise
+            self.failing = f"{self.path.name} cannot be written ({one_line(exc)})"
+            self._hold(facts, episodes, state)
+
+    def _hold(self, facts: Sequence[Fact], episodes: Sequence[tuple[Episode, str, str, str]],
+              state: Mapping[str, Any] | None) -> None:  # fmt: skip
+        """Keep an input's writes until the store takes them again (at most :data:`PENDING_MAX`
+        inputs: the oldest beyond are dropped and counted)."""
+        self.pending.append((list(facts), list(episodes), state))
+        if len(self.pending) > PENDING_MAX:
+            del self.pending[0]
+            self.pending_dropped += 1
+
+    def _write(self, facts: Sequence[Fact], episodes: Sequence[tuple[Episode, str, str, str]],
+               state: Mapping[str, Any] | None) -> None:  # fmt: skip
         db = self.db
         db.execute("BEGIN")
         try:
@@ -150,6 +231,27 @@ class LineStore:
                 db.execute("ROLLBACK")
             raise
         self.commits += 1
+
+    def note(self, key: str, value: Mapping[str, Any] | None) -> None:
+        """Keep a small document under ``key`` (None removes it), committed at once: the cell
+        command in flight (``command``), which a restarted coordinator reports. Best effort: a
+        store that cannot be written (a full disk) keeps nothing (:attr:`failing` says why)."""
+        try:
+            if value is None:
+                self.db.execute("DELETE FROM meta WHERE key = ?", (f"note:{key}",))
+            else:
+                self.db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)",
+                                (f"note:{key}", json.dumps(value)))  # fmt: skip
+        except sqlite3.Error as exc:
+            if not not_writable(exc):
+                raise
+            self.failing = f"{self.path.name} cannot be written ({one_line(exc)})"
+
+    def noted(self, key: str) -> dict[str, Any] | None:
+        """The document :meth:`note` kept under ``key`` (None: none, or not one)."""
+        row = self.db.execute("SELECT value FROM meta WHERE key = ?", (f"note:{key}",)).fetchone()
+        doc = _document(row[0]) if row is not None else None
+        return doc if isinstance(doc, dict) else None
 
     # -- reading --------------------------------------------------------------------------------------
     def state(self) -> dict[str, Any] | None:
@@ -250,6 +352,19 @@ class LineStore:
         self.db.close()
         os.close(self._lock)
         self._lock = -1
+
+
+def _prepare(db: sqlite3.Connection) -> None:
+    """WAL, the tables, the schema's version (writes: raises on a full disk)."""
+    db.execute("PRAGMA journal_mode=WAL")
+    db.execute("PRAGMA synchronous=NORMAL")
+    for statement in _SCHEMA:
+        db.execute(statement)
+    db.execute("INSERT OR IGNORE INTO meta (key, value) VALUES ('schema', ?)", (str(SCHEMA_VERSION),))  # fmt: skip
+
+
+def _tables(db: sqlite3.Connection) -> set[str]:
+    return {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
 
 
 def _document(text: Any) -> Any:
