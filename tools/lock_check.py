@@ -8,6 +8,7 @@ Compared besides the lock: requirements/ros-wheels-embedded.lock, the metadata o
 packages that the ros-* wheels carry inside them (``ros-rclpy`` holds an ``rclpy-*.egg-info``), which
 pip lists as packages of their own; nothing installs them but their wheel.
 
+``--pip-check`` runs ``pip check`` and prints what it finds, less the local builds'.
 ``--stale`` prints instead the packages to remove: installed, not local, neither in the lock nor
 carried by another installed wheel (tools/setup.sh uninstalls them after an older lock).
 """
@@ -81,7 +82,25 @@ def carried(owners: set[str] | None = None) -> set[str]:
     return names
 
 
+def pip_check() -> list[str]:
+    """``pip check``'s complaints, less those of the local builds (the ROS 2 command line built
+    from ../shared/vendor names ROS packages, such as ament_index_python, that exist here only
+    inside the ros-* wheels; they are installed --no-deps)."""
+    out = subprocess.run([sys.executable, "-m", "pip", "check"],
+                         capture_output=True, text=True, check=False).stdout  # fmt: skip
+    freeze = subprocess.run([sys.executable, "-m", "pip", "freeze", "--all"],
+                            capture_output=True, text=True, check=True).stdout  # fmt: skip
+    local = {canonical(line.split(" @ ")[0]) for line in freeze.splitlines() if " @ " in line}
+    return [line for line in out.splitlines()
+            if line.strip() and not line.startswith("No broken")
+            and canonical(line.split()[0]) not in local]  # fmt: skip
+
+
 def main(argv: list[str]) -> int:
+    if argv == ["--pip-check"]:
+        complaints = pip_check()
+        print("\n".join(complaints))
+        return 1 if complaints else 0
     installed = frozen()
     if argv == ["--stale"]:
         keep = pins(LOCK.read_text()).keys() | carried()

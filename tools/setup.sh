@@ -66,7 +66,7 @@ if [ "$(cat "$VENV/.packml-deps" 2>/dev/null)" != "$deps_key" ]; then
   # --no-deps: the lock is the whole closure (pip's resolver would take a dependency that asks for
   # an extra, coverage[toml], as unpinned); pip check then proves nothing is missing from it
   "${pip[@]}" install --require-hashes --no-deps -r requirements/lock.txt
-  "$VENV/bin/python" -m pip check >/dev/null || { "$VENV/bin/python" -m pip check; exit 1; }
+  "$VENV/bin/python" tools/lock_check.py --pip-check
   # what an older lock installed and this one does not have (pip freeze must equal the lock)
   mapfile -t stale < <("$VENV/bin/python" tools/lock_check.py --stale)
   if ((${#stale[@]})); then "${pip[@]}" uninstall -y "${stale[@]}"; fi
