@@ -39,9 +39,15 @@ from the snapshot of the unit's state the recorder received when it joined. Outp
 up to the recorder's stop: a message the unit published before it and the bag lacks is a
 difference, as is one the bag has and the replay does not produce.
 
-exit codes: 0 match, 1 mismatch, 2 the bag cannot be replayed (corrupt, truncated, not a PackML
-recording, incomplete, recorded by a newer version) or usage error, 3 (--live) a unit is not
-running or not freshly started
+The line of a recorded cell (its coordinator's input log, snapshot, episodes and losses) is
+replayed and compared the same way. --junit FILE writes JUnit XML: one test case per unit and per
+line check (episodes, losses), so a CI system shows which one failed.
+
+exit codes: 0 match, 1 mismatch, 2 usage error or the bag is not a replayable PackML recording
+(no configuration, recorded by a newer version), 3 (--live) a unit is not running or not freshly
+started; a malformed recording, each its own: 4 the file is cut short or damaged, 5 input stamps
+out of order, 6 an input recorded twice, 7 inputs missing (a gap, or neither the start nor a
+snapshot), 8 the unit or coordinator started again during the recording
 """
 
 
@@ -83,6 +89,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("--speed", type=float, default=1.0, help="--live: recorded pace x SPEED (1)")
     p.add_argument("--timeout", type=float, default=10.0, help="--live: seconds to find units")
     p.add_argument("--settle", type=float, default=5.0, help="--live: seconds to wait at the end")
+    p.add_argument("--junit", metavar="FILE", help="--check: also write the result as JUnit XML")
     p.set_defaults(func=replay)
 
 
@@ -223,6 +230,9 @@ def replay(args: argparse.Namespace) -> int:
         return _fail(f"{args.config}: no such file", EXIT_USAGE)
     if args.output and not args.update:
         return _fail("-o goes with --update", EXIT_USAGE)
+    if args.junit and (args.update or args.live):
+        return _fail("--junit goes with --check", EXIT_USAGE)
+    started = time.perf_counter()
     try:
         if args.live:
             return _live(args)
@@ -242,21 +252,38 @@ def replay(args: argparse.Namespace) -> int:
         lines = line.check(args.bag, args.config) if not args.unit else []
         result = None if lines and not _has_units(args.bag) else check(args.bag, args.config, args.unit)  # fmt: skip
     except RecordingError as exc:
-        return _fail(str(exc), EXIT_UNUSABLE)
+        if args.junit:
+            _junit(args, time.perf_counter() - started, None, [], exc)
+        return _fail(f"{exc} [{exc.reason}]", exc.exit_code)
     except KeyError as exc:
         return _fail(str(exc.args[0] if exc.args else exc), EXIT_USAGE)
+    seconds = time.perf_counter() - started  # the whole check: units and line
     if result is not None:
+        result.seconds = seconds
         print(result.report())
     for r in lines:
         print(r.report())
     ok = (result is None or result.ok) and all(r.ok for r in lines)
+    if result is None:
+        print(f"{args.bag}: {'match' if ok else 'MISMATCH'} ({seconds:.2f} s)")
+    if args.junit:
+        _junit(args, seconds, result, lines, None)
     return EXIT_OK if ok else EXIT_MISMATCH
 
 
+def _junit(args: argparse.Namespace, seconds: float, result: Any, lines: Any, error: Any) -> None:
+    from ..bag import junit
+
+    junit.write(args.junit, args.bag, seconds, result, lines, error)
+
+
 def _has_units(bag: str) -> bool:
+    """Whether the bag holds more of a unit than its configuration (which the line's replay
+    reads too)."""
     from ..bag.recording import load
 
-    return bool(load(bag, em_reports=False).units)
+    units = load(bag, em_reports=False).units.values()
+    return any(u.inputs or u.snapshots or any(u.outputs.values()) for u in units)
 
 
 def _live(args: argparse.Namespace) -> int:
