@@ -791,7 +791,7 @@ def test_a_line_with_days_of_simulated_time_recorded_late_replays(tmp_path: Path
 
     from packml_ros2.core import Cmd
 
-    sim, doc = _line(publish_period=3600.0, admin_period=600.0)  # (idle days: few wake-ups)
+    sim, doc = _line(publish_period=60.0, admin_period=600.0)  # (idle days: few wake-ups)
     days = 3 * 86400
     _faults(sim, 0, 600)
     sim.at(600, lambda: sim.cell_command(Cmd.STOP))
