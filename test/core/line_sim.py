@@ -231,13 +231,14 @@ class SimLine:
         self.snapshots.append(self.line.snapshot(published))
 
     def write_bag(self, path: Any, cell_yaml: str, joined: float | None = None,
-                  stop: float | None = None) -> None:  # fmt: skip
+                  stop: float | None = None, input_history: int = 5000) -> None:  # fmt: skip
         """What the coordinator would have published, as ``packml record`` writes it: the
         line's input log, episodes and losses, and one unit's configuration. ``joined`` (sim
         seconds): what a recorder that joined then has — the history the publishers keep
         (packml_ros2.qos) and everything after, with the snapshots taken (:meth:`snapshot`);
         ``stop``: when it stopped (it has the outputs stamped before, and notes the time and
-        the publication numbers)."""
+        the publication numbers); ``input_history``: the inputs the input log keeps for a late
+        subscriber (the coordinator's: 5000)."""
         import json
 
         from rclpy.serialization import serialize_message
@@ -273,7 +274,12 @@ class SimLine:
                 stamp=line_msgs.stamp(t), index=index, unit="", state_json=json.dumps(doc)))))  # fmt: skip
         since = None if joined is None else round((T0 + joined) * NS)
         until = None if stop is None else round((T0 + stop) * NS)
-        keep = {"line/input_log": 5000, "line/episodes": 100, "line/losses": 8, "line/snapshot": 1}
+        keep = {
+            "line/input_log": input_history,
+            "line/episodes": 100,
+            "line/losses": 8,
+            "line/snapshot": 1,
+        }
         writer = Writer(path, version=9)
         writer.open()
         store = typestore()
