@@ -479,6 +479,8 @@ def test_cli_help_and_usage_errors(tmp_path: Path) -> None:
     assert packml("replay", str(tmp_path / "none")).returncode == 2
     assert packml("replay", str(BAGS / "normal_production"), "--update", "--live").returncode == 2
     assert packml("record", "a/b", "--duration", "0").returncode == 2
+    sqlite = packml("record", "a/b", "--storage", "sqlite3")  # issue 27: 39 MB per hour
+    assert sqlite.returncode == 2 and "MB per hour" in sqlite.stderr, sqlite.stderr
     ok = packml("replay", str(BAGS / "normal_production"), "--check")
     assert ok.returncode == 0 and "match" in ok.stdout
 
@@ -521,8 +523,8 @@ class Output:
 @pytest.mark.ros
 def test_cli_records_a_running_unit_and_the_bag_replays(tmp_path: Path, processes: Any) -> None:
     """``packml record`` on a unit that is already running (it joins late) while the unit is
-    commanded — a cell target stopped with Ctrl-C (mcap), a cell/unit target with --duration
-    (sqlite3); then ``packml replay --check``."""
+    commanded — a cell target stopped with Ctrl-C, a cell/unit target with --duration stopped by
+    SIGTERM; then ``packml replay --check``."""
     import signal
 
     from std_srvs.srv import Trigger
@@ -535,19 +537,19 @@ def test_cli_records_a_running_unit_and_the_bag_replays(tmp_path: Path, processe
     ros = RosHarness(int(os.environ["ROS_DOMAIN_ID"]))
     runs = {
         "mcap": [cell, "--config", str(cell_file)],
-        "sqlite3": [f"{cell}/filler", "--storage", "sqlite3", "--duration", "30"],
+        "unit": [f"{cell}/filler", "--storage", "mcap", "--duration", "30"],
     }
     try:
         assert ros.call(Trigger, f"/{cell}/filler/reset").success  # before the recorder runs
-        for storage, target in runs.items():
-            bag = tmp_path / f"rec_{storage}"
+        for run, target in runs.items():
+            bag = tmp_path / f"rec_{run}"
             proc = subprocess.Popen([*PACKML, "record", *target, "-o", str(bag)], cwd=ROOT,
                                     stderr=subprocess.PIPE, text=True)  # fmt: skip
             out = Output(proc)
             out.wait_for(f"receiving /{cell}/filler")
             for name in ("start", "hold", "unhold", "stop", "reset"):
                 assert ros.call(Trigger, f"/{cell}/filler/{name}").message
-            if storage == "mcap":
+            if run == "mcap":
                 proc.send_signal(signal.SIGINT)  # Ctrl-C: the bag is closed cleanly
             else:
                 proc.terminate()  # SIGTERM, as a service manager would
@@ -556,9 +558,9 @@ def test_cli_records_a_running_unit_and_the_bag_replays(tmp_path: Path, processe
             assert "wrote" in text and "Traceback" not in text
     finally:
         ros.close()
-    for storage in runs:
-        bag = tmp_path / f"rec_{storage}"
-        assert f"storage_identifier: {storage}" in (bag / "metadata.yaml").read_text()
+    for run in runs:
+        bag = tmp_path / f"rec_{run}"
+        assert "storage_identifier: mcap" in (bag / "metadata.yaml").read_text()
         out = packml("replay", str(bag), "--check")
         assert out.returncode == 0, out.stdout + out.stderr
         unit = replay(bag).units[0]

@@ -219,10 +219,15 @@ def _open(p: Path) -> _Bag:
     file = p
     if p.is_dir():
         # bounded and never recursive on hostile nesting (libyaml's composer crashes the process)
-        document = read_document(p / "metadata.yaml")
+        try:
+            document = read_document(p / "metadata.yaml")
+        except ValueError as exc:  # (not a damaged storage file: "unusable", not "unreadable")
+            raise RecordingError(f"{p}: cannot read the bag: {exc}") from None
         info = document.get("rosbag2_bagfile_information") if isinstance(document, dict) else None
         if not isinstance(info, dict):
-            raise ValueError("metadata.yaml has no rosbag2_bagfile_information mapping")
+            raise RecordingError(
+                f"{p}: cannot read the bag: metadata.yaml has no rosbag2_bagfile_information mapping"
+            )
         bag.storage = str(info.get("storage_identifier", "mcap"))
         notes = (info.get("custom_data") or {}).get(CUSTOM_KEY)
         if notes:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import signal
 import sys
+import textwrap
 import time
 from pathlib import Path
 from typing import Any
@@ -14,14 +15,25 @@ from .main import EXIT_OK, EXIT_REFUSED, EXIT_UNAVAILABLE, EXIT_USAGE
 #: ``packml replay``: the recording differs from the replay (1), the bag cannot be replayed (2).
 EXIT_MISMATCH, EXIT_UNUSABLE = EXIT_REFUSED, EXIT_USAGE
 
+#: Why ``packml record`` writes mcap only (issue 27).
+SQLITE_WHY = (
+    "rosbag2's sqlite3 storage keeps every message uncompressed in a row of its own: 39 MB per "
+    "hour of the demo cell's robot_cell against 2 MB for mcap, four times the 10 MB budget; "
+    "record mcap and convert the bag with `ros2 bag convert` if a tool needs sqlite3 "
+    "(packml replay reads both)"
+)
+
 RECORD_EPILOG = """\
 targets: cell/unit (or /cell/unit) records one unit without looking at the graph (it may start
 later); a unit or cell name is looked up on the graph; a cell records all its units and
 /<cell>/coordinator/status. With --config, a cell's units come from the file.
 
-The bag (mcap by default, --storage sqlite3) holds per unit: input_log, em_reports, config,
-status, transitions, admin, alarms, with the publishers' QoS and the type definitions, so rosbag2
-and other tools read it. Stop with Ctrl-C (or --duration): the bag is closed cleanly.
+The bag (mcap, zstd-compressed chunks) holds per unit: input_log, em_reports, config, snapshot,
+status, transitions, admin, alarms, and per cell its coordinator's status and line topics, with the
+publishers' QoS and the type definitions, so rosbag2 and other tools read it. Stop with Ctrl-C (or
+--duration): the bag is closed cleanly.
+
+{SQLITE_WHY}
 
 exit codes: 0 recorded, 1 refused, 2 usage, 3 the target was not found on the graph
 """
@@ -57,14 +69,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="record a unit's or a cell's inputs and outputs into a rosbag2 bag",
         description="Record the inputs (input log, EM reports, configuration) and outputs "
         "(status, transitions, admin, alarms) of units into a rosbag2 bag.",
-        epilog=RECORD_EPILOG,
+        epilog=RECORD_EPILOG.format(
+            SQLITE_WHY=textwrap.fill(f"sqlite3 is not offered: {SQLITE_WHY}.", 99)
+        ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("targets", nargs="*", metavar="target", help="cell/unit, unit or cell")
     p.add_argument(
         "-o", "--output", help="bag directory to create (default packml_<target>_<time>)"
     )
-    p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="default mcap")
+    p.add_argument("--storage", default="mcap", help="mcap (the only one offered; see below)")
     p.add_argument("--duration", type=float, help="stop after this many seconds")
     p.add_argument("--config", help="cell YAML: the units of a cell target (no graph look-up)")
     p.add_argument("--cell", help="cell namespace for bare unit names")
@@ -158,6 +172,8 @@ def record(args: argparse.Namespace) -> int:
 
     if args.duration is not None and args.duration <= 0:
         return _fail("--duration must be > 0", EXIT_USAGE)
+    if args.storage != "mcap":
+        return _fail(f"--storage {args.storage}: packml record writes mcap; {SQLITE_WHY}", EXIT_USAGE)  # fmt: skip
     run.default_environment()
     context = Context()
     rclpy.init(context=context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
