@@ -2,7 +2,9 @@
 
 Per unit ``/<cell>/<unit>`` it subscribes (raw CDR, no decoding) to the inputs ``input_log``,
 ``em_reports``, ``config``, ``snapshot`` and the outputs ``status``, ``transitions``, ``admin``,
-``alarms``; for a cell also ``/<cell>/coordinator/status``. Subscriptions take the publishers'
+``alarms``; for a cell also ``/<cell>/coordinator/status`` and its line's ``line/input_log``,
+``line/snapshot`` and the outputs ``line/episodes`` and ``line/losses`` (kept up to the stop and
+numbered as the units' outputs are). Subscriptions take the publishers'
 durability, so a recorder started after the unit still gets the last 5000 inputs (transient
 local), the latest status, admin data, alarm list and the last 100 transitions — and the unit
 publishes a snapshot of its engine state when the recorder's subscription joins, from which a
