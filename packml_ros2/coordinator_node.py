@@ -11,7 +11,9 @@ parameter ``remote_commands_enabled`` is true); ``line/query_episodes`` (QueryEp
 ``line/query_losses`` (QueryLosses), ``line/reset_losses`` (Trigger). Topics: ``status``
 (CellStatus, latched, DDS liveliness with lease ``unit_lease`` like the units' status, on
 every change), ``line/episodes`` (LineEpisode, every change of an episode), ``line/losses`` (LineLosses, every ``line.publish_period``), ``line/input_log``
-(UnitInput: what the line's performance was given, for ``packml record``/``replay``).
+(UnitInput: what the line's performance was given, for ``packml record``/``replay``),
+``line/snapshot`` (UnitSnapshot: the line's state, published when a subscriber (a recorder) joins:
+a recording that begins after more inputs than the input log keeps replays from it).
 
 The service handlers block while a sequence runs: spin the node with a MultiThreadedExecutor
 (``main`` does).
@@ -21,6 +23,7 @@ Run: ``coordinator <cell.yaml>`` or ``python -m packml_ros2.coordinator_node <ce
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 import threading
@@ -37,10 +40,12 @@ from packml_interfaces.msg import (
     LineLosses,
     Result,
     UnitInput,
+    UnitSnapshot,
     UnitSummary,
 )
 from packml_interfaces.srv import Command, QueryEpisodes, QueryLosses, SetMode
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.event_handler import PublisherEventCallbacks, QoSPublisherMatchedInfo
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from std_srvs.srv import Trigger
@@ -125,6 +130,11 @@ class CoordinatorNode(Node):
         self.pub_inputs = self.create_publisher(UnitInput, "~/line/input_log", qos.LINE_INPUT_LOG)
         self.pub_episodes = self.create_publisher(LineEpisode, "~/line/episodes", qos.LINE_EPISODES)  # fmt: skip
         self.pub_losses = self.create_publisher(LineLosses, "~/line/losses", qos.LINE_LOSSES)
+        self._published = {"episodes": 0, "losses": 0}  # what a snapshot says was published
+        self.pub_snapshot = self.create_publisher(
+            UnitSnapshot, "~/line/snapshot", qos.SNAPSHOT,
+            event_callbacks=PublisherEventCallbacks(matched=self._on_snapshot_matched),
+        )  # fmt: skip
         # (one message at a time, in order: a unit's stale and fresh entries must not swap, as
         # the units' topics must not: UnitProxy)
         self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics,
@@ -207,6 +217,7 @@ class CoordinatorNode(Node):
             at, views = self.line.losses_due()
             for view in views:
                 self.pub_losses.publish(line_msgs.losses_msg(view, self.cell.cell, at, self._designs()))  # fmt: skip
+                self._published["losses"] += 1
             self._cond.notify_all()
             self._flush()
         for name in again:  # outside the lock: creating subscriptions takes the node's locks
@@ -265,6 +276,7 @@ class CoordinatorNode(Node):
                                               name=r.name, args_json=r.args_json))  # fmt: skip
         for view in episodes:
             self.pub_episodes.publish(line_msgs.episode_msg(view, self.cell.cell))
+            self._published["episodes"] += 1
         self._persistence()
         self._publish()
         self._arm()
@@ -284,6 +296,18 @@ class CoordinatorNode(Node):
 
     def _durability_note(self) -> str:
         return f" (not durable: {self._not_durable})" if self._not_durable else ""
+
+    def _on_snapshot_matched(self, info: QoSPublisherMatchedInfo) -> None:
+        """A subscriber (a recorder) joined: the line's state now, after what was published."""
+        if info.current_count_change <= 0:
+            return
+        with self._cond:
+            if self._closed or not self.context.ok():
+                return
+            self._flush()
+            index, t, doc = self.line.snapshot(self._published)
+            self.pub_snapshot.publish(UnitSnapshot(stamp=line_msgs.stamp(t), index=index, unit="",
+                                                   state_json=json.dumps(doc, separators=(",", ":"))))  # fmt: skip
 
     def _arm(self) -> None:
         """Arm the timer for the next thing due (nothing: no timer runs; lock held)."""

@@ -10,8 +10,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 REPO = Path(__file__).resolve().parent.parent
 _spec = importlib.util.spec_from_file_location("lock_check", REPO / "tools" / "lock_check.py")
 assert _spec is not None and _spec.loader is not None

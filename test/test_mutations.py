@@ -18,6 +18,7 @@ import pytest
 from packml_ros2.bag import replay as replay_module
 from packml_ros2.bag.recording import RecordingError, load
 from packml_ros2.core import (
+    Cmd,
     State,
     alarms,
     counters,
@@ -30,6 +31,9 @@ from packml_ros2.core import (
     times,
     unit,
 )
+from packml_ros2.core.line import episodes as line_episodes
+from packml_ros2.core.line import losses as line_losses
+from packml_ros2.core.line import performance as line_performance
 from packml_ros2.core.rules import Entry
 
 BAGS = Path(__file__).resolve().parent / "bags"
@@ -274,3 +278,104 @@ def test_every_seeded_engine_mutation_is_caught_by_a_bag() -> None:
     assert caught_by(recordings) is None  # and undone
     print(f"mutation score: {len(MUTATIONS) - len(missed)}/{len(MUTATIONS)}")
     assert not missed, f"{len(missed)} of {len(MUTATIONS)} mutations pass every bag: {missed}"
+
+
+# -- issue 27: the line's topics ------------------------------------------------------------------------
+def _line_bag(path: Path) -> Path:
+    """A line recorded late (from the coordinator's snapshot) with jams and a blocked packer,
+    stopped before its end: episodes and losses on both sides of the snapshot."""
+    import yaml
+
+    from test.core.test_line_scenarios import cell_doc, started
+
+    doc = cell_doc(publish_period=5.0)
+    sim = started(doc)
+    for t0 in (0, 60):
+        sim.at(t0 + 20, lambda: sim.alarm("filler", "infeed", 202, True))
+        sim.at(t0 + 24, lambda: sim.alarm("filler", "infeed", 202, False))
+        sim.at(t0 + 25, lambda: sim.command("filler", Cmd.RESET))
+        sim.at(t0 + 27, lambda: sim.command("filler", Cmd.START))
+        sim.at(t0 + 35, lambda: sim.interlock("packer", "loader", blocked=True))
+        sim.at(t0 + 40, lambda: sim.interlock("packer", "loader", blocked=False))
+    sim.run_until(50)
+    sim.snapshot()
+    sim.run_until(120)
+    sim.write_bag(path, yaml.safe_dump(doc), joined=50, stop=110, input_history=20)
+    return path
+
+
+#: Line regressions (monkeypatched, as MUTATIONS): each must make the line's replay differ.
+LINE_MUTATIONS: dict[str, Callable[[Patch], None]] = {
+    "a blocked or starved root cause booked as unplanned":
+        lambda p: _wrap(p, line_episodes, "root_cause", _blocked_as_unplanned),
+    "counts of the output unit not counted for the line":
+        lambda p: _wrap(p, line_performance.Performance, "_count", _line_counts_dropped),
+}  # fmt: skip
+
+
+def _blocked_as_unplanned(original: Any) -> Any:
+    from dataclasses import replace
+
+    def root_cause(departures: Any, order: Any) -> Any:
+        root = original(departures, order)
+        down = (line_losses.BLOCKED, line_losses.STARVED)
+        return replace(root, bucket=line_losses.UNPLANNED) if root.bucket in down else root
+
+    return root_cause
+
+
+def _line_counts_dropped(original: Any) -> Any:
+    def count(self: Any, scope: str, at: int, dp: int, dd: int, design: float) -> None:
+        if scope != "":
+            original(self, scope, at, dp, dd, design)
+
+    return count
+
+
+def test_the_line_topics_are_covered_by_the_mutation_test(tmp_path: Path) -> None:
+    """A line bag recorded late replays; its last line/episodes or line/losses message deleted
+    or altered, or the line's performance mutated, is caught."""
+    from packml_interfaces.msg import LineEpisode, LineLosses
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from packml_ros2.bag import line
+    from test.test_replay import _topic_counts, rewrite
+
+    bag = _line_bag(tmp_path / "line")
+    [ok] = line.check(bag)
+    assert ok.ok and ok.origin > 0 and all(ok.compared.values()), ok.report()
+    counts = {t.rsplit("/", 1)[1]: n for t, n in _topic_counts(bag).items()}
+
+    def altered(cls: Any, field: str, value: Any) -> Callable[[bytes], bytes]:
+        def change(raw: bytes) -> bytes:
+            m = deserialize_message(raw, cls)
+            setattr(m, field, value)
+            return bytes(serialize_message(m))
+
+        return change
+
+    changes = {"episodes": altered(LineEpisode, "bucket", "planned"),
+               "losses": altered(LineLosses, "window", "2h")}  # fmt: skip
+    missed = []
+    for topic in ("episodes", "losses"):
+        last = counts[topic] - 1
+        suffix = f"/line/{topic}"
+        for how in ("deleted", "altered"):
+            dst = tmp_path / f"{how}_{topic}"
+            if how == "deleted":
+                rewrite(bag, dst, drop=lambda t, i, raw, s=suffix, n=last: t.endswith(s) and i == n)
+            else:
+                rewrite(bag, dst, change=lambda t, i, raw, s=suffix, n=last, c=changes[topic]: c(raw) if t.endswith(s) and i == n else raw)  # fmt: skip
+            [result] = line.check(dst)
+            print(f"last line/{topic} message {how}: {'caught' if not result.ok else 'NOT CAUGHT'}")
+            if result.ok or not result.checks[topic]:
+                missed.append(f"last line/{topic} message {how}")
+    for name, mutation in LINE_MUTATIONS.items():
+        with applied(mutation):
+            [result] = line.check(bag)
+        print(f"{name}: {'caught' if not result.ok else 'NOT CAUGHT'}")
+        if result.ok:
+            missed.append(name)
+    [again] = line.check(bag)
+    assert again.ok  # and undone
+    assert not missed, missed

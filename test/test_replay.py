@@ -257,8 +257,8 @@ def test_a_tampered_output_fails_with_the_diverging_transition_and_its_inputs(
 
 
 def test_exit_codes_tell_a_mismatch_from_a_bag_that_cannot_be_replayed(tmp_path: Path) -> None:
-    """0 match, 1 mismatch, 2 the bag cannot be replayed (truncated, corrupt, not a PackML
-    recording, incomplete): one line saying why, no traceback."""
+    """0 match, 1 mismatch, 2 not a PackML recording, 4 truncated or corrupt, 7 incomplete: one
+    line saying why, no traceback."""
     assert packml("replay", str(BAGS / "normal_production")).returncode == 0
     mismatch = packml("replay", str(_tamper_status(tmp_path)))
     assert mismatch.returncode == 1 and "MISMATCH" in mismatch.stdout
@@ -268,16 +268,16 @@ def test_exit_codes_tell_a_mismatch_from_a_bag_that_cannot_be_replayed(tmp_path:
         shutil.copytree(BAGS / src, dst)
         return dst
 
-    unusable: dict[str, tuple[Path, str]] = {}
+    unusable: dict[str, tuple[Path, str, int]] = {}
     for src, suffix in (("normal_production", "mcap"), ("alarm_stop", "db3")):
         bag = bag_copy(f"truncated_{suffix}", src)
         f = bag / f"{src}.{suffix}"
         f.write_bytes(f.read_bytes()[: f.stat().st_size // 2])
-        unusable[f"truncated {suffix}"] = (bag, "cannot read the bag")
+        unusable[f"truncated {suffix}"] = (bag, "cannot read the bag", 4)
         bag = bag_copy(f"corrupt_{suffix}", src)
         f = bag / f"{src}.{suffix}"
         f.write_bytes(bytes(range(256)) * 64)
-        unusable[f"corrupt {suffix}"] = (bag, "cannot read the bag")
+        unusable[f"corrupt {suffix}"] = (bag, "cannot read the bag", 4)
     foreign = tmp_path / "foreign"
     from rosbags.rosbag2 import Writer
     from std_msgs.msg import String
@@ -287,13 +287,13 @@ def test_exit_codes_tell_a_mismatch_from_a_bag_that_cannot_be_replayed(tmp_path:
     conn = writer.add_connection("/chatter", "std_msgs/msg/String", typestore=typestore())
     writer.write(conn, 1, bytes(serialize_message(String(data="hi"))))
     writer.close()
-    unusable["foreign"] = (foreign, "no PackML unit topics")
+    unusable["foreign"] = (foreign, "no PackML unit topics", 2)
     rewrite(BAGS / "normal_production", tmp_path / "gap",
             drop=lambda t, i, raw: t.endswith("/input_log") and i == 7)  # fmt: skip
-    unusable["incomplete"] = (tmp_path / "gap", "inputs #8..#8 are missing")
-    for what, (bag, reason) in unusable.items():
+    unusable["incomplete"] = (tmp_path / "gap", "inputs #8..#8 are missing", 7)
+    for what, (bag, reason, code) in unusable.items():
         out = packml("replay", str(bag))
-        assert out.returncode == 2, (what, out.returncode, out.stdout, out.stderr)
+        assert out.returncode == code, (what, out.returncode, out.stdout, out.stderr)
         assert reason in out.stderr and "Traceback" not in out.stderr, (what, out.stderr)
         assert out.stderr.count("\n") == 1, (what, out.stderr)
 
@@ -422,7 +422,7 @@ def test_incomplete_input_logs_are_refused(tmp_path: Path) -> None:
     with pytest.raises(RecordingError, match=r"begins at input #4, not at the unit's start"):
         replay(tmp_path / "late")
     out = packml("replay", str(tmp_path / "late"))
-    assert out.returncode == 2 and "not at the unit's start" in out.stderr  # unusable
+    assert out.returncode == 7 and "not at the unit's start" in out.stderr  # inputs missing
 
 
 def test_the_fast_comparison_ignores_padding_only() -> None:
@@ -479,6 +479,8 @@ def test_cli_help_and_usage_errors(tmp_path: Path) -> None:
     assert packml("replay", str(tmp_path / "none")).returncode == 2
     assert packml("replay", str(BAGS / "normal_production"), "--update", "--live").returncode == 2
     assert packml("record", "a/b", "--duration", "0").returncode == 2
+    sqlite = packml("record", "a/b", "--storage", "sqlite3")  # issue 27: 39 MB per hour
+    assert sqlite.returncode == 2 and "MB per hour" in sqlite.stderr, sqlite.stderr
     ok = packml("replay", str(BAGS / "normal_production"), "--check")
     assert ok.returncode == 0 and "match" in ok.stdout
 
@@ -521,8 +523,8 @@ class Output:
 @pytest.mark.ros
 def test_cli_records_a_running_unit_and_the_bag_replays(tmp_path: Path, processes: Any) -> None:
     """``packml record`` on a unit that is already running (it joins late) while the unit is
-    commanded — a cell target stopped with Ctrl-C (mcap), a cell/unit target with --duration
-    (sqlite3); then ``packml replay --check``."""
+    commanded — a cell target stopped with Ctrl-C, a cell/unit target with --duration stopped by
+    SIGTERM; then ``packml replay --check``."""
     import signal
 
     from std_srvs.srv import Trigger
@@ -535,19 +537,19 @@ def test_cli_records_a_running_unit_and_the_bag_replays(tmp_path: Path, processe
     ros = RosHarness(int(os.environ["ROS_DOMAIN_ID"]))
     runs = {
         "mcap": [cell, "--config", str(cell_file)],
-        "sqlite3": [f"{cell}/filler", "--storage", "sqlite3", "--duration", "30"],
+        "unit": [f"{cell}/filler", "--storage", "mcap", "--duration", "30"],
     }
     try:
         assert ros.call(Trigger, f"/{cell}/filler/reset").success  # before the recorder runs
-        for storage, target in runs.items():
-            bag = tmp_path / f"rec_{storage}"
+        for run, target in runs.items():
+            bag = tmp_path / f"rec_{run}"
             proc = subprocess.Popen([*PACKML, "record", *target, "-o", str(bag)], cwd=ROOT,
                                     stderr=subprocess.PIPE, text=True)  # fmt: skip
             out = Output(proc)
             out.wait_for(f"receiving /{cell}/filler")
             for name in ("start", "hold", "unhold", "stop", "reset"):
                 assert ros.call(Trigger, f"/{cell}/filler/{name}").message
-            if storage == "mcap":
+            if run == "mcap":
                 proc.send_signal(signal.SIGINT)  # Ctrl-C: the bag is closed cleanly
             else:
                 proc.terminate()  # SIGTERM, as a service manager would
@@ -556,9 +558,9 @@ def test_cli_records_a_running_unit_and_the_bag_replays(tmp_path: Path, processe
             assert "wrote" in text and "Traceback" not in text
     finally:
         ros.close()
-    for storage in runs:
-        bag = tmp_path / f"rec_{storage}"
-        assert f"storage_identifier: {storage}" in (bag / "metadata.yaml").read_text()
+    for run in runs:
+        bag = tmp_path / f"rec_{run}"
+        assert "storage_identifier: mcap" in (bag / "metadata.yaml").read_text()
         out = packml("replay", str(bag), "--check")
         assert out.returncode == 0, out.stdout + out.stderr
         unit = replay(bag).units[0]
@@ -625,3 +627,205 @@ def test_the_readme_replay_example_prints_what_the_readme_shows(tmp_path: Path) 
         assert result.returncode == 0, result.stdout
         timeless = [re.sub(r"\d+(\.\d+)? s\)", "TIME s)", line) for line in (result.stdout, *shown)]
         assert timeless[0].splitlines() == timeless[1:], (command, result.stdout, shown)
+
+
+# -- issue 27: malformed recordings, each its own reason and exit code ---------------------------------
+def _unit_input(raw: bytes, **changes: Any) -> bytes:
+    m = deserialize_message(raw, UnitInput)
+    for k, v in changes.items():
+        setattr(m, k, v)
+    return bytes(serialize_message(m))
+
+
+def test_each_malformed_recording_has_its_own_reason_and_exit_code(tmp_path: Path) -> None:
+    src = BAGS / "normal_production"
+    inputs = [raw for t, raw in _messages(src) if t.endswith("/input_log")]
+    prev = deserialize_message(inputs[6], UnitInput).stamp
+
+    def on_input(i: int) -> Any:
+        return lambda t, n, raw: t.endswith("/input_log") and n == i
+
+    earlier = type(prev)(sec=prev.sec - 1, nanosec=prev.nanosec)
+    cases: dict[str, tuple[int, str, dict[str, Any]]] = {
+        # input #8 stamped before input #7 (the log's indices go on, its stamps go back)
+        "stamps_out_of_order": (5, "stamped", {
+            "change": lambda t, i, raw: _unit_input(raw, stamp=earlier) if on_input(7)(t, i, raw) else raw}),
+        "duplicate_input": (6, "input #8 is in the recording twice", {
+            "add": lambda t, i, raw: [raw] if on_input(7)(t, i, raw) else []}),
+        "missing_input": (7, "inputs #8..#8 are missing", {"drop": on_input(7)}),
+        "restarted": (8, "started more than once", {
+            "add": lambda t, i, raw: [inputs[0]] if on_input(len(inputs) - 1)(t, i, raw) else []}),
+    }  # fmt: skip
+    for reason, (code, text, how) in cases.items():
+        dst = tmp_path / reason
+        rewrite(src, dst, **how)
+        with pytest.raises(RecordingError, match=text) as caught:
+            replay(dst)
+        assert caught.value.reason == reason and caught.value.exit_code == code
+        out = packml("replay", str(dst))
+        assert out.returncode == code, (reason, out.returncode, out.stderr)
+        assert f"[{reason}]" in out.stderr and text in out.stderr and "Traceback" not in out.stderr
+    cut = tmp_path / "cut"
+    shutil.copytree(src, cut)
+    f = cut / "normal_production.mcap"
+    f.write_bytes(f.read_bytes()[: f.stat().st_size * 2 // 3])
+    out = packml("replay", str(cut))
+    assert out.returncode == 4 and "[unreadable]" in out.stderr, out.stderr
+
+
+def _messages(bag: Path) -> list[tuple[str, bytes]]:
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([bag]) as reader:
+        return [(c.topic, bytes(d)) for c, _, d in reader.messages()]
+
+
+# -- issue 27: a line recorded at any age replays, checked to its end ---------------------------------
+def _line(publish_period: float = 5.0, cycle: float = 0.25, **defaults: Any) -> tuple[Any, dict[str, Any]]:  # fmt: skip
+    from packml_ros2.core import Cmd
+    from test.core.line_sim import SimEm, SimLine
+    from test.core.test_line_scenarios import D, cell_doc
+
+    doc = cell_doc(publish_period=publish_period)
+    doc["defaults"].update(defaults)
+    sim = SimLine(doc, [SimEm("filler", "infeed", dict(D), cycle, 10),
+                        SimEm("packer", "loader", dict(D), 2 * cycle)])  # fmt: skip
+    sim.at(1, lambda: sim.cell_command(Cmd.RESET))
+    sim.at(4, lambda: sim.cell_command(Cmd.START))
+    return sim, doc
+
+
+def _faults(sim: Any, begin: float, end: float, every: float = 60.0) -> None:
+    """From ``begin`` to ``end`` (sim s), every ``every`` s: a jam on the filler (alarm, Stop,
+    Reset, Start) and a blocked packer (the filler suspended)."""
+    from packml_ros2.core import Cmd
+
+    t = begin
+    while t + 40 < end:
+        sim.at(t + 10, lambda: sim.alarm("filler", "infeed", 202, True))
+        sim.at(t + 15, lambda: sim.alarm("filler", "infeed", 202, False))
+        sim.at(t + 16, lambda: sim.command("filler", Cmd.RESET))
+        sim.at(t + 18, lambda: sim.command("filler", Cmd.START))
+        sim.at(t + 30, lambda: sim.interlock("packer", "loader", blocked=True))
+        sim.at(t + 34, lambda: sim.interlock("packer", "loader", blocked=False))
+        t += every
+
+
+@pytest.fixture(scope="module")
+def late_line_bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A line that had logged more than 5000 inputs when the recorder joined (its snapshot), then
+    ran on with faults for 3 minutes until the recorder stopped."""
+    import yaml
+
+    sim, doc = _line()
+    _faults(sim, 0, 3000, every=45)
+    joined = 0.0
+    while sim.line.index <= 5200:
+        joined += 100
+        sim.run_until(joined)
+    assert joined < 3000
+    sim.snapshot()
+    _faults(sim, joined, joined + 200, every=45)
+    sim.run_until(joined + 200)
+    bag = tmp_path_factory.mktemp("line") / "late_line"
+    sim.write_bag(bag, yaml.safe_dump(doc), joined=joined, stop=joined + 180)
+    return bag
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)  # (a simulated line of an hour or days: a loaded host)
+def test_a_line_recorded_after_more_than_5000_inputs_replays(late_line_bag: Path,
+                                                             tmp_path: Path) -> None:  # fmt: skip
+    from packml_ros2.bag import line
+
+    [rec] = line.load(late_line_bag)
+    assert len(rec.snapshots) == 1 and rec.snapshots[0].index > 5000
+    assert rec.inputs[0].index > 1  # the log does not reach the coordinator's start
+    [result] = line.check(late_line_bag)
+    assert result.ok, result.report()
+    assert result.origin == rec.snapshots[0].index
+    assert result.compared["episodes"] >= 6 and result.compared["losses"] >= 100, result.compared
+    report = tmp_path / "junit.xml"
+    out = packml("replay", str(late_line_bag), "--junit", str(report))
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert f"from a snapshot after input #{result.origin}" in out.stdout
+    import xml.etree.ElementTree as ET
+
+    cases = ET.parse(report).getroot().findall(".//testcase")
+    assert sorted(c.get("name") for c in cases) == ["line sim episodes", "line sim losses"]
+    assert not any(c.find("failure") is not None for c in cases)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)  # (a simulated line of an hour or days: a loaded host)
+def test_the_line_topics_are_checked_to_the_end(late_line_bag: Path, tmp_path: Path) -> None:
+    """The last line/episodes message (the one that closes an episode) or the last line/losses
+    message deleted or altered: a mismatch, named in the JUnit report."""
+    import xml.etree.ElementTree as ET
+
+    from packml_interfaces.msg import LineEpisode, LineLosses
+
+    counts = {t.rsplit("/", 1)[1]: n for t, n in _topic_counts(late_line_bag).items()}
+
+    def altered(cls: Any, field: str, value: Any) -> Any:
+        def change(raw: bytes) -> bytes:
+            m = deserialize_message(raw, cls)
+            setattr(m, field, value)
+            return bytes(serialize_message(m))
+
+        return change
+
+    last_episode = deserialize_message([r for t, r in _messages(late_line_bag) if t.endswith("/episodes")][-1], LineEpisode)  # fmt: skip
+    assert not last_episode.open  # the one that closes an episode
+    mutants = {
+        "episodes": ("deleted", None),
+        "losses": ("deleted", None),
+        "episodes ": ("altered", altered(LineEpisode, "reason", "a reason nobody gave")),
+        "losses ": ("altered", altered(LineLosses, "window", "2h")),
+    }
+    for key, (how, change) in mutants.items():
+        topic = key.strip()
+        last = counts[topic] - 1
+        dst = tmp_path / f"{how}_{topic}"
+        if change is None:
+            rewrite(late_line_bag, dst, drop=lambda t, i, raw, topic=topic, last=last: t.endswith(f"/line/{topic}") and i == last)  # fmt: skip
+        else:
+            rewrite(late_line_bag, dst, change=lambda t, i, raw, topic=topic, last=last, change=change: change(raw) if t.endswith(f"/line/{topic}") and i == last else raw)  # fmt: skip
+        report = tmp_path / f"{how}_{topic}.xml"
+        out = packml("replay", str(dst), "--junit", str(report))
+        assert out.returncode == 1, (how, topic, out.stdout, out.stderr)
+        assert f"line/{topic}" in out.stdout, out.stdout
+        failed = [c.get("name") for c in ET.parse(report).getroot().findall(".//testcase") if c.find("failure") is not None]  # fmt: skip
+        assert failed == [f"line sim {topic}"], (how, topic, failed)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)  # (a simulated line of an hour or days: a loaded host)
+def test_a_line_with_days_of_simulated_time_recorded_late_replays(tmp_path: Path) -> None:
+    """Production, then the line stopped over three days, started again and recorded then: the
+    replay starts from the snapshot (its lifetime and since-reset windows carry the days) and
+    matches to the end."""
+    import yaml
+
+    from packml_ros2.core import Cmd
+
+    sim, doc = _line(publish_period=60.0, admin_period=600.0)  # (idle days: few wake-ups)
+    days = 3 * 86400
+    _faults(sim, 0, 600)
+    sim.at(600, lambda: sim.cell_command(Cmd.STOP))
+    sim.at(days, lambda: sim.cell_command(Cmd.RESET))
+    sim.at(days + 3, lambda: sim.cell_command(Cmd.START))
+    _faults(sim, days + 10, days + 300)
+    sim.run_until(days + 60)
+    sim.snapshot()
+    index, _, state = sim.snapshots[-1]
+    lifetime = state["line"]["ledger"]["lifetime"]
+    line_time = sum(ns for _, _, ns in lifetime[""]["time"])  # the line's ledger: days
+    assert line_time >= days * 10**9, line_time
+    sim.run_until(days + 300)
+    bag = tmp_path / "days"
+    sim.write_bag(bag, yaml.safe_dump(doc), joined=days + 60, stop=days + 290)
+    out = packml("replay", str(bag))
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert f"from a snapshot after input #{index}" in out.stdout
+    assert re.search(r"line sim: match \(\d+ inputs from a snapshot after input #\d+; ([1-9]\d*) episodes, ([1-9]\d*) losses compared\)", out.stdout), out.stdout  # fmt: skip

@@ -2,7 +2,9 @@
 
 Per unit ``/<cell>/<unit>`` it subscribes (raw CDR, no decoding) to the inputs ``input_log``,
 ``em_reports``, ``config``, ``snapshot`` and the outputs ``status``, ``transitions``, ``admin``,
-``alarms``; for a cell also ``/<cell>/coordinator/status``. Subscriptions take the publishers'
+``alarms``; for a cell also ``/<cell>/coordinator/status`` and its line's ``line/input_log``,
+``line/snapshot`` and the outputs ``line/episodes`` and ``line/losses`` (kept up to the stop and
+numbered as the units' outputs are). Subscriptions take the publishers'
 durability, so a recorder started after the unit still gets the last 5000 inputs (transient
 local), the latest status, admin data, alarm list and the last 100 transitions — and the unit
 publishes a snapshot of its engine state when the recorder's subscription joins, from which a
@@ -101,9 +103,13 @@ class Recorder:
             topic = f"/{cell.strip('/')}/coordinator/status"
             self._add(topic, "coordinator", CELL_STATUS_TYPE, store, False)
             for topic, kind, type_name in line.topics(cell):  # its line's inputs and outputs
-                self._add(topic, kind, type_name, store, False)
+                name = topic.split("/coordinator/", 1)[1]
+                output = name in line.LINE_OUTPUTS  # (kept up to the stop as the units')
+                self._add(topic, kind, type_name, store, output,
+                          line.stamp_reader(name) if output else raw_stamp)  # fmt: skip
 
-    def _add(self, topic: str, kind: str, type_name: str, store: Any, output: bool) -> None:
+    def _add(self, topic: str, kind: str, type_name: str, store: Any, output: bool,
+             stamp: Callable[[bytes], float] = raw_stamp) -> None:  # fmt: skip
         conn = self._io.call(
             partial(
                 self.writer.add_connection,
@@ -115,16 +121,20 @@ class Recorder:
         )
         self.counts[topic] = 0
         callback: Callable[[bytes, Any], None] = partial(
-            self._on_message, topic, conn, kind in ("input_log", "line_input_log"), output
+            self._on_message,
+            topic,
+            conn,
+            kind in ("input_log", "line_input_log"),
+            stamp if output else None,
         )
         self.node.create_subscription(
             msg_class(type_name), topic, callback, reader_qos(kind), raw=True
         )
 
     # -- receiving ----------------------------------------------------------------------------------
-    def _on_message(
-        self, topic: str, conn: Any, input_log: bool, output: bool, raw: bytes, info: Any
-    ) -> None:
+    def _on_message(self, topic: str, conn: Any, input_log: bool,
+                    output: Callable[[bytes], float] | None, raw: bytes, info: Any) -> None:  # fmt: skip
+        """``output``: the stamp reader of an output topic (None: not an output)."""
         received = int(info.get("received_timestamp") or time.time_ns())
         with self._lock:
             if self._closed:
@@ -133,14 +143,14 @@ class Recorder:
             if stopped is not None and not input_log:
                 # outputs: what was stamped before the stop (the unit's clock); others: what
                 # arrived before it
-                when = raw_stamp(raw) * 1e9 if output else received
+                when = output(raw) * 1e9 if output is not None else received
                 if not when < stopped:
                     return
             ts = max(received, self._last_ts + 1)
             self._last_ts = ts
             self._io.post(self.writer.write, conn, ts, raw)
             self.counts[topic] += 1
-            if output:
+            if output is not None:
                 self._note_publication(topic, info)
 
     def _note_publication(self, topic: str, info: Any) -> None:

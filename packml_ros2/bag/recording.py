@@ -22,9 +22,29 @@ from rclpy.serialization import deserialize_message
 from .cdr import read_unit_input
 from .topics import CUSTOM_KEY, OUTPUT_TOPICS, UNIT_TOPICS, msg_class, split_topic, typestore
 
+#: Why a recording cannot be replayed (:attr:`RecordingError.reason`) -> the exit code of
+#: ``packml replay``: a CI job tells a damaged file from an incomplete or inconsistent log.
+REASONS: dict[str, int] = {
+    "unusable": 2,  # not a PackML recording, no configuration, another version's, ...
+    "unreadable": 4,  # the file is cut short or damaged
+    "stamps_out_of_order": 5,  # an input log whose stamps go back while its indices go on
+    "duplicate_input": 6,  # an input log index recorded twice with different contents
+    "missing_input": 7,  # inputs missing: a gap, or no start and no snapshot to begin from
+    "restarted": 8,  # the unit (coordinator) started again during the recording
+}
+
 
 class RecordingError(Exception):
-    """The bag cannot be replayed (the message says why and what to do)."""
+    """The bag cannot be replayed (the message says why and what to do; :attr:`reason`: a code
+    of :data:`REASONS`)."""
+
+    def __init__(self, message: str, reason: str = "unusable") -> None:
+        super().__init__(message)
+        self.reason = reason if reason in REASONS else "unusable"
+
+    @property
+    def exit_code(self) -> int:
+        return REASONS[self.reason]
 
 
 #: A bag without our recorder's stop time: outputs are compared up to its last message less this
@@ -140,10 +160,10 @@ def load(path: str | Path, keep_raw: bool = False, em_reports: bool = True) -> R
     except RecordingError:
         raise
     except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise RecordingError(f"{path}: cannot read the bag: {exc}") from None
+        raise RecordingError(f"{path}: cannot read the bag: {exc}", "unreadable") from None
     except Exception as exc:  # rosbags' reader errors
         if type(exc).__module__.startswith("rosbags"):
-            raise RecordingError(f"{path}: cannot read the bag: {exc}") from None
+            raise RecordingError(f"{path}: cannot read the bag: {exc}", "unreadable") from None
         raise
 
 
@@ -199,10 +219,15 @@ def _open(p: Path) -> _Bag:
     file = p
     if p.is_dir():
         # bounded and never recursive on hostile nesting (libyaml's composer crashes the process)
-        document = read_document(p / "metadata.yaml")
+        try:
+            document = read_document(p / "metadata.yaml")
+        except ValueError as exc:  # (not a damaged storage file: "unusable", not "unreadable")
+            raise RecordingError(f"{p}: cannot read the bag: {exc}") from None
         info = document.get("rosbag2_bagfile_information") if isinstance(document, dict) else None
         if not isinstance(info, dict):
-            raise ValueError("metadata.yaml has no rosbag2_bagfile_information mapping")
+            raise RecordingError(
+                f"{p}: cannot read the bag: metadata.yaml has no rosbag2_bagfile_information mapping"
+            )
         bag.storage = str(info.get("storage_identifier", "mcap"))
         notes = (info.get("custom_data") or {}).get(CUSTOM_KEY)
         if notes:

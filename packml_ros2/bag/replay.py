@@ -439,16 +439,39 @@ def _refuse_plc(rec: UnitRecording, bag: Path) -> None:
         )
 
 
+def check_log(entries: Sequence[tuple[int, float, str]], where: str) -> list[int]:
+    """The order of a recorded input log's entries ``(index, time, name)`` (in bag order) by
+    index, after the checks every log must pass; :class:`RecordingError` with the reason:
+    ``restarted`` (a ``start`` record #1 after other inputs: the log begins again),
+    ``duplicate_input`` (an index twice), ``stamps_out_of_order`` (a later index stamped
+    earlier)."""
+    for k, (index, _, name) in enumerate(entries):
+        if index == 1 and name == inputlog.START and k > 0:
+            raise RecordingError(
+                f"{where} started more than once during the recording (its input log begins "
+                "again at #1); replay covers one run: record each run apart", "restarted"
+            )  # fmt: skip
+    order = sorted(range(len(entries)), key=lambda k: entries[k][0])
+    for a, b in itertools.pairwise(order):
+        (ia, ta, _), (ib, tb, _) = entries[a], entries[b]
+        if ia == ib:
+            raise RecordingError(
+                f"{where}: input #{ib} is in the recording twice (messages {a + 1} and {b + 1} "
+                "of its input log): the bag was written by something else than a recorder, or "
+                "edited", "duplicate_input"
+            )  # fmt: skip
+        if tb < ta:
+            raise RecordingError(
+                f"{where}: input #{ib} is stamped {ta - tb:.6f} s before input #{ia}: the stamps "
+                "of an input log never go back (the bag was edited, or its writer is broken)",
+                "stamps_out_of_order",
+            )
+    return order
+
+
 def _sorted_inputs(rec: UnitRecording, bag: Path) -> list[Input]:
-    inputs = sorted(rec.inputs, key=lambda i: i.index)
-    firsts = [i for i in inputs if i.index == 1]
-    restarted = any(b.time < a.time for a, b in itertools.pairwise(inputs))
-    if len(firsts) > 1 or restarted:
-        raise RecordingError(
-            f"{bag}: {rec.prefix} started more than once during the recording (its input log "
-            "begins again at #1); replay covers one run of a unit: record each run apart"
-        )
-    return inputs
+    order = check_log([(i.index, i.time, i.name) for i in rec.inputs], f"{bag}: {rec.prefix}")
+    return [rec.inputs[k] for k in order]
 
 
 def checked_inputs(rec: UnitRecording, bag: Path) -> list[Input]:
@@ -500,13 +523,15 @@ def starting_point(rec: UnitRecording, bag: Path) -> tuple[Origin, list[Input]]:
         raise RecordingError(
             f"{bag}: the input log of {rec.prefix} has a gap: inputs #{before + 1}..#{tail - 1} "
             "are missing (the recorder lost them) and no snapshot of the unit's state follows "
-            "it; record again"
+            "it; record again",
+            "missing_input",
         )
     raise RecordingError(
         f"{bag}: the input log of {rec.prefix} begins at input #{present[0]}, not at the unit's "
         f"start, and the bag holds no snapshot of its state ({rec.prefix}/snapshot) to start "
         "from: the unit runs a version that does not publish one, or the recorder did not "
-        "subscribe to it; record it again with packml record"
+        "subscribe to it; record it again with packml record",
+        "missing_input",
     )
 
 

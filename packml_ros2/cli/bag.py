@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import signal
 import sys
+import textwrap
 import time
 from pathlib import Path
 from typing import Any
@@ -14,14 +15,25 @@ from .main import EXIT_OK, EXIT_REFUSED, EXIT_UNAVAILABLE, EXIT_USAGE
 #: ``packml replay``: the recording differs from the replay (1), the bag cannot be replayed (2).
 EXIT_MISMATCH, EXIT_UNUSABLE = EXIT_REFUSED, EXIT_USAGE
 
+#: Why ``packml record`` writes mcap only (issue 27).
+SQLITE_WHY = (
+    "rosbag2's sqlite3 storage keeps every message uncompressed in a row of its own: 39 MB per "
+    "hour of the demo cell's robot_cell against 2 MB for mcap, four times the 10 MB budget; "
+    "record mcap and convert the bag with `ros2 bag convert` if a tool needs sqlite3 "
+    "(packml replay reads both)"
+)
+
 RECORD_EPILOG = """\
 targets: cell/unit (or /cell/unit) records one unit without looking at the graph (it may start
 later); a unit or cell name is looked up on the graph; a cell records all its units and
 /<cell>/coordinator/status. With --config, a cell's units come from the file.
 
-The bag (mcap by default, --storage sqlite3) holds per unit: input_log, em_reports, config,
-status, transitions, admin, alarms, with the publishers' QoS and the type definitions, so rosbag2
-and other tools read it. Stop with Ctrl-C (or --duration): the bag is closed cleanly.
+The bag (mcap, zstd-compressed chunks) holds per unit: input_log, em_reports, config, snapshot,
+status, transitions, admin, alarms, and per cell its coordinator's status and line topics, with the
+publishers' QoS and the type definitions, so rosbag2 and other tools read it. Stop with Ctrl-C (or
+--duration): the bag is closed cleanly.
+
+{SQLITE_WHY}
 
 exit codes: 0 recorded, 1 refused, 2 usage, 3 the target was not found on the graph
 """
@@ -39,9 +51,15 @@ from the snapshot of the unit's state the recorder received when it joined. Outp
 up to the recorder's stop: a message the unit published before it and the bag lacks is a
 difference, as is one the bag has and the replay does not produce.
 
-exit codes: 0 match, 1 mismatch, 2 the bag cannot be replayed (corrupt, truncated, not a PackML
-recording, incomplete, recorded by a newer version) or usage error, 3 (--live) a unit is not
-running or not freshly started
+The line of a recorded cell (its coordinator's input log, snapshot, episodes and losses) is
+replayed and compared the same way. --junit FILE writes JUnit XML: one test case per unit and per
+line check (episodes, losses), so a CI system shows which one failed.
+
+exit codes: 0 match, 1 mismatch, 2 usage error or the bag is not a replayable PackML recording
+(no configuration, recorded by a newer version), 3 (--live) a unit is not running or not freshly
+started; a malformed recording, each its own: 4 the file is cut short or damaged, 5 input stamps
+out of order, 6 an input recorded twice, 7 inputs missing (a gap, or neither the start nor a
+snapshot), 8 the unit or coordinator started again during the recording
 """
 
 
@@ -51,14 +69,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="record a unit's or a cell's inputs and outputs into a rosbag2 bag",
         description="Record the inputs (input log, EM reports, configuration) and outputs "
         "(status, transitions, admin, alarms) of units into a rosbag2 bag.",
-        epilog=RECORD_EPILOG,
+        epilog=RECORD_EPILOG.format(
+            SQLITE_WHY=textwrap.fill(f"sqlite3 is not offered: {SQLITE_WHY}.", 99)
+        ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("targets", nargs="*", metavar="target", help="cell/unit, unit or cell")
     p.add_argument(
         "-o", "--output", help="bag directory to create (default packml_<target>_<time>)"
     )
-    p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="default mcap")
+    p.add_argument("--storage", default="mcap", help="mcap (the only one offered; see below)")
     p.add_argument("--duration", type=float, help="stop after this many seconds")
     p.add_argument("--config", help="cell YAML: the units of a cell target (no graph look-up)")
     p.add_argument("--cell", help="cell namespace for bare unit names")
@@ -83,6 +103,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument("--speed", type=float, default=1.0, help="--live: recorded pace x SPEED (1)")
     p.add_argument("--timeout", type=float, default=10.0, help="--live: seconds to find units")
     p.add_argument("--settle", type=float, default=5.0, help="--live: seconds to wait at the end")
+    p.add_argument("--junit", metavar="FILE", help="--check: also write the result as JUnit XML")
     p.set_defaults(func=replay)
 
 
@@ -151,6 +172,8 @@ def record(args: argparse.Namespace) -> int:
 
     if args.duration is not None and args.duration <= 0:
         return _fail("--duration must be > 0", EXIT_USAGE)
+    if args.storage != "mcap":
+        return _fail(f"--storage {args.storage}: packml record writes mcap; {SQLITE_WHY}", EXIT_USAGE)  # fmt: skip
     run.default_environment()
     context = Context()
     rclpy.init(context=context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
@@ -223,6 +246,9 @@ def replay(args: argparse.Namespace) -> int:
         return _fail(f"{args.config}: no such file", EXIT_USAGE)
     if args.output and not args.update:
         return _fail("-o goes with --update", EXIT_USAGE)
+    if args.junit and (args.update or args.live):
+        return _fail("--junit goes with --check", EXIT_USAGE)
+    started = time.perf_counter()
     try:
         if args.live:
             return _live(args)
@@ -242,21 +268,38 @@ def replay(args: argparse.Namespace) -> int:
         lines = line.check(args.bag, args.config) if not args.unit else []
         result = None if lines and not _has_units(args.bag) else check(args.bag, args.config, args.unit)  # fmt: skip
     except RecordingError as exc:
-        return _fail(str(exc), EXIT_UNUSABLE)
+        if args.junit:
+            _junit(args, time.perf_counter() - started, None, [], exc)
+        return _fail(f"{exc} [{exc.reason}]", exc.exit_code)
     except KeyError as exc:
         return _fail(str(exc.args[0] if exc.args else exc), EXIT_USAGE)
+    seconds = time.perf_counter() - started  # the whole check: units and line
     if result is not None:
+        result.seconds = seconds
         print(result.report())
     for r in lines:
         print(r.report())
     ok = (result is None or result.ok) and all(r.ok for r in lines)
+    if result is None:
+        print(f"{args.bag}: {'match' if ok else 'MISMATCH'} ({seconds:.2f} s)")
+    if args.junit:
+        _junit(args, seconds, result, lines, None)
     return EXIT_OK if ok else EXIT_MISMATCH
 
 
+def _junit(args: argparse.Namespace, seconds: float, result: Any, lines: Any, error: Any) -> None:
+    from ..bag import junit
+
+    junit.write(args.junit, args.bag, seconds, result, lines, error)
+
+
 def _has_units(bag: str) -> bool:
+    """Whether the bag holds more of a unit than its configuration (which the line's replay
+    reads too)."""
     from ..bag.recording import load
 
-    return bool(load(bag, em_reports=False).units)
+    units = load(bag, em_reports=False).units.values()
+    return any(u.inputs or u.snapshots or any(u.outputs.values()) for u in units)
 
 
 def _live(args: argparse.Namespace) -> int:

@@ -69,6 +69,7 @@ class SimLine:
         self.silent: set[str] = set()  # units whose diagnostics no longer arrive
         self._tick_at = math.inf  # armed mode: when the wake-up armed is due
         self.published: list[Any] = []  # LossesView lists at each publication
+        self.snapshots: list[tuple[int, int, dict[str, Any]]] = []  # line/snapshot (snapshot())
         for unit, em in self.ems:
             self.drivers[unit].call(self.t, self.units[unit].em_seen, em, True)
         for driver in self.drivers.values():
@@ -222,9 +223,22 @@ class SimLine:
         self.records.extend(records)
         self.episode_views.extend(episodes)
 
-    def write_bag(self, path: Any, cell_yaml: str) -> None:
+    def snapshot(self) -> None:
+        """The coordinator's answer to a recorder joining now: the line's state on
+        ``line/snapshot`` (after what it published)."""
+        self.take()
+        published = {"episodes": len(self.episode_views), "losses": sum(len(v) for v in self.published)}  # fmt: skip
+        self.snapshots.append(self.line.snapshot(published))
+
+    def write_bag(self, path: Any, cell_yaml: str, joined: float | None = None,
+                  stop: float | None = None, input_history: int = 5000) -> None:  # fmt: skip
         """What the coordinator would have published, as ``packml record`` writes it: the
-        line's input log, episodes and losses, and one unit's configuration."""
+        line's input log, episodes and losses, and one unit's configuration. ``joined`` (sim
+        seconds): what a recorder that joined then has — the history the publishers keep
+        (packml_ros2.qos) and everything after, with the snapshots taken (:meth:`snapshot`);
+        ``stop``: when it stopped (it has the outputs stamped before, and notes the time and
+        the publication numbers); ``input_history``: the inputs the input log keeps for a late
+        subscriber (the coordinator's: 5000)."""
         import json
 
         from rclpy.serialization import serialize_message
@@ -232,22 +246,40 @@ class SimLine:
 
         from packml_ros2 import line_msgs
         from packml_ros2.bag import line
-        from packml_ros2.bag.topics import PUBLISHER_QOS, msg_class, rosbags_qos, typestore
+        from packml_ros2.bag.topics import (
+            CUSTOM_KEY,
+            PUBLISHER_QOS,
+            msg_class,
+            rosbags_qos,
+            typestore,
+        )
 
         self.take()
         cell = self.cell.cell
         unit_input = msg_class("packml_interfaces/msg/UnitInput")
         designs = {s: self.line.perf.design(s) for s in ("", *self.line.perf.order)}
-        items: list[tuple[int, str, bytes]] = []
+        streams: dict[str, list[tuple[int, bytes]]] = {name: [] for name in line.LINE_TOPICS}
         for r in self.records:
-            items.append((r.t, "line/input_log", serialize_message(unit_input(
+            streams["line/input_log"].append((r.t, serialize_message(unit_input(
                 stamp=line_msgs.stamp(r.t), index=r.index, unit=r.unit, name=r.name, args_json=r.args_json))))  # fmt: skip
         for v in self.episode_views:
-            items.append((v.now, "line/episodes", serialize_message(line_msgs.episode_msg(v, cell))))  # fmt: skip
+            streams["line/episodes"].append((v.now, serialize_message(line_msgs.episode_msg(v, cell))))  # fmt: skip
         for views in self.published:
             t = views[0].end
             for v in views:
-                items.append((t, "line/losses", serialize_message(line_msgs.losses_msg(v, cell, t, designs))))  # fmt: skip
+                streams["line/losses"].append((t, serialize_message(line_msgs.losses_msg(v, cell, t, designs))))  # fmt: skip
+        snapshot_cls = msg_class("packml_interfaces/msg/UnitSnapshot")
+        for index, t, doc in self.snapshots:
+            streams["line/snapshot"].append((t, serialize_message(snapshot_cls(
+                stamp=line_msgs.stamp(t), index=index, unit="", state_json=json.dumps(doc)))))  # fmt: skip
+        since = None if joined is None else round((T0 + joined) * NS)
+        until = None if stop is None else round((T0 + stop) * NS)
+        keep = {
+            "line/input_log": input_history,
+            "line/episodes": 100,
+            "line/losses": 8,
+            "line/snapshot": 1,
+        }
         writer = Writer(path, version=9)
         writer.open()
         store = typestore()
@@ -259,10 +291,27 @@ class SimLine:
                                        offered_qos_profiles=[rosbags_qos(PUBLISHER_QOS["config"])])  # fmt: skip
         text = json.dumps({"unit": "filler", "cell_yaml": cell_yaml})
         writer.write(config, 1, serialize_message(msg_class("std_msgs/msg/String")(data=text)))
+        items: list[tuple[int, str, bytes]] = []
+        publications: dict[str, list[list[int]]] = {}
+        for name, msgs in streams.items():
+            numbers = list(range(len(msgs)))
+            if since is not None:
+                before = [i for i in numbers if msgs[i][0] < since]
+                numbers = before[len(before) - keep[name] :] + numbers[len(before) :]
+            if until is not None and name in line.LINE_OUTPUTS:
+                numbers = [i for i in numbers if msgs[i][0] < until]
+            items += [(max(msgs[i][0], since or 0), name, msgs[i][1]) for i in numbers]
+            if name in line.LINE_OUTPUTS and until is not None and numbers:
+                publications[f"/{cell}/coordinator/{name}"] = [[numbers[0] + 1, numbers[-1] + 1]]
+                assert numbers == list(range(numbers[0], numbers[-1] + 1))
         last = 1
         for t, name, raw in sorted(items, key=lambda x: x[0]):
             last = max(t, last + 1)
             writer.write(conns[name], last, raw)
+        if until is not None:
+            notes = {"version": 1, "recorder": "test.core.line_sim", "stopped_at_ns": until,
+                     "publications": publications}  # fmt: skip
+            writer.set_custom_data(CUSTOM_KEY, json.dumps(notes, separators=(",", ":")))
         writer.close()
 
     def cell_command(self, cmd: Cmd, caller: str = "operator") -> list[Outcome]:

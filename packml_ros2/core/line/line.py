@@ -20,7 +20,7 @@ from ..config import CellConfig
 from ..numbers import Cmd
 from ..persistence import one_line
 from ..reasons import Reason
-from . import inputs
+from . import inputs, snapshot
 from .cell import Call, Cell, CellView, Effect
 from .episodes import Episode, Root
 from .ledger import ROLLING, Fact, History, Ledger, MemoryHistory, add_clipped
@@ -301,6 +301,15 @@ class Line:
         self.index += 1
         self.inputs.append(InputRecord(self.index, t, name, unit, fields))
         self.episodes_out.extend((e, t) for e in episodes)
+
+    def snapshot(self, published: Mapping[str, int]) -> tuple[int, int, dict[str, Any]]:
+        """The line's state now, after input ``index`` (:mod:`.snapshot`), for a recorder that
+        joins: (index, time ns, JSON object with the state, the input log's schema and
+        ``published``: how many messages the node had published per line output topic)."""
+        now = self.wall()
+        doc = {"schema": snapshot.SCHEMA, "line": snapshot.capture(self.perf, now),
+               "input_schema": inputs.SCHEMA, "published": dict(published)}  # fmt: skip
+        return self.index, now, doc
 
     def _row(self, e: Episode) -> tuple[Episode, str, str, str]:
         root = self.perf.root(e)
