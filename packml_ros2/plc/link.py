@@ -443,13 +443,12 @@ class Link:
         await asyncio.wait_for(subscription.init(), config.call_timeout)
         machines = [n for p, n in zip(paths, nodes, strict=True) if p.startswith(MACHINES)]
         others = [n for p, n in zip(paths, nodes, strict=True) if not p.startswith(MACHINES)]
-        # the state machines: every change (sampling 0: as the PLC writes it, not polled) queued
-        # until the next publish; the rest sampled at half the publishing interval, newest only
-        for group, queue, sampling in ((machines, QUEUE, 0.0), (others, 0, interval_ms / 2)):
+        # every value as the PLC writes it (sampling 0: not polled, so a state, its StopReason
+        # and its alarm of one PLC cycle come together); the state machines keep every change
+        # until the next publish, the rest the newest only
+        for group, queue in ((machines, QUEUE), (others, 0)):
             await asyncio.wait_for(
-                subscription.subscribe_data_change(
-                    group, queuesize=queue, sampling_interval=sampling
-                ),
+                subscription.subscribe_data_change(group, queuesize=queue, sampling_interval=0.0),
                 config.call_timeout,
             )
         self._last_sign = time.monotonic()
