@@ -17,6 +17,8 @@ from ..core.config import UnitConfig
 from ..core.numbers import Cmd, State
 from ..core.rules import rules_of
 
+NUMBERS = frozenset(int(s) for s in State)
+
 
 @dataclass(frozen=True)
 class Graph:
@@ -29,14 +31,20 @@ class Graph:
     edges: Mapping[tuple[State, State], frozenset[Cmd]]
 
 
-def unit_graph(config: UnitConfig, mode: int) -> Graph:
+def unit_graph(config: UnitConfig, mode: int, state: int | None = None) -> Graph:
     """The states and transitions of the unit ``config`` in ``mode`` (an unknown mode: the
-    model's graph, none disabled)."""
+    model's graph, none disabled); with ``state``, only the transitions out of it (the rule
+    book's AvailableTransitions of the current state)."""
     rules = rules_of(config)
     known = mode in config.modes
     states = rules.available_states(mode) if known else frozenset(s for s in State if s is not State.UNDEFINED)  # fmt: skip
     edges: dict[tuple[State, State], set[Cmd]] = {}
-    for edge in rules.edges(mode if known else None):
+    now = None if state is None else State(state) if state in NUMBERS else State.UNDEFINED
+    if known:
+        chosen = rules.available_transitions(mode, now)
+    else:
+        chosen = tuple(e for e in rules.edges(None) if now is None or e.from_state is now)
+    for edge in chosen:
         causes = edges.setdefault((edge.from_state, edge.to_state), set())
         if edge.trigger is not None:
             causes.add(edge.trigger)

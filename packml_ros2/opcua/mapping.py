@@ -206,6 +206,20 @@ def transition_steps(model: PackMLModel, graph: Graph) -> dict[Step, str]:
     return out
 
 
+def method_paths(model: PackMLModel, graph: Graph) -> frozenset[str]:
+    """The state machine methods (``BaseStateMachine/MachineState/Stop``) that cause an edge of
+    ``graph``, each on the machine where its transition happens (as :func:`transition_steps`
+    places it): for the graph of the current state (:func:`.available.unit_graph`), the methods
+    Executable now."""
+    out: set[str] = set()
+    for (frm, to), causes in graph.edges.items():
+        for machine, a, b in zip(model.machines, model.places(frm), model.places(to), strict=True):
+            if a != b:
+                out.update(f"{machine.path}/{COMMAND_METHODS[c]}" for c in causes)
+                break
+    return frozenset(out)
+
+
 def nodeset_transitions(model: PackMLModel) -> dict[Step, TransitionDef]:
     return {(m.path, t.from_state, t.to_state): t for m in model.machines for t in m.transitions}
 
@@ -316,15 +330,18 @@ def admin_values(msg: Any) -> dict[str, Value]:
 # -- a unit that is gone ----------------------------------------------------------------------------------
 LOST_STATUS = ua.StatusCodes.BadCommunicationError
 LOST_ADMIN = ua.StatusCodes.UncertainLastUsableValue
+NEVER_SEEN = ua.StatusCodes.BadWaitingForInitialData
 
 
-def lost_status(path: str) -> int:
+def lost_status(path: str, known: bool = True) -> int:
     """The status of a value while its unit is lost (:mod:`packml_ros2.presence`): the live status
     (Status, the state machines) is Bad_CommunicationError, a dead unit has no known state; the
     accumulated Admin data (counts, times, alarms) and the speeds' EURange (from the unit's
-    configuration) keep their last value as Uncertain_LastUsableValue."""
+    configuration) keep their last value as Uncertain_LastUsableValue, or, when no message of
+    the unit ever brought one (not ``known``), stay Bad_WaitingForInitialData: there is no
+    last usable value."""
     if path.startswith("Admin/") or path.endswith("/EURange"):
-        return LOST_ADMIN
+        return LOST_ADMIN if known else NEVER_SEEN
     return LOST_STATUS
 
 

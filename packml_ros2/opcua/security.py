@@ -4,10 +4,13 @@
   password, or with a configured certificate (X509 identity token, or the client's application
   instance certificate of a signed channel); otherwise *anonymous*, if anonymous sessions are
   allowed at all. A wrong password is refused (no fall-back to anonymous).
-- :class:`Rules`: the permission ruleset: everybody may browse, read and subscribe; only users
-  may write (nothing is writable anyway) or manage nodes (nobody may: no Admin role is ever
-  given out). Calls pass the service level and are checked per method (:func:`may_call`), so a
-  refused method answers ``BadUserAccessDenied`` for that method.
+- :class:`Rules`: the permission ruleset: everybody may browse, read, subscribe and send a
+  Write request; nobody may manage nodes (no Admin role is ever given out). Writes are answered
+  per node (:func:`guard_writes`, OPC UA Part 4 5.10.4): a read-only variable or attribute
+  ``BadNotWritable``, a writable one an anonymous session may not write
+  ``BadUserAccessDenied`` (not a ServiceFault for the whole request). Calls pass the service
+  level and are checked per method (:func:`may_call`), so a refused method answers
+  ``BadUserAccessDenied`` for that method.
 - Diagnostics: a method that refuses records its reason with :func:`refuse`; the CallResponse
   then carries, per refused method, a DiagnosticInfo with the text (AdditionalInfo, and
   LocalizedText through the string table) when the client asked for operation-level diagnostics
@@ -54,7 +57,6 @@ _REFUSALS: contextvars.ContextVar[dict[int, tuple[str, str]] | None] = contextva
 # RequestHeader.ReturnDiagnostics, operation level (OPC UA Part 4, 7.33)
 DIAG_SYMBOLIC_ID, DIAG_LOCALIZED_TEXT, DIAG_ADDITIONAL_INFO = 0x20, 0x40, 0x80
 _CALL_REQUEST = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
-_WRITE_REQUEST = ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary)
 
 
 class Users:
@@ -109,13 +111,58 @@ class Rules(PermissionRuleset):
     def __init__(self) -> None:
         user = {ua.NodeId(t) for t in USER_TYPES}
         self._allowed = {
-            UserRole.Anonymous: user - {_WRITE_REQUEST},
+            UserRole.Anonymous: user,  # a write is answered per node: guard_writes
             UserRole.User: user,
             UserRole.Admin: user,
         }
 
     def check_validity(self, user: User, action_type_id: ua.NodeId, body: Any) -> bool:
         return action_type_id in self._allowed.get(user.role, set())
+
+
+def write_refusal(aspace: Any, item: ua.WriteValue, user: User) -> int | None:
+    """The status code a write of ``item`` by ``user`` is refused with (None: asyncua writes
+    it). OPC UA Part 4 7.34: a node that is not writable at all is ``BadNotWritable``;
+    ``BadUserAccessDenied`` is for a writable node this user may not write."""
+    node_class = aspace.read_attribute_value(item.NodeId, ua.AttributeIds.NodeClass)
+    if node_class.StatusCode is not None and not node_class.StatusCode.is_good():
+        return int(node_class.StatusCode.value)  # BadNodeIdUnknown
+    if item.AttributeId != ua.AttributeIds.Value:
+        return ua.StatusCodes.BadNotWritable  # no node here has a WriteMask
+    level = aspace.read_attribute_value(item.NodeId, ua.AttributeIds.AccessLevel)
+    if (
+        level.StatusCode is None
+        or not level.StatusCode.is_good()
+        or level.Value is None
+        or not ua.ua_binary.test_bit(level.Value.Value, ua.AccessLevel.CurrentWrite)
+    ):
+        return ua.StatusCodes.BadNotWritable
+    if user.role not in (UserRole.User, UserRole.Admin):
+        return ua.StatusCodes.BadUserAccessDenied
+    return None
+
+
+#: The user asyncua's own writes run as (its default).
+SERVER = User(role=UserRole.Admin)
+
+
+def guard_writes(server: Any) -> None:
+    """Answer every node of a Write request of a session with its own status
+    (:func:`write_refusal`); what passes is written by asyncua as before. The server's own
+    writes (an Admin user) are not checked."""
+    service = server.iserver.attribute_service
+    aspace = server.iserver.aspace
+    write = service.write
+
+    async def checked(params: ua.WriteParameters, user: User = SERVER) -> list[ua.StatusCode]:
+        if user.role == UserRole.Admin:
+            return list(await write(params, user))
+        refused = [write_refusal(aspace, item, user) for item in params.NodesToWrite]
+        passing = [i for i, r in zip(params.NodesToWrite, refused, strict=True) if r is None]
+        written = iter(await write(ua.WriteParameters(NodesToWrite=passing), user) if passing else [])  # fmt: skip
+        return [next(written) if r is None else ua.StatusCode(r) for r in refused]
+
+    service.write = checked
 
 
 def may_call(config: OpcUaConfig) -> tuple[bool, str]:

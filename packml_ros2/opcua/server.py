@@ -24,6 +24,7 @@ import signal
 import socket
 from collections import OrderedDict
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +44,7 @@ from .mapping import (
     admin_values,
     available_values,
     lost_status,
+    method_paths,
     nodeset_transitions,
     status_values,
     transition_steps,
@@ -164,6 +166,10 @@ def extra_steps(space: AddressSpace, unit: UnitConfig) -> dict[Step, str]:
     return out
 
 
+def _stamp(msg: Any) -> tuple[int, int]:
+    return int(msg.stamp.sec), int(msg.stamp.nanosec)
+
+
 class PackMLServer:
     """The OPC UA server of one cell."""
 
@@ -177,7 +183,9 @@ class PackMLServer:
         self._last: dict[tuple[str, str], tuple[Value, int]] = {}
         self._messages: dict[tuple[str, str], Any] = {}  # the newest status / admin per unit
         self._present: dict[str, bool | None] = dict.fromkeys(config.units)
-        self._available: dict[tuple[str, int], dict[str, Value]] = {}  # per unit and mode
+        # per unit, mode and state
+        self._available: dict[tuple[str, int, int], dict[str, Value]] = {}
+        self._methods_now: dict[tuple[str, int, int], frozenset[str]] = {}
         self._pending: OrderedDict[tuple[str, str], Any] = OrderedDict()
         self._flushing: asyncio.Task[None] | None = None
         self.users: security.Users | None = None
@@ -206,6 +214,7 @@ class PackMLServer:
             permission_ruleset=security.Rules(),
         )
         server.set_identity_tokens(self.users.identity_tokens())
+        security.guard_writes(server)
         if config.trusted_client_certificates:
             server.set_certificate_validator(
                 await security.trusted_validator(config.trusted_client_certificates)
@@ -229,8 +238,12 @@ class PackMLServer:
                 extra_steps(space, unit),
                 methods.callbacks(),
             )
-            for method in nodes.methods.values():
-                security.executable_callbacks(server, method, methods.executable, config)
+            machines = tuple(m.path for m in space.model.machines)
+            for path, method in nodes.methods.items():
+                executable = methods.executable
+                if path.rpartition("/")[0] in machines:  # a state command: the state decides too
+                    executable = partial(self._executable, methods.executable, name, path)
+                security.executable_callbacks(server, method, executable, config)
         self.line = await line.LineFace.create(server, self.cell.cell)  # Objects/Lines/<cell>
         await server.start()
         self.ros = RosSide(
@@ -246,7 +259,13 @@ class PackMLServer:
 
     # -- ROS -> OPC UA ---------------------------------------------------------------------------------
     def _on_message(self, unit: str, topic: str, msg: Any) -> None:
-        """In the loop: remember the newest message per (unit, topic), write them in order."""
+        """In the loop: remember the newest message per (unit, topic), write them in order. The
+        message's own stamp decides what is newest: one stamped before the message written last
+        (an Admin the unit published before a newer one, delivered after it) is not written over
+        it, so accumulated values never run backwards."""
+        last = self._messages.get((unit, topic))
+        if last is not None and _stamp(msg) < _stamp(last):
+            return
         self._messages[(unit, topic)] = msg
         self._queue(unit, topic, msg)
 
@@ -278,14 +297,30 @@ class PackMLServer:
         if topic != "status":
             return admin_values(msg)
         values = status_values(msg, space.model, space.p)
-        key = (unit, int(msg.unit_mode_current))
+        key = (unit, int(msg.unit_mode_current), int(msg.state_current))
         available = self._available.get(key)
         if available is None:
-            graph = unit_graph(self.cell.units[unit], key[1])
+            graph = unit_graph(self.cell.units[unit], key[1], key[2])
             extra = self.units[unit].extra_transitions
             available = self._available[key] = available_values(space.model, graph, space.p, extra)
         values.update(available)
         return values
+
+    def _executable(self, reachable: Callable[[], bool], unit: str, path: str) -> bool:
+        """``Executable`` of the state machine method at ``path``: the unit is there
+        (``reachable``) and the method causes a transition out of its current state in its
+        current mode (the rule book's graph, :func:`.available.unit_graph`)."""
+        status = self._messages.get((unit, "status"))
+        if status is None or not reachable():
+            return False
+        mode, state = int(status.unit_mode_current), int(status.state_current)
+        key = (unit, mode, state)
+        methods = self._methods_now.get(key)
+        if methods is None:
+            assert self.space is not None
+            graph = unit_graph(self.cell.units[unit], mode, state)
+            methods = self._methods_now[key] = method_paths(self.space.model, graph)
+        return path in methods
 
     async def _apply(self, unit: str, topic: str, msg: Any) -> None:
         assert self.server is not None
@@ -322,7 +357,8 @@ class PackMLServer:
                     await self.server.write_attribute_value(
                         nodes.variables[path],
                         ua.DataValue(
-                            StatusCode=ua.StatusCode(lost_status(path)), SourceTimestamp=now
+                            StatusCode=ua.StatusCode(lost_status(path, known=False)),
+                            SourceTimestamp=now,
                         ),
                     )
 

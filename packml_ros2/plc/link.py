@@ -44,7 +44,7 @@ from asyncua.ua.ua_binary import struct_from_binary
 
 from ..opcua.nodeset import PACKML_URI, load
 from .config import PlcConfig
-from .mirror import PATHS, REQUIRED
+from .mirror import MACHINES, PATHS, REQUIRED
 
 _logger = logging.getLogger(__name__)
 S = ua.StatusCodes
@@ -53,13 +53,63 @@ STANDARD_NAMES = frozenset({"CurrentState", "Id", "Number", "EURange"})
 #: RequestHeader.ReturnDiagnostics: operation-level symbolic id, localized text, additional info.
 DIAGNOSTICS = 0x20 | 0x40 | 0x80
 TICK = 0.05  # s between watchdog checks
+#: Values a state machine's monitored item keeps between two publishes: every state the PLC
+#: passed through reaches the mirror (acting states shorter than the publishing interval too).
+QUEUE = 16
+#: (endpoint, namespace array) of the PLCs whose data type definitions this process has loaded.
+_TYPES_LOADED: set[tuple[str, tuple[str, ...]]] = set()
+
+
+#: Status codes that end a session: the bridge reports the loss itself, in one line.
+SESSION_ENDED = frozenset(
+    {
+        S.BadSessionClosed,
+        S.BadSessionIdInvalid,
+        S.BadConnectionClosed,
+        S.BadSecureChannelClosed,
+        S.BadShutdown,
+        S.BadServerHalted,
+        S.BadCommunicationError,
+    }
+)
+
+
+class _Said(logging.Filter):
+    """What asyncua logs that is no news:
+
+    - "Browsename collision" of a standard (namespace 0) type: reading a PLC's data type
+      definitions reads its standard enumerations too, which asyncua ships as ``ua`` classes
+      already (a PLC type that collides is still logged);
+    - "Publish iteration crashed" with its traceback when the PLC ended the session (closed,
+      shut down, the connection gone): the bridge says "PLC lost: <reason>" once."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.msg.__class__ is str and record.msg.startswith("Browsename collision"):
+            data_type = record.args[-1] if isinstance(record.args, tuple) and record.args else None
+            return getattr(data_type, "NamespaceIndex", None) != 0
+        error = record.exc_info[1] if record.exc_info else None
+        if isinstance(error, ua.UaStatusCodeError) and error.code in SESSION_ENDED:
+            return False
+        return not isinstance(error, (ConnectionError, asyncio.IncompleteReadError))
+
+
+_SAID = _Said()
 
 
 def quiet() -> None:
     """asyncua's client side logs errors only: it warns about every standard type it reads twice,
-    every revised subscription parameter and every closed channel (the bridge says what matters)."""
+    every revised subscription parameter and every closed channel (the bridge says what matters);
+    what it logs as an error that the bridge says itself is dropped (:class:`_Said`)."""
     for name in ("asyncua.client", "asyncua.common.structures104", "asyncua.common.subscription"):
         logging.getLogger(name).setLevel(logging.ERROR)
+    for name in (
+        "asyncua.ua.uatypes",
+        "asyncua.client.ua_session.UaSession",
+        "asyncua.client.ua_client",
+    ):
+        logger = logging.getLogger(name)
+        if _SAID not in logger.filters:
+            logger.addFilter(_SAID)
 
 
 def method_paths() -> tuple[str, ...]:
@@ -155,7 +205,13 @@ def diagnostic_text(response: Any) -> str:
 
 class _Batches:
     """Subscription handler: collects the notifications of one publish response (asyncua
-    dispatches them in order, one task each) and hands them over together."""
+    dispatches them in order, one task each) and hands them over as the PLC wrote them.
+
+    A response may carry several values of one variable (the state machines' items keep a
+    queue, :data:`QUEUE`): Stopping and Stopped of one publishing interval. The notifications
+    are put in the order of their source timestamps (the PLC's cycles; arrival order where a
+    PLC gives none) and handed over as consecutive batches, a new one where a variable repeats,
+    so no value is overwritten by a later one of the same response."""
 
     def __init__(
         self,
@@ -168,19 +224,29 @@ class _Batches:
         self.deliver = deliver
         self.convert = convert
         self.lost = lost
-        self.batch: dict[str, Any] = {}
+        self.batch: list[tuple[str, Any, Any]] = []
 
     def datachange_notification(self, node: Node, value: Any, data: Any) -> None:
         path = self.paths.get(node.nodeid)
         if path is None:
             return
         dv = data.monitored_item.Value
-        self.batch[path] = self.convert(path, value, dv.StatusCode if dv is not None else None)
+        status = dv.StatusCode if dv is not None else None
+        stamp = dv.SourceTimestamp or dv.ServerTimestamp if dv is not None else None
+        self.batch.append((path, self.convert(path, value, status), stamp))
         if len(self.batch) == 1:
             asyncio.get_running_loop().call_soon(self._flush)
 
     def _flush(self) -> None:
-        batch, self.batch = self.batch, {}
+        items, self.batch = self.batch, []
+        if all(stamp is not None for _, _, stamp in items):
+            items.sort(key=lambda item: item[2])  # stable: arrival order within one stamp
+        batch: dict[str, Any] = {}
+        for path, value, _ in items:
+            if path in batch:
+                self.deliver(batch)
+                batch = {}
+            batch[path] = value
         if batch:
             self.deliver(batch)
 
@@ -326,8 +392,13 @@ class Link:
         if PACKML_URI not in namespaces:
             raise Lost(f"the PLC's server has no PackML namespace ({PACKML_URI})")
         self._packml_ns = namespaces.index(PACKML_URI)
+        # asyncua registers the decoders process-wide, by NodeId: once per PLC namespace table
+        # (loading them again at each reconnect rebinds every class: "Browsename collision")
+        types_key = (config.endpoint, tuple(namespaces))
         try:
-            await asyncio.wait_for(client.load_data_type_definitions(), 4 * config.call_timeout)
+            if types_key not in _TYPES_LOADED:
+                await asyncio.wait_for(client.load_data_type_definitions(), 4 * config.call_timeout)
+                _TYPES_LOADED.add(types_key)
         except Exception as exc:  # alarms and counts stay unread; states and commands work
             _logger.warning(
                 "PLC %s: data type definitions not read (%s): PackML structures "
@@ -370,10 +441,16 @@ class Link:
         # subscription and count that as a sign of life; this one is the bridge's alone
         subscription = _Watched(client.uaclient.session, params, handler)
         await asyncio.wait_for(subscription.init(), config.call_timeout)
-        await asyncio.wait_for(
-            subscription.subscribe_data_change(nodes, sampling_interval=interval_ms / 2),
-            config.call_timeout,
-        )
+        machines = [n for p, n in zip(paths, nodes, strict=True) if p.startswith(MACHINES)]
+        others = [n for p, n in zip(paths, nodes, strict=True) if not p.startswith(MACHINES)]
+        # every value as the PLC writes it (sampling 0: not polled, so a state, its StopReason
+        # and its alarm of one PLC cycle come together); the state machines keep every change
+        # until the next publish, the rest the newest only
+        for group, queue in ((machines, QUEUE), (others, 0)):
+            await asyncio.wait_for(
+                subscription.subscribe_data_change(group, queuesize=queue, sampling_interval=0.0),
+                config.call_timeout,
+            )
         self._last_sign = time.monotonic()
         self.up = True
         detail = f"connected to the PLC at {config.where()}"

@@ -164,6 +164,10 @@ class Mirror:
     #: StopReason and the active alarms as they were when the current state was entered
     _baseline: tuple[Any, frozenset[tuple[int, int, float]]] = (None, frozenset())
     _unsettled_since: float | None = None
+    #: a change held back (:data:`HOLD`): the states the PLC showed since, oldest first; each
+    #: becomes a transition of its own (Stopping and Stopped of one publish response)
+    _held: list[State] = field(default_factory=list)
+    _held_settled: bool = False
 
     # -- the state -------------------------------------------------------------------------------
     def _place(self, machine: MachineDef, path: str) -> str | None:
@@ -306,6 +310,7 @@ class Mirror:
         self.expected.clear()
         self.mode_request = None
         self._unsettled_since = None
+        self._held.clear()
         state, _ = self.read_state()
         mode = self._mode()
         before, self.state = self.state, state if state is not None else S.UNDEFINED
@@ -324,14 +329,23 @@ class Mirror:
         state, settled = self.read_state(values)
         if state is None or state == self.state:
             self._unsettled_since = None
+            self._held.clear()
         else:
+            if self._held and self._held[-1] != state and not self._held_settled:
+                self._held.pop()  # a composite state read without its inner value: not a state
+            if not self._held or self._held[-1] != state:
+                self._held.append(state)
+            self._held_settled = settled
             waited = self._unsettled_since is not None and now - self._unsettled_since >= HOLD
-            change = (
-                self._state_change(state, now, may_wait=not waited) if settled or waited else None
-            )
-            if change is not None:
+            if settled or waited or len(self._held) > 1:
+                while self._held:
+                    change = self._state_change(self._held[0], now, may_wait=not waited)
+                    if change is None:
+                        break
+                    out.append(change)
+                    del self._held[0]
+            if not self._held:
                 self._unsettled_since = None
-                out.append(change)
             elif self._unsettled_since is None:
                 self._unsettled_since = now
         mode = self._mode()

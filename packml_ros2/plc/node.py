@@ -258,14 +258,17 @@ class PlcUnitNode(Node):
             publisher = self._unit_pubs.get("transitions")
             if publisher is not None and self.context.ok():
                 publisher.publish(convert.transition(self.config.name, t, modes))
-            level = (
-                self.get_logger().warning if t.trigger == Trigger.ALARM else self.get_logger().info
-            )
-            level(
+            line = (
                 f"{state_name(t.from_state)} -> {state_name(t.to_state)} ({t.trigger.name.lower()}"
                 f"{', ' + command_name(t.command) if t.command else ''}, {t.source}"
                 f"{': ' + t.detail if t.detail else ''})"
             )
+            # one call site per severity: rclpy binds a call site to the severity it first logged
+            # at and raises ValueError when the same site logs at another
+            if t.trigger == Trigger.ALARM:
+                self.get_logger().warning(line)
+            else:
+                self.get_logger().info(line)
 
     def _publish_all(self) -> None:
         self._publish_status()

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import json
 import os
 import re
 import signal
@@ -37,14 +38,15 @@ import httpx
 import pytest
 import yaml
 from packml_interfaces.msg import Status
-from packml_interfaces.srv import SetAlarm, SetRemoteCommands
+from packml_interfaces.srv import Command, SetAlarm, SetRemoteCommands
 
 from packml_ros2 import qos
-from packml_ros2.core import load_cell
+from packml_ros2.core import Cmd, load_cell
 from packml_ros2.core.numbers import ACTING, State
 from packml_ros2.core.rules import rules_of
 from packml_ros2.core.secrets import hash_password
 from packml_ros2.testing.harness import Collector, RosHarness
+from test.hmi.readable import contrast_failures, fit_failures
 
 pytestmark = [pytest.mark.browser, pytest.mark.ros, pytest.mark.slow]
 
@@ -821,6 +823,67 @@ def test_read_only_without_the_token(env: Env) -> None:
         page.close()
     finally:
         assert other.stop() == 0
+
+
+WINDOWS = {
+    "1024x768": PANEL,
+    "1366x768": {"width": 1366, "height": 768},
+    "1920x1080": {"width": 1920, "height": 1080},
+    "390x844": {"width": 390, "height": 844},
+}
+PHONE = WINDOWS["390x844"]
+
+
+def test_every_screen_is_readable_and_fits_at_four_sizes_with_an_active_alarm(env: Env) -> None:
+    """Logged in, robot_cell stopped by an active alarm, case_packer held (amber): every visible
+    text of every screen (overview, both units, alarms, line) has WCAG AA contrast against its
+    background, nothing is wider than the window, no command is cut; on the desk and panel
+    sizes the header is one row and a unit's commands are on screen without scrolling."""
+    raised = env.call_unit("robot_cell", SetAlarm, "set_alarm", id=201, active=True, category=-1,
+                           source="operator:test")  # fmt: skip
+    assert raised.accepted, raised.message_out
+    packer = env.status["case_packer"]
+    for cmd, state in ((Cmd.RESET, "IDLE"), (Cmd.START, "EXECUTE")):  # (when run alone)
+        if packer.last.state_current_name in ("STOPPED", "IDLE"):
+            env.call_unit("case_packer", Command, "command", command=int(cmd), source="operator:test")  # fmt: skip
+            packer.wait_for(lambda m, s=state: m.state_current_name == s, 15, state)
+    held = env.call_unit("case_packer", Command, "command", command=int(Cmd.HOLD), source="operator:test")  # fmt: skip
+    assert held.accepted, held.message
+    env.status["case_packer"].wait_for(lambda m: m.state_current_name == "HELD", 10, "held")
+    try:
+        problems: dict[str, Any] = {}
+        for name, size in WINDOWS.items():
+            page = env.page(hash_="overview", size=size)
+            for screen in ("overview", "unit/robot_cell", "unit/case_packer", "alarms", "line"):
+                if screen == "line":
+                    page.goto(env.url.rstrip("/") + "/line")
+                    expect(page.locator("#kpis .kpi")).to_have_count(4)
+                else:
+                    page.evaluate(f"location.hash = '#/{screen}'")
+                    expect(page.locator(f"#screen-{screen.split('/')[0]}")).to_be_visible()
+                    if screen != "unit/case_packer":  # (its banner is its own: held, no alarm)
+                        expect(page.locator("#banner-alarm")).to_have_class(
+                            re.compile(r"\bactive\b")
+                        )
+                    expect(page.locator("#access-state")).to_have_text("anna · operator")
+                if screen.startswith("unit/"):
+                    expect(page.locator("#u-cmds button").first).to_be_visible()
+                    if size is not PHONE:
+                        in_view(page, "#u-cmds button", size)
+                if size is not PHONE and screen != "line":
+                    fits(page)
+                where = f"{name} {screen}"
+                if bad := contrast_failures(page):
+                    problems[f"{where}: contrast"] = bad
+                if bad := fit_failures(page):
+                    problems[f"{where}: fit"] = bad
+            no_problems(page)
+            page.close()
+        assert not problems, json.dumps(problems, indent=1)
+    finally:
+        env.call_unit("case_packer", Command, "command", command=int(Cmd.UNHOLD), source="operator:test")  # fmt: skip
+        env.call_unit("robot_cell", SetAlarm, "set_alarm", id=201, active=False, category=-1,
+                      source="operator:test")  # fmt: skip
 
 
 def _children(pid: int) -> list[int]:

@@ -27,6 +27,8 @@
 //   {"op": "wait", "path": P, "value": V, "timeout": ms}   a subscription until the value is V
 //   {"op": "wait", "path": P, "until": "<JS expression of v (value) and s (status name)>"}
 //        ... until the expression holds: {value, status, at (ms since the epoch), seen}
+//   {"op": "write", "path": P, "value": {"type": "Int32", "value": 1}[, "attribute": "Value"]}
+//        {status} of the node's write (a ServiceFault: {error})
 //   {"op": "namespaces"}                           Server/Namespaces: uri, version, publication date
 // Prints {"ok": true, "results": [...]} or {"ok": false, "error": "...", "results": [...]}.
 
@@ -250,6 +252,14 @@ async function run(session, step, resolve, client, alias) {
                 outputs: (r.outputArguments || []).map((v) => plain(v.value)),
                 inputArgumentResults: (r.inputArgumentResults || []).map((c) => c.name),
             };
+        }
+        case "write": {
+            // a ServiceFault throws: the step answers {error}; a per-node refusal is {status}
+            const nodeId = await resolve(step.path);
+            const value = await argument(session, step.value, alias);
+            const attributeId = AttributeIds[step.attribute ?? "Value"];
+            const status = await session.write({ nodeId, attributeId, value: { value } });
+            return { status: status.name };
         }
         case "wait": {
             const nodeId = await resolve(step.path);

@@ -126,7 +126,8 @@ class Line:
         history: History = store if store is not None else BoundedHistory()
         self.memory = None if store is not None else history
         self.perf = Performance(cell.line, cell.units, Ledger(history))
-        self.last_result = ""
+        self._last_result = ""
+        self._result_in = 0  # the cell's state when the last result was given
         self.index = 0
         self.inputs: list[InputRecord] = []
         self.episodes_out: list[tuple[Episode, int]] = []
@@ -272,8 +273,25 @@ class Line:
         if text:
             self.last_result = text
 
+    @property
+    def last_result(self) -> str:
+        """The outcome of the last cell command or mode change ("START failed (2.1 s)"): shown
+        in the cell's detail until the cell's state changes (then it is no longer news: a
+        cell that runs is not described by a START that failed before)."""
+        return self._last_result
+
+    @last_result.setter
+    def last_result(self, text: str) -> None:
+        self._last_result = text
+        self._result_in = self.cell.view(False, "", "").state_current
+
     def view(self) -> CellView:
-        return self.cell.view(bool(self.runs.active), self.runs.step, self.last_result)
+        busy = bool(self.runs.active)
+        view = self.cell.view(busy, self.runs.step, self._last_result)
+        if self._last_result and not busy and view.state_current != self._result_in:
+            self._last_result = ""
+            view = self.cell.view(busy, self.runs.step, "")
+        return view
 
     # ================================================================================================
     # Performance

@@ -17,7 +17,29 @@ function dur(s) {
   const h = Math.floor(s / 3600), m = Math.floor((s % 3600) / 60), sec = s % 60;
   return `${sign}${h}:${String(m).padStart(2, "0")}:${sec.toFixed(1).padStart(4, "0")}`;
 }
-function clock(t) { return t ? new Date(t * 1000).toLocaleString() : "–"; }
+// times as on the other screens: 24-hour, the date only when it is not today
+function clock(t) {
+  if (!t) return "–";
+  const d = new Date(t * 1000);
+  const time = d.toLocaleTimeString([], { hour12: false });
+  return d.toDateString() === new Date().toDateString() ? time : `${d.toLocaleDateString()} ${time}`;
+}
+
+// the header of the other screens: the cell's title, Overview, a tab per unit, Alarms, Line
+async function header() {
+  try {
+    const r = await fetch("/api/config", { headers: { Accept: "application/json" } });
+    if (!r.ok) return;
+    const cfg = await r.json();
+    $("#title").textContent = cfg.title || "PackML HMI";
+    document.title = `Line · ${cfg.title || "PackML HMI"}`;
+    $("#nav").innerHTML = [`<a href="/#/overview">Overview</a>`]
+      .concat(cfg.units.map((u) => `<a href="/#/unit/${encodeURIComponent(u.name)}">${esc(u.name)}</a>`))
+      .concat([`<a href="/#/alarms">Alarms</a>`]).join("");
+  } catch (e) {
+    // the tabs stay as the page came: Overview and Alarms
+  }
+}
 
 function chart(id, config) {
   if (charts[id]) {
@@ -106,7 +128,7 @@ function trend(data) {
   chart("trend", {
     type: "line",
     data: {
-      labels: data.trend.map((w) => new Date(w.end * 1000).toLocaleTimeString([], { hour: "2-digit", minute: "2-digit" })),
+      labels: data.trend.map((w) => new Date(w.end * 1000).toLocaleTimeString([], { hour: "2-digit", minute: "2-digit", hour12: false })),
       datasets: ["oee", "availability", "performance", "quality"].map((k, i) => ({
         label: k, data: data.trend.map((w) => (w.scopes[0].elapsed > 0 && w.scopes[0][k] !== null ? 100 * w.scopes[0][k] : null)),
         borderColor: ["#1d2733", "#1565c0", "#e08600", "#2e7d32"][i], borderWidth: k === "oee" ? 3 : 1.5, spanGaps: true,
@@ -158,7 +180,7 @@ async function refresh() {
       trend(data);
     }
     $("#line-lamp").className = "lamp on-ok";
-    $("#line-updated").textContent = `updated ${new Date().toLocaleTimeString()}`;
+    $("#line-updated").textContent = `updated ${new Date().toLocaleTimeString([], { hour12: false })}`;
     document.body.dataset.loaded = "1";
   } catch (err) {
     $("#line-lamp").className = "lamp on-fault";
@@ -168,6 +190,7 @@ async function refresh() {
 
 document.addEventListener("DOMContentLoaded", () => {
   $("#shift").addEventListener("change", (ev) => { shiftChoice = ev.target.value; refresh(); });
+  header();
   refresh();
   setInterval(refresh, REFRESH_MS);
 });
