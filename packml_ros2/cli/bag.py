@@ -245,6 +245,8 @@ def replay(args: argparse.Namespace) -> int:
         return _fail(str(exc), EXIT_UNUSABLE)
     except KeyError as exc:
         return _fail(str(exc.args[0] if exc.args else exc), EXIT_USAGE)
+    except (RecursionError, MemoryError) as exc:  # what no check of the bag foresaw: still input
+        return _fail(f"{args.bag}: cannot replay the bag: {type(exc).__name__} (nested too deeply, or larger than memory)", EXIT_UNUSABLE)  # fmt: skip
     if result is not None:
         print(result.report())
     for r in lines:
