@@ -203,3 +203,54 @@ def test_any_window_from_the_line_page_or_packml_report_leaves_the_coordinator_u
             assert len(ours) == 1 and ours[0].startswith("packml: "), (options[:2], result.stderr)
         assert coordinator.running(), coordinator.output()[-3000:]
     assert "Traceback" not in coordinator.output() + hmi.output(), (coordinator.output() + hmi.output())[-3000:]  # fmt: skip
+
+
+def test_anonymous_event_streams_cannot_crowd_out_an_operator(ros: Any, tmp_path: Any) -> None:
+    """Issue 25 item 11: 64 anonymous event streams made every operator page answer 503 until
+    they closed. Now one address gets at most MAX_STREAMS_PER_CLIENT anonymous streams, all of
+    them together leave OPERATOR_STREAMS to operators, and an operator who has logged in (a
+    one-use ticket: EventSource sends no Authorization header) gets a stream; another site's
+    page opens none."""
+    import contextlib
+
+    from packml_ros2.hmi.server import MAX_STREAMS, MAX_STREAMS_PER_CLIENT, OPERATOR_STREAMS
+
+    cell = Cell(ros, tmp_path, TOKEN, 3.0)
+    try:
+        with serving(cell.bridge) as http, contextlib.ExitStack() as stack:
+            base = str(http.base_url)
+            readers: list[Any] = []
+
+            def stream(address: str, query: str = "", **headers: str) -> httpx.Response:
+                client = stack.enter_context(httpx.Client(
+                    base_url=base, timeout=10, transport=httpx.HTTPTransport(local_address=address)))  # fmt: skip
+                r = stack.enter_context(
+                    client.stream("GET", f"/api/events{query}", headers=headers)
+                )
+                if r.status_code == 200:  # the snapshot: the stream is open
+                    chunks = r.iter_text()
+                    assert next(chunks).startswith("retry:"), address
+                    readers.append(chunks)  # (a reader collected closes its stream)
+                return r
+
+            anonymous = MAX_STREAMS - OPERATOR_STREAMS
+            for n in range(anonymous):
+                address = f"127.0.0.{2 + n // MAX_STREAMS_PER_CLIENT}"
+                assert stream(address).status_code == 200, n
+                if n == MAX_STREAMS_PER_CLIENT - 1:  # this address has its share
+                    assert stream(address).status_code == 429
+            r = stream("127.0.0.99")
+            assert r.status_code == 503, r.status_code  # every anonymous stream is taken
+            assert r.read() and strict(r.text)["code"] == "TOO_MANY_STREAMS"
+            # another site's page in the operator's browser opens none
+            assert stream("127.0.0.1", Origin="http://evil.example").status_code == 403
+            # the operator, logged in, gets one; a ticket is used once
+            for _ in range(3):
+                got = http.post("/api/events/ticket", headers={"Authorization": f"Bearer {TOKEN}"})
+                assert got.status_code == 200, got.text
+                ticket = got.json()["ticket"]
+                assert stream("127.0.0.1", f"?ticket={ticket}").status_code == 200
+                assert stream("127.0.0.1", f"?ticket={ticket}").status_code == 503  # used
+            assert http.post("/api/events/ticket", headers={"Authorization": "Bearer wrong"}).status_code == 403  # fmt: skip
+    finally:
+        cell.close()
