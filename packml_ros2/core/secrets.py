@@ -185,6 +185,8 @@ def check_password(password: str | None, stored: str) -> bool:
     if stored.startswith(HASH_PREFIX):
         try:
             iterations, salt, digest = stored[len(HASH_PREFIX) :].split("$")
+            if not MIN_HASH_ITERATIONS <= int(iterations[:12]) <= MAX_HASH_ITERATIONS:
+                return False  # (refused at load: check_hash)
             expected = base64.b64decode(digest)
             got = hashlib.pbkdf2_hmac(
                 "sha256", password.encode(), base64.b64decode(salt), int(iterations)
@@ -195,11 +197,20 @@ def check_password(password: str | None, stored: str) -> bool:
     return hmac.compare_digest(password.encode(), stored.encode())
 
 
+#: iterations a stored hash may ask for: every login attempt costs them (a hash of 10**9 would
+#: make each guess, and the rightful user's login, take minutes of a core)
+MIN_HASH_ITERATIONS, MAX_HASH_ITERATIONS = 1000, 2_000_000
+
+
 def check_hash(value: str) -> str:
-    """``value`` when it is a well-formed :func:`hash_password` hash (raises ``invalid``)."""
+    """``value`` when it is a well-formed :func:`hash_password` hash with an iteration count in
+    ``MIN_HASH_ITERATIONS .. MAX_HASH_ITERATIONS`` (raises ``invalid``)."""
     parts = value[len(HASH_PREFIX) :].split("$")
     if not value.startswith(HASH_PREFIX) or len(parts) != 3 or not parts[0].isdigit():
         raise invalid("malformed password hash (expected pbkdf2_sha256$<n>$<salt>$<hash>)")
+    if not MIN_HASH_ITERATIONS <= int(parts[0][:12]) <= MAX_HASH_ITERATIONS:
+        raise invalid(f"a password hash of {parts[0][:12]} iterations: give "
+                      f"{MIN_HASH_ITERATIONS} .. {MAX_HASH_ITERATIONS} (a login costs them)")  # fmt: skip
     return value
 
 
