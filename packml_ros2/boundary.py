@@ -13,22 +13,42 @@ A request that is not is answered at once, INVALID_ARGUMENT (or ``success: false
 and a sentence naming the field and its bound, never the value: the handler does not run, so
 nothing changes and the unit's input log records nothing. Each refusal is logged, escaped and
 rate-limited (:class:`~packml_ros2.core.limits.LogLimiter`).
+
+No callback ends a node: a handler that raises (a defect met by a request nobody foresaw) is
+answered as a refusal, INVALID_ARGUMENT with "<service> could not handle this request
+(<exception type>)"; a topic callback, a timer or a parameter validator that raises is logged and
+the node goes on. Every node of this package is a :class:`GuardedNode`, which puts
+:func:`contain` around each callback it is given. The log line names the exception, its
+message (escaped, cut, URL credentials redacted) and the line of this package it came from, never
+a traceback; lines are rate-limited like refusals.
 """
 
 from __future__ import annotations
 
 import array
+import functools
+import os
 import time
+import traceback
 from collections.abc import Callable
 from functools import cache
 from typing import Any
 
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+
 from .core.limits import MAX_ITEMS, MAX_REQUEST_TEXT, LogLimiter, printable, text_problem
 from .core.reasons import Reason
 from .core.rules import source_refusal
+from .core.secrets import redact_urls
 
 #: The log of refused requests, per process: a few lines of a kind, then a count.
 _LIMITER = LogLimiter()
+#: The log of callbacks that raised, per process.
+_FAILURES = LogLimiter()
+#: Characters of an exception's message kept in its log line.
+MAX_EXCEPTION_TEXT = 200
+_PACKAGE = os.path.dirname(os.path.abspath(__file__))
 
 
 class _Refused(Exception):
@@ -97,7 +117,11 @@ def guard(callback: Callable[[Any, Any], Any], service: str, log: Any,
     def guarded(request: Any, response: Any) -> Any:
         problem = problem_of(request)
         if problem is None:
-            return callback(request, response)
+            try:
+                return callback(request, response)
+            except Exception as exc:
+                failed(service, exc, log, clock)
+                return refusal(type(response)(), handler_failure(service, exc))
         text = f"refused: {problem}"
         write, summary = _LIMITER.admit(f"{service} {problem}", clock())
         if summary is not None:
@@ -107,3 +131,101 @@ def guard(callback: Callable[[Any, Any], Any], service: str, log: Any,
         return refusal(response, text)
 
     return guarded
+
+
+# -- callbacks that raise ---------------------------------------------------------------------------
+def handler_failure(service: str, exc: BaseException) -> str:
+    """What the caller of ``service`` is told when its handler raised ``exc`` (the type only)."""
+    return f"refused: {service} could not handle this request ({type(exc).__name__}); see its log"
+
+
+def _origin(exc: BaseException) -> str:
+    """``file:line`` of the innermost frame of this package the exception passed (else the
+    innermost frame), relative to the package."""
+    frames = traceback.extract_tb(exc.__traceback__)
+    ours = [f for f in frames if os.path.abspath(f.filename).startswith(_PACKAGE)]
+    frame = (ours or frames or [None])[-1]
+    if frame is None:
+        return "?"
+    name = os.path.abspath(frame.filename)
+    shown = os.path.relpath(name, os.path.dirname(_PACKAGE)) if name.startswith(_PACKAGE) else os.path.basename(name)  # fmt: skip
+    return f"{shown}:{frame.lineno}"
+
+
+def failed(what: str, exc: BaseException, log: Any, clock: Callable[[], float] = time.monotonic) -> None:  # fmt: skip
+    """Log that the callback ``what`` raised ``exc``: one line, bounded and rate-limited."""
+    text = printable(redact_urls(str(exc)), MAX_EXCEPTION_TEXT)
+    line = f"{what} failed: {type(exc).__name__}: {text} (at {_origin(exc)}); the node goes on"
+    write, summary = _FAILURES.admit(f"{what} {type(exc).__name__}", clock())
+    if summary is not None:
+        log.error(summary)
+    if write:
+        log.error(printable(line, 600))
+
+
+def contain(callback: Callable[..., Any], what: str, log: Any) -> Callable[..., Any]:
+    """``callback`` that logs (:func:`failed`) instead of raising: a topic or timer callback."""
+    if getattr(callback, "_packml_contained", False):
+        return callback
+
+    @functools.wraps(callback)  # (rclpy reads the signature: message info, timer info)
+    def contained(*args: Any) -> Any:
+        try:
+            return callback(*args)
+        except Exception as exc:
+            failed(what, exc, log)
+            return None
+
+    contained._packml_contained = True  # type: ignore[attr-defined]
+    return contained
+
+
+def contain_service(callback: Callable[[Any, Any], Any], service: str, log: Any) -> Callable[[Any, Any], Any]:  # fmt: skip
+    """``callback`` of ``service`` answering a refusal instead of raising."""
+    if getattr(callback, "_packml_contained", False):
+        return callback
+
+    @functools.wraps(callback)
+    def contained(request: Any, response: Any) -> Any:
+        try:
+            return callback(request, response)
+        except Exception as exc:
+            failed(service, exc, log)
+            return refusal(type(response)(), handler_failure(service, exc))
+
+    contained._packml_contained = True  # type: ignore[attr-defined]
+    return contained
+
+
+class GuardedNode(Node):
+    """rclpy's Node whose callbacks cannot end it: every subscription, timer, service and
+    parameter validator it is given is wrapped by :func:`contain` (services by
+    :func:`contain_service`). Every node of this package is one."""
+
+    def create_subscription(self, msg_type: Any, topic: str, callback: Any, qos_profile: Any,
+                            **kwargs: Any) -> Any:  # fmt: skip
+        where = f"topic {topic} of {self.get_fully_qualified_name()}"
+        return super().create_subscription(msg_type, topic, contain(callback, where, self.get_logger()), qos_profile, **kwargs)  # fmt: skip
+
+    def create_timer(self, timer_period_sec: float, callback: Any, *args: Any, **kwargs: Any) -> Any:  # fmt: skip
+        if callback is not None:
+            callback = contain(callback, f"a timer of {self.get_fully_qualified_name()}", self.get_logger())  # fmt: skip
+        return super().create_timer(timer_period_sec, callback, *args, **kwargs)
+
+    def create_service(self, srv_type: Any, srv_name: str, callback: Any, **kwargs: Any) -> Any:
+        where = f"{self.get_fully_qualified_name()}/{srv_name[2:]}" if srv_name.startswith("~/") else srv_name  # fmt: skip
+        return super().create_service(srv_type, srv_name, contain_service(callback, where, self.get_logger()), **kwargs)  # fmt: skip
+
+    def add_on_set_parameters_callback(self, callback: Any) -> None:
+        log = self.get_logger()
+        what = f"a parameter check of {self.get_fully_qualified_name()}"
+
+        @functools.wraps(callback)
+        def contained(parameters: Any) -> Any:
+            try:
+                return callback(parameters)
+            except Exception as exc:
+                failed(what, exc, log)
+                return SetParametersResult(successful=False, reason=f"{what} failed ({type(exc).__name__})")  # fmt: skip
+
+        super().add_on_set_parameters_callback(contained)

@@ -51,6 +51,7 @@ from rclpy.node import Node
 from std_srvs.srv import Trigger
 
 from . import line_msgs, qos, responses, run
+from .boundary import GuardedNode
 from .client import UnitProxy
 from .core import CellConfig, Cmd, ConfigError, State, load_cell, state_name, unit_config
 from .core.line.cell import (
@@ -94,7 +95,7 @@ THREADS = 8  # executor threads of main(): sequences block one each, callbacks n
 STOP_GIVE_UP = 5.0  # s past step_timeout a STOP waits for a running sequence to end
 
 
-class CoordinatorNode(Node):
+class CoordinatorNode(GuardedNode):
     """The coordinator of ``cell``: node ``coordinator`` in ``/<cell>``. Raises
     :class:`~packml_ros2.core.persistence.StoreError` when the line's store cannot be opened."""
 
@@ -556,11 +557,10 @@ class CoordinatorNode(Node):
         return resp
 
     def _srv_losses(self, req: QueryLosses.Request, resp: QueryLosses.Response) -> QueryLosses.Response:  # fmt: skip
-        step = req.step if req.step == req.step and 0 < req.step < 1e7 else 0.0  # NaN, inf: none
         with self._cond:
             now = self._wall()
             views, why = self.line.query_losses(req.window[:100], line_msgs.ns_of(req.since),
-                                                line_msgs.ns_of(req.until), step, req.count)  # fmt: skip
+                                                line_msgs.ns_of(req.until), req.step, req.count)  # fmt: skip
             designs = self._designs()
         resp.accepted = not why
         resp.result = Result.ACCEPTED if not why else Result.INVALID_ARGUMENT

@@ -50,10 +50,10 @@ from typing import Any, NamedTuple, TypeVar
 
 from builtin_interfaces.msg import Time
 from packml_interfaces.msg import EmReport, Status
-from rclpy.node import Node
 from rclpy.serialization import deserialize_message
 
 from . import qos, run
+from .boundary import GuardedNode
 from .cdr_fields import Unreadable, field_reader
 from .core.numbers import ACTING, Cmd, State, state_name
 from .core.reports import Writers
@@ -146,7 +146,7 @@ class StateContext:
             raise
 
 
-class EquipmentModule(Node):
+class EquipmentModule(GuardedNode):
     """An EM node ``name`` under its unit: ``/<cell>/<unit>/<name>``."""
 
     #: The hook an EM runs when its unit is gone (its status writer left the graph: the unit's

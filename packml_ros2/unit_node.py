@@ -55,6 +55,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from . import convert, qos, responses, run
+from .boundary import GuardedNode
 from .core import (
     CellConfig,
     Cmd,
@@ -88,7 +89,7 @@ DIAGNOSTICS_PERIOD = 1.0
 EM_LEAVE_GRACE = 1.0
 
 
-class UnitNode(Node):
+class UnitNode(GuardedNode):
     """One PackML unit. ``UnitNode(config)`` names itself ``config.name`` in ``/<config.cell>``."""
 
     def __init__(self, config: UnitConfig, *, context: Any = None, store_path: str | None = None,

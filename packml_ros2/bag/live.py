@@ -305,9 +305,9 @@ def replay_live(path: str | Path, speed: float = 1.0, units: Sequence[str] = (),
     import rclpy
     from rclpy.context import Context
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
-    from rclpy.node import Node
 
     from .. import run
+    from ..boundary import GuardedNode as Node
 
     if speed <= 0:
         raise ValueError("--speed must be > 0")

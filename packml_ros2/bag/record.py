@@ -75,7 +75,7 @@ class Recorder:
         context: Any = None,
         node_name: str | None = None,
     ) -> None:
-        from rclpy.node import Node
+        from ..boundary import GuardedNode as Node
 
         if storage not in STORAGES:
             raise ValueError(f"storage {storage!r}: choose one of {', '.join(STORAGES)}")

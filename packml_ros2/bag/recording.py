@@ -6,20 +6,34 @@ metadata.yaml, a directory holding one ``.mcap`` / ``.db3`` file, or such a file
 read with rosbags (it uses the definitions stored in the bag); the stored definition of every
 packml type must equal the installed one (same RIHS01 hash), since values are compared with the
 installed types.
+
+A bag is hostile input like a cell file (:func:`load` refuses it with one
+:class:`RecordingError` line, which ``packml replay`` reports with exit code 2): a path that is not
+a regular file or directory (a FIFO would block), sizes and nesting that do not fit
+(:data:`MAX_CHUNK_BYTES` decompressed per chunk, however the chunk declares itself: a "zstd bomb"
+of 64 kB once expanded to 1.85 GB; :data:`MAX_MESSAGE_BYTES` of messages in all; damaged sizes
+that ask for more memory than there is), messages that do not decode, notes and configurations
+that are not what the recorder writes (a JSON object, finite numbers), and times no recording
+holds: a stamp more than :data:`MAX_SKEW` away from the span the bag was recorded in (one message
+dated 10 years ahead made the replay run through 10 years of deadlines).
 """
 
 from __future__ import annotations
 
 import functools
 import json
+import math
+import os
 import sqlite3
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from rclpy.serialization import deserialize_message
 
-from .cdr import read_unit_input
+from ..core.files import kind_of
+from .cdr import raw_stamp, read_unit_input
 from .topics import CUSTOM_KEY, OUTPUT_TOPICS, UNIT_TOPICS, msg_class, split_topic, typestore
 
 #: Why a recording cannot be replayed (:attr:`RecordingError.reason`) -> the exit code of
@@ -52,6 +66,14 @@ class RecordingError(Exception):
 #: least up to the unit's last input in the bag (a unit publishes what happened up to an input
 #: before that input's record).
 FOREIGN_MARGIN = 0.1
+#: bytes one chunk of a bag may decompress to (rosbag2 writes chunks of about 1 MB)
+MAX_CHUNK_BYTES = 256 * 1024 * 1024
+#: bytes of messages one bag may hold (what a replay keeps in memory)
+MAX_MESSAGE_BYTES = 1024 * 1024 * 1024
+#: s: how far a unit's stamp may lie outside the span of the bag's receive times (clocks of hosts)
+MAX_SKEW = 3600.0
+#: how deeply the JSON of a bag (notes, configurations, inputs) may nest
+MAX_JSON_DEPTH = 64
 
 
 @dataclass
@@ -117,13 +139,15 @@ class Recording:
     digests: dict[str, str] = field(default_factory=dict)  # msgtype -> stored RIHS01
     #: the bag's last message (receive time, seconds); None: no message
     end: float | None = None
+    #: the bag's first message (receive time, seconds); None: no message
+    start: float | None = None
 
     @property
     def stop(self) -> float | None:
         """When our recorder stopped (seconds; the units' clock on one host); None: the bag does
         not say (another recorder's)."""
         stopped = self.custom.get("stopped_at_ns")
-        if isinstance(stopped, (int, float)) and not isinstance(stopped, bool):
+        if isinstance(stopped, (int, float)) and not isinstance(stopped, bool) and math.isfinite(stopped):  # fmt: skip
             return float(stopped) * 1e-9
         return None
 
@@ -145,7 +169,11 @@ def bag_path(path: str | Path) -> Path:
             raise RecordingError(
                 f"{p}: neither a rosbag2 bag (no metadata.yaml) nor a directory with one .mcap/.db3 file"
             )
-        return files[0]
+        p = files[0]
+    for f in [p, *(x for x in p.iterdir() if x.name != "metadata.yaml")] if p.is_dir() else [p]:
+        kind = kind_of(os.stat(f).st_mode)
+        if kind and not (f is p and kind == "a directory"):
+            raise RecordingError(f"{f}: not a regular file ({kind}): not a bag")
     return p
 
 
@@ -154,17 +182,143 @@ def load(path: str | Path, keep_raw: bool = False, em_reports: bool = True) -> R
     ``em_reports=False`` leaves the EM reports unread: the offline check does not need them (the
     input log holds every report the unit applied), only ``--live`` publishes them."""
     p = bag_path(path)
+    _bound_decompression()
     try:
         with _open(p) as bag:
-            return _load(bag, path, keep_raw, em_reports)
+            recording = _load(bag, path, keep_raw, em_reports)
     except RecordingError:
         raise
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise RecordingError(f"{path}: cannot read the bag: {exc}", "unreadable") from None
+    except MemoryError:
+        raise RecordingError(f"{path}: cannot read the bag: a size recorded in it is larger than "
+                             "this machine's memory (a damaged record?)", "unreadable") from None  # fmt: skip
+    except RecursionError:
+        raise RecordingError(f"{path}: cannot read the bag: its data is nested too deeply") from None  # fmt: skip
+    except (OSError, ValueError, KeyError, TypeError, OverflowError, IndexError, AttributeError,
+            struct.error, EOFError, RuntimeError) as exc:  # fmt: skip
+        raise RecordingError(f"{path}: cannot read the bag: {_said(exc)}", "unreadable") from None
     except Exception as exc:  # rosbags' reader errors
         if type(exc).__module__.startswith("rosbags"):
-            raise RecordingError(f"{path}: cannot read the bag: {exc}", "unreadable") from None
+            raise RecordingError(
+                f"{path}: cannot read the bag: {_said(exc)}", "unreadable"
+            ) from None
         raise
+    check(recording, path)
+    return recording
+
+
+def _said(exc: BaseException) -> str:
+    """An exception as one short line of a refusal."""
+    from ..core.limits import printable
+
+    return printable(str(exc) or type(exc).__name__, 200)
+
+
+def bounded_json(text: str, what: str) -> Any:
+    """``text`` parsed as JSON, if it is JSON nested at most :data:`MAX_JSON_DEPTH` deep with
+    finite numbers (else :class:`ValueError` saying what ``what`` is not)."""
+    depth = deepest = 0
+    quoted = escaped = False
+    brackets = text.count("[") + text.count("{")
+    for c in (
+        text if brackets > MAX_JSON_DEPTH else ""
+    ):  # (json.loads recurses: 100 000 brackets are a RecursionError)
+        if quoted:
+            escaped, quoted = (False, True) if escaped else (c == "\\", c != '"')
+        elif c == '"':
+            quoted = True
+        elif c in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif c in "]}":
+            depth -= 1
+    if deepest > MAX_JSON_DEPTH:
+        raise ValueError(f"{what} is nested {deepest} levels deep (at most {MAX_JSON_DEPTH})")
+
+    def refuse(name: str) -> Any:
+        raise ValueError(f"{what} holds {name}, not a number")
+
+    try:
+        return json.loads(text, parse_constant=refuse)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{what} is not JSON ({exc.msg} at {exc.pos})") from None
+
+
+def check(recording: Recording, path: str | Path) -> None:
+    """Refuse (:class:`RecordingError`) a bag whose units' configurations are not JSON objects
+    or whose stamps lie outside the span it was recorded in (see the module docstring)."""
+    if recording.end is None:
+        return
+    first = recording.start if recording.start is not None else recording.end
+    lo, hi = first - MAX_SKEW, recording.end + MAX_SKEW
+    stop = recording.custom.get("stopped_at_ns")
+    if stop is not None and (not isinstance(stop, int | float) or isinstance(stop, bool)
+                             or not lo <= stop * 1e-9 <= hi):  # fmt: skip
+        raise RecordingError(f"{path}: its recorder's stop time {str(stop)[:40]} lies outside the "
+                             "time the bag was recorded in")  # fmt: skip
+    for unit in recording.units.values():
+        if unit.config_json is not None:
+            try:
+                config = bounded_json(unit.config_json, f"the configuration of {unit.prefix}")
+            except ValueError as exc:
+                raise RecordingError(f"{path}: {exc}") from None
+            if not isinstance(config, dict):
+                raise RecordingError(f"{path}: the configuration of {unit.prefix} is not a JSON object")  # fmt: skip
+        stamps = [(f"input #{i.index}", i.time) for i in unit.inputs]
+        stamps += [(f"{t} message {k}", raw_stamp(m)) for t, msgs in unit.outputs.items() for k, m in enumerate(msgs)]  # fmt: skip
+        for what, t in stamps:
+            if not lo <= t <= hi:  # (NaN too)
+                shown = "not a time" if math.isnan(t) else f"{t - recording.end:+.0f} s from its last message"  # fmt: skip
+                raise RecordingError(f"{path}: {unit.prefix} {what} is stamped {shown}: outside the "
+                                     f"time the bag was recorded in (+-{MAX_SKEW:g} s; a damaged "
+                                     "bag, or a clock that jumped)")  # fmt: skip
+        for i in unit.inputs:
+            if i.args_json.count("[") + i.args_json.count("{") > MAX_JSON_DEPTH:  # (cheap first)
+                try:  # (replay parses each input's arguments: json.loads recurses)
+                    bounded_json(i.args_json, f"{unit.prefix} input #{i.index}")
+                except ValueError as exc:
+                    raise RecordingError(f"{path}: {exc}") from None
+            if i.name == "start":
+                try:
+                    args = bounded_json(i.args_json, f"{unit.prefix} input #{i.index}")
+                except ValueError as exc:
+                    raise RecordingError(f"{path}: {exc}") from None
+                t = args.get("time", i.time) if isinstance(args, dict) else None
+                if not isinstance(t, int | float) or not lo <= t <= hi:
+                    raise RecordingError(f"{path}: {unit.prefix} input #{i.index} (start) has no "
+                                         "time inside the time the bag was recorded in")  # fmt: skip
+
+
+@functools.cache
+def _bound_decompression() -> None:
+    """Make rosbags' MCAP reader decompress a chunk only up to the size the chunk declares, and
+    only a declared size up to :data:`MAX_CHUNK_BYTES` (its decompressors take no bound: a
+    zstd frame that expands to gigabytes was expanded whole). Once per process."""
+    from rosbags.rosbag2 import storage_mcap
+    from rosbags.rosbag2.errors import ReaderError
+
+    zstd: Any = storage_mcap.zstd
+    from lz4.frame import LZ4FrameDecompressor
+
+    def bounded(make: Any) -> Any:
+        def decompress(data: bytes, size: int) -> bytes:
+            if not 0 <= size <= MAX_CHUNK_BYTES:
+                raise ReaderError(f"a chunk declares {size} bytes once decompressed (at most {MAX_CHUNK_BYTES})")  # fmt: skip
+            out = bytearray()
+            rest = bytes(data)
+            while rest and len(out) <= size:
+                d = make()
+                out += d.decompress(rest, max_length=size + 1 - len(out))
+                if not d.eof:
+                    break  # (more than declared, or a truncated frame: the size check says so)
+                rest = d.unused_data
+            if len(out) > size or rest:
+                raise ReaderError(f"a chunk expands to more than the {size} bytes it declares")
+            return bytes(out)
+
+        return decompress
+
+    storage_mcap.DECOMPRESSORS["zstd"] = bounded(zstd.ZstdDecompressor)
+    storage_mcap.DECOMPRESSORS["lz4"] = bounded(LZ4FrameDecompressor)
 
 
 class _Bag:
@@ -232,9 +386,10 @@ def _open(p: Path) -> _Bag:
         notes = (info.get("custom_data") or {}).get(CUSTOM_KEY)
         if notes:
             try:
-                bag.custom = json.loads(notes)
+                custom = bounded_json(str(notes), "the recorder's notes")
             except ValueError:
-                bag.custom = {}
+                custom = {}
+            bag.custom = custom if isinstance(custom, dict) else {}
         files = info.get("relative_file_paths") or []
         simple = (
             len(files) == 1
@@ -388,11 +543,18 @@ def _load(bag: _Bag, path: str | Path, keep_raw: bool, em_reports: bool = True) 
     raw_messages: list[tuple[Any, int, bytes]] = []
     count = 0
     last = -1
+    first = -1
+    held = 0
     by_topic = {c.topic: split_topic(c.topic) for c in wanted}
     for conn, ts, data in bag.messages(() if keep_raw else wanted):
         count += 1
         last = max(last, ts)
+        first = ts if first < 0 else min(first, ts)
         raw = bytes(data)
+        held += len(raw)
+        if held > MAX_MESSAGE_BYTES:
+            raise RecordingError(f"{path}: its messages hold more than {MAX_MESSAGE_BYTES} bytes: "
+                                 "larger than a bag packml replay reads")  # fmt: skip
         if keep_raw:
             raw_messages.append((conn, ts, raw))
         split = by_topic.get(conn.topic)
@@ -433,4 +595,4 @@ def _load(bag: _Bag, path: str | Path, keep_raw: bool, em_reports: bool = True) 
             if len(numbers) == len(recorded):
                 unit.publications[topic] = numbers
     return Recording(bag.path, bag.storage, units, bag.custom, count, bag.connections, raw_messages,
-                     digests, last * 1e-9 if last >= 0 else None)  # fmt: skip
+                     digests, last * 1e-9 if last >= 0 else None, first * 1e-9 if first >= 0 else None)  # fmt: skip

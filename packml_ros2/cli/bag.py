@@ -273,6 +273,8 @@ def replay(args: argparse.Namespace) -> int:
         return _fail(f"{exc} [{exc.reason}]", exc.exit_code)
     except KeyError as exc:
         return _fail(str(exc.args[0] if exc.args else exc), EXIT_USAGE)
+    except (RecursionError, MemoryError) as exc:  # what no check of the bag foresaw: still input
+        return _fail(f"{args.bag}: cannot replay the bag: {type(exc).__name__} (nested too deeply, or larger than memory)", EXIT_UNUSABLE)  # fmt: skip
     seconds = time.perf_counter() - started  # the whole check: units and line
     if result is not None:
         result.seconds = seconds

@@ -88,6 +88,8 @@ def hmi(args: argparse.Namespace) -> int:
         access = (f", {n} user login{'s' if n > 1 else ''}" if n
                   else ", an access token" if settings.token else "")  # fmt: skip
         print(f"{args.cell_file}: hmi valid ({settings.host}:{settings.port}{access})")
+        if settings.exposure:
+            print(f"packml hmi: warning: {settings.exposure}", file=sys.stderr)
         return EXIT_OK
     return serve(cell, settings)
 
@@ -153,13 +155,8 @@ def serve(cell: CellConfig, settings: HmiSettings) -> int:
         )
         print(f"PackML HMI for cell {cell.cell}: {url_of(sock, settings.host)}  ({access})",
               flush=True)  # fmt: skip
-        if not settings.loopback and not settings.token and not settings.users:
-            print(
-                f"packml hmi: warning: serving on {settings.host} without a token: other "
-                "machines can operate the cell (set hmi.users, or hmi.token: env:VAR or file:PATH)",
-                file=sys.stderr,
-                flush=True,
-            )
+        if settings.exposure:
+            print(f"packml hmi: warning: {settings.exposure}", file=sys.stderr, flush=True)
         # uvicorn handles Ctrl-C/SIGTERM while it runs and raises the signal again afterwards:
         # let that land here, so the bridge closes and the exit code is 0.
         for sig in (signal.SIGINT, signal.SIGTERM):

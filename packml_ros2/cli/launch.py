@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -59,12 +60,15 @@ def launch(args: argparse.Namespace) -> int:
 
     hmi = getattr(args, "hmi", None)
     opcua = getattr(args, "opcua", None)
+    exposure = None
     try:
         plan = launcher.plan(args.cell_file)
         if hmi is not None:  # the optional faces' blocks are checked before anything starts
             from ..hmi import hmi_settings
+            from .hmi import TOKEN_ENV
 
-            hmi_settings(plan.cell)
+            # (the HMI takes a token from the environment too: then it is not open)
+            exposure = None if os.environ.get(TOKEN_ENV) else hmi_settings(plan.cell).exposure
         if opcua is not None:
             from ..opcua import parse_opcua
 
@@ -74,6 +78,8 @@ def launch(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     if args.check:
         print(f"{args.cell_file}: valid ({plan.node_count} nodes)")
+        if hmi is not None and exposure:
+            print(f"packml launch: warning: the HMI: {exposure}", file=sys.stderr)
         return 0
     server = _start_server("hmi", args.cell_file, hmi) if hmi is not None else None
     opcua_server = _start_server("opcua", args.cell_file, opcua) if opcua is not None else None

@@ -62,13 +62,16 @@ def parse_time(text: str, now: float) -> float:
     """Seconds since the epoch of ``2h``, ``30min``, ``90s`` (back from now) or an ISO time
     (local time unless it names its zone)."""
     m = _SPAN.match(text.strip().lower())
-    if m:
-        return now - float(m[1]) * _UNITS[m[2]]
     try:
-        t = dt.datetime.fromisoformat(text.strip())
-    except ValueError:
-        raise ValueError(f"{text!r} is not a time: give 2h, 30min, 90s or 2025-06-16T06:00") from None  # fmt: skip
-    return t.timestamp()
+        t = now - float(m[1]) * _UNITS[m[2]] if m else dt.datetime.fromisoformat(text.strip()).timestamp()  # fmt: skip
+    except (
+        ValueError,
+        OverflowError,
+    ):  # (a year out of range, or a date out of what a platform's time holds)
+        t = math.nan
+    if not 0 <= t < 2**31:  # what a ROS Time holds (NaN too): 1970 .. 2038
+        raise ValueError(f"{text[:60]!r} is not a time between 1970 and 2038: give 2h, 30min, 90s or 2025-06-16T06:00")  # fmt: skip
+    return t
 
 
 def report(args: argparse.Namespace) -> int:

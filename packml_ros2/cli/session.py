@@ -14,9 +14,9 @@ from typing import Any
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
-from rclpy.node import Node
 
 from .. import run
+from ..boundary import GuardedNode
 from ..client import CellProxy, Unavailable, UnitProxy, discover_cells
 
 
@@ -32,7 +32,7 @@ class Session:
         rclpy.init(
             context=self.context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO
         )
-        self.node = Node(f"packml_cli_{os.getpid()}", context=self.context)
+        self.node = GuardedNode(f"packml_cli_{os.getpid()}", context=self.context)
         self.executor = MultiThreadedExecutor(context=self.context)
         self._closing = False
         self.executor.add_node(self.node)

@@ -96,7 +96,12 @@ MAX_LOGGED = 300
 def printable(text: str, limit: int = MAX_LOGGED) -> str:
     """``text`` as a log line may carry it: every control, format or separator character
     escaped (``\\n``, ``\\x1b``, ``\\u202e``), so nothing a caller sends can start a line of
-    its own, forge a severity or reorder what is shown; cut to ``limit`` characters."""
+    its own, forge a severity or reorder what is shown; cut to ``limit`` characters. A URL's
+    user information (``opc.tcp://user:password@host``) reads ``<redacted>``."""
+    if "@" in text:
+        from .secrets import redact_urls  # (secrets reads YAML: not at import)
+
+        text = redact_urls(text)
     if text.isprintable() and len(text) <= limit:
         return text
     out: list[str] = []

@@ -3,7 +3,7 @@
 :func:`read_document` reads and parses a file, :func:`parse_document` a text; both raise
 :class:`~.schema.ConfigError` with one line per problem, never a traceback:
 
-- a file that cannot be read, is larger than :data:`MAX_BYTES` or is not UTF-8 (with the line of
+- a file that cannot be read, is not a regular file (a FIFO would block), is larger than :data:`MAX_BYTES` or is not UTF-8 (with the line of
   the first bad byte);
 - YAML syntax errors (with their line);
 - a key written twice in one mapping (with both lines): YAML parsers silently keep the last one;
@@ -24,6 +24,7 @@ from typing import Any
 import yaml
 from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
 
+from .files import open_regular
 from .schema import ConfigError, shown
 
 MAX_BYTES = 4 * 1024 * 1024
@@ -44,7 +45,7 @@ def read_text(path: str | os.PathLike[str]) -> str:
     """The text of a configuration file (ConfigError when unreadable, too big or not UTF-8)."""
     p = Path(path)
     try:
-        with p.open("rb") as f:
+        with open_regular(p) as f:
             data = f.read(MAX_BYTES + 1)
     except OSError as exc:
         raise ConfigError(str(p), [("", f"cannot read: {exc.strerror or exc}")]) from None

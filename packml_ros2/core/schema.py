@@ -194,12 +194,12 @@ def text(n: Node) -> str:
 
 
 def name(n: Node) -> str:
-    """A ROS name component: letters, digits, underscores, not starting with a digit."""
+    """A ROS name component: ASCII letters, digits, underscores, not starting with a digit (rcl
+    refuses any other character: a node named with it could not start)."""
     s = text(n)
-    if not s or not (s[0].isalpha() or s[0] == "_") or not all(c.isalnum() or c == "_" for c in s):
-        raise invalid(
-            f"{shown(s)} is not a valid ROS name (letters, digits and _, not starting with a digit)"
-        )
+    if not s or not s.isascii() or not (s[0].isalpha() or s[0] == "_") or not all(c.isalnum() or c == "_" for c in s):  # fmt: skip
+        raise invalid(f"{shown(s)} is not a valid ROS name (ASCII letters, digits and _, not "
+                      "starting with a digit)")  # fmt: skip
     return s
 
 

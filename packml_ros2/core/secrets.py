@@ -15,6 +15,11 @@ coordinator, launcher, HMI, OPC UA), naming the key and never the value: the cel
 published on each unit's latched ``~/config`` topic and recorded in bags. What is published or
 recorded is :func:`redacted_yaml` anyway: every secret key, and every key whose name says it holds
 one (token, password, secret, private key), reads :data:`REDACTED`.
+
+A URL with credentials in it (``opc.tcp://user:password@host``) is refused the same way, at any
+key: a user name and password come from their own keys (a PLC's ``user`` and ``password``). And
+wherever a URL is shown (``~/config``, bags, refusals, log lines: :func:`redact_urls`, which
+:func:`~.limits.printable` applies), its user information reads :data:`REDACTED`.
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ from typing import Any
 
 import yaml
 
+from .files import open_regular
 from .schema import Node, invalid
 
 #: Key paths of secrets (``*``: any key of that mapping).
@@ -53,6 +59,19 @@ HASH_PREFIX = "pbkdf2_sha256$"
 HASH_PREFIXES = (HASH_PREFIX,)
 _SECRET_NAME = re.compile(r"token|passw|secret|private|credential|api_?key", re.IGNORECASE)
 _VARIABLE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+#: the user information of a URL (``scheme://user:password@``), up to its last ``@``
+_USERINFO = re.compile(r"\b([A-Za-z][A-Za-z0-9+.-]*://)([^/\s?#]*)@")
+
+
+def redact_urls(text: str) -> str:
+    """``text`` with the user information of every URL in it (``opc.tcp://user:pw@host``)
+    replaced by :data:`REDACTED`: what a message, a log line or a bag may carry of a URL."""
+    return _USERINFO.sub(lambda m: f"{m.group(1)}{REDACTED}@", text) if "@" in text else text
+
+
+def url_userinfo(text: str) -> bool:
+    """Whether ``text`` holds a URL with user information (a user name, a password)."""
+    return _USERINFO.search(text) is not None
 
 
 def is_reference(value: Any, hashed: bool = False) -> bool:
@@ -77,11 +96,27 @@ def _matches(root: Any, pattern: tuple[str, ...], path: str = "") -> list[tuple[
 
 def plain_secrets(document: Any) -> list[tuple[str, str]]:
     """Problems for every secret key of a cell document that holds a value instead of a
-    reference (the value itself is never quoted)."""
+    reference, and for every URL that holds credentials (the value itself is never quoted)."""
     out = []
     for pattern in SECRET_KEYS:
         out.extend(_plain(document, pattern, HASHED_KEYS.get(pattern, "")))
+    out.extend(_url_credentials(document))
     return out
+
+
+def _url_credentials(value: Any, path: str = "") -> list[tuple[str, str]]:
+    if isinstance(value, str):
+        if "@" in value and url_userinfo(value):
+            return [(path, "a URL never holds a user name or password (scheme://user:password@): "
+                           "the cell file is published on the units' ~/config topic and recorded "
+                           "in bags; give them with their own keys (user:, and password: as "
+                           "env:VARIABLE or file:PATH)")]  # fmt: skip
+        return []
+    if isinstance(value, Mapping):
+        return [p for k, v in value.items() for p in _url_credentials(v, f"{path}.{k}" if path else str(k))]  # fmt: skip
+    if isinstance(value, list):
+        return [p for i, v in enumerate(value) for p in _url_credentials(v, f"{path}[{i}]")]
+    return []
 
 
 def _plain(document: Any, pattern: tuple[str, ...], hasher: str) -> list[tuple[str, str]]:
@@ -110,7 +145,7 @@ def resolve(n: Node, base: Path, hashed: bool = False) -> str:
         p = Path(value[5:]).expanduser()
         p = p if p.is_absolute() else base / p
         try:
-            with p.open("rb") as f:
+            with open_regular(p) as f:
                 data = f.read(MAX_SECRET_BYTES + 1)
         except OSError as exc:
             raise invalid(f"cannot read {p}: {exc.strerror or type(exc).__name__}") from None
@@ -150,6 +185,8 @@ def check_password(password: str | None, stored: str) -> bool:
     if stored.startswith(HASH_PREFIX):
         try:
             iterations, salt, digest = stored[len(HASH_PREFIX) :].split("$")
+            if not MIN_HASH_ITERATIONS <= int(iterations[:12]) <= MAX_HASH_ITERATIONS:
+                return False  # (refused at load: check_hash)
             expected = base64.b64decode(digest)
             got = hashlib.pbkdf2_hmac(
                 "sha256", password.encode(), base64.b64decode(salt), int(iterations)
@@ -160,11 +197,20 @@ def check_password(password: str | None, stored: str) -> bool:
     return hmac.compare_digest(password.encode(), stored.encode())
 
 
+#: iterations a stored hash may ask for: every login attempt costs them (a hash of 10**9 would
+#: make each guess, and the rightful user's login, take minutes of a core)
+MIN_HASH_ITERATIONS, MAX_HASH_ITERATIONS = 1000, 2_000_000
+
+
 def check_hash(value: str) -> str:
-    """``value`` when it is a well-formed :func:`hash_password` hash (raises ``invalid``)."""
+    """``value`` when it is a well-formed :func:`hash_password` hash with an iteration count in
+    ``MIN_HASH_ITERATIONS .. MAX_HASH_ITERATIONS`` (raises ``invalid``)."""
     parts = value[len(HASH_PREFIX) :].split("$")
     if not value.startswith(HASH_PREFIX) or len(parts) != 3 or not parts[0].isdigit():
         raise invalid("malformed password hash (expected pbkdf2_sha256$<n>$<salt>$<hash>)")
+    if not MIN_HASH_ITERATIONS <= int(parts[0][:12]) <= MAX_HASH_ITERATIONS:
+        raise invalid(f"a password hash of {parts[0][:12]} iterations: give "
+                      f"{MIN_HASH_ITERATIONS} .. {MAX_HASH_ITERATIONS} (a login costs them)")  # fmt: skip
     return value
 
 
@@ -186,7 +232,7 @@ def redact(document: Any) -> Any:
             return out
         if isinstance(value, list):
             return [copy(v, f"{path}[{i}]") for i, v in enumerate(value)]
-        return value
+        return redact_urls(value) if isinstance(value, str) else value
 
     return copy(document, "")
 

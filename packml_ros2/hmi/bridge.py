@@ -40,8 +40,8 @@ from packml_interfaces.srv import Command, SetMode
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.node import Node
 
+from ..boundary import GuardedNode
 from ..client import CellProxy, Unavailable, call_future
 from ..core import CellConfig
 from ..core.config import UnitConfig
@@ -393,7 +393,7 @@ class Bridge:
                 context=context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO
             )
         self.context = context
-        self.node = Node(
+        self.node = GuardedNode(
             f"hmi_{os.getpid()}_{next(_node_ids)}", namespace=f"/{cell.cell}", context=context
         )
         self._lock = threading.RLock()

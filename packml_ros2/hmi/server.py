@@ -8,7 +8,10 @@ forbids it):
 - ``GET /api/events``: server-sent events: one ``snapshot`` first, then an ``update`` per change
   (``{topic, unit, data, received}``; ``received`` = when the bridge got the message, ms since the
   epoch), a ``ping`` every 5 s (the page notices a server that went silent; proxies keep the
-  stream open);
+  stream open). At most :data:`MAX_STREAMS_PER_CLIENT` anonymous streams per address and
+  ``MAX_STREAMS - OPERATOR_STREAMS`` in all (429/503 beyond); ``?ticket=`` from ``POST
+  /api/events/ticket`` (authorized, used once within 30 s) opens one of the streams kept for
+  operators who have logged in; a page of another origin opens none (403);
 - ``POST /api/units/{unit}/{action}`` (command, set_mode, ack_alarms, reset_alarms, reset_times,
   reset_counters, set_em_active, set_mach_speed) and ``POST /api/cell/{action}`` (command,
   set_mode through the coordinator), JSON body with the action's arguments: the unit's answer
@@ -34,8 +37,10 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import secrets
 import socket
 import threading
+import time
 from collections.abc import AsyncIterator, Iterable
 from importlib import resources
 from pathlib import Path
@@ -57,6 +62,12 @@ STATIC = Path(str(resources.files("packml_ros2.hmi") / "static"))
 KEEPALIVE = 5.0  # s between pings on an idle event stream
 QUEUE_LIMIT = 2000  # events waiting for one slow browser before it is sent a fresh snapshot
 MAX_STREAMS = 64  # event streams open at once (each holds a queue)
+#: of them, streams kept for operators who have logged in (a stream ticket): 64 anonymous
+#: streams made every operator page answer 503 until they closed
+OPERATOR_STREAMS = 16
+MAX_STREAMS_PER_CLIENT = 6  # anonymous streams from one address (a browser opens at most 6)
+TICKET_LIFETIME = 30.0  # s: a stream ticket is used once, within this
+MAX_TICKETS = 256
 ACTION_TIMEOUT = 10.0
 CELL_ACTION_TIMEOUT = 120.0  # a cell command waits for the whole sequence
 CSP = (
@@ -74,6 +85,49 @@ class Hub:
         self.loop: asyncio.AbstractEventLoop | None = None
         self.queues: set[asyncio.Queue[Event | None]] = set()
         self.closed = False
+        self.clients: dict[str, int] = {}  # address -> anonymous streams open
+        self.operators = 0  # streams opened with a ticket
+        self.tickets: dict[str, float] = {}  # ticket -> when it expires (monotonic)
+
+    def ticket(self) -> str:
+        """A one-use ticket for an operator's stream (``GET /api/events?ticket=``: EventSource
+        cannot send an Authorization header)."""
+        now = time.monotonic()
+        for t in [t for t, due in self.tickets.items() if due <= now]:
+            del self.tickets[t]
+        while len(self.tickets) >= MAX_TICKETS:
+            del self.tickets[next(iter(self.tickets))]
+        ticket = secrets.token_urlsafe(24)
+        self.tickets[ticket] = now + TICKET_LIFETIME
+        return ticket
+
+    def admit(self, ticket: str | None, client: str) -> tuple[bool, Refusal | None]:
+        """Whether a stream may open now: (an operator's, refusal or None)."""
+        due = self.tickets.pop(ticket, None) if ticket else None
+        if due is not None and due > time.monotonic():
+            if self.operators >= OPERATOR_STREAMS and len(self.queues) >= MAX_STREAMS:
+                return True, Refusal(503, Reason.UNIT_UNAVAILABLE, "TOO_MANY_STREAMS",
+                                     f"{OPERATOR_STREAMS} operators' event streams are open: close a page")  # fmt: skip
+            return True, None
+        anonymous = len(self.queues) - self.operators
+        if anonymous >= MAX_STREAMS - OPERATOR_STREAMS:
+            return False, Refusal(503, Reason.UNIT_UNAVAILABLE, "TOO_MANY_STREAMS",
+                                  f"{anonymous} event streams are open: close a page (an operator who "
+                                  "has logged in still gets one)")  # fmt: skip
+        if self.clients.get(client, 0) >= MAX_STREAMS_PER_CLIENT:
+            return False, Refusal(429, Reason.UNIT_UNAVAILABLE, "TOO_MANY_STREAMS",
+                                  f"{MAX_STREAMS_PER_CLIENT} event streams are open from this address: close a page")  # fmt: skip
+        return False, None
+
+    def count(self, operator: bool, client: str, delta: int) -> None:
+        if operator:
+            self.operators += delta
+        else:
+            n = self.clients.get(client, 0) + delta
+            if n > 0:
+                self.clients[client] = n
+            else:
+                self.clients.pop(client, None)
 
     def open(self) -> tuple[dict[str, Any], asyncio.Queue[Event | None], Any]:
         loop = self.loop = asyncio.get_running_loop()
@@ -180,12 +234,23 @@ def create_app(bridge: Bridge, allowed_hosts: Iterable[str] = ()) -> FastAPI:
     async def snapshot() -> Json:
         return Json(bridge.snapshot())
 
+    @app.post("/api/events/ticket")
+    async def events_ticket(request: Request) -> Json:
+        who = access.authorize(_token(request), _client(request))
+        if isinstance(who, Refusal):
+            return refuse(who)
+        return welcome(who, "a ticket for one event stream", ticket=hub.ticket())
+
     @app.get("/api/events", response_model=None)
-    async def events(request: Request) -> Response:
-        if len(hub.queues) >= MAX_STREAMS:
-            return refuse(Refusal(503, Reason.UNIT_UNAVAILABLE, "TOO_MANY_STREAMS",
-                                  f"{MAX_STREAMS} event streams are open: close a page"))  # fmt: skip
+    async def events(request: Request, ticket: str | None = None) -> Response:
+        refusal = guard.cross_site(request)  # (another site's page may open a stream too)
+        client = _client(request)
+        operator, refused = hub.admit(ticket[:100] if ticket else None, client)
+        refusal = refusal or refused
+        if refusal is not None:
+            return refuse(refusal)
         snap, queue, unsubscribe = hub.open()
+        hub.count(operator, client, +1)
 
         async def stream() -> AsyncIterator[str]:
             try:
@@ -204,6 +269,7 @@ def create_app(bridge: Bridge, allowed_hosts: Iterable[str] = ()) -> FastAPI:
                         yield _sse("update", event)
             finally:
                 hub.close(queue, unsubscribe)
+                hub.count(operator, client, -1)
 
         return StreamingResponse(
             stream(),

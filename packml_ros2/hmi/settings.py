@@ -62,6 +62,15 @@ class HmiSettings:
         except ValueError:
             return False
 
+    @property
+    def exposure(self) -> str | None:
+        """The warning for a server other machines can reach that lets anyone operate (None:
+        loopback only, or logins or a token guard the commands)."""
+        if self.loopback or self.token or self.users:
+            return None
+        return (f"serving on {self.host} without logins or a token: every machine that reaches "
+                "it can operate the cell (set hmi.users, or hmi.token: env:VAR or file:PATH)")  # fmt: skip
+
 
 def _host(n: Node) -> str:
     value = sc.text(n).strip()

@@ -60,7 +60,8 @@ class RosSide:
         import rclpy
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
-        from rclpy.node import Node
+
+        from ..boundary import GuardedNode as Node
 
         self.loop = loop
         self._on_message = on_message

@@ -84,7 +84,9 @@ class Users:
             stored = self.config.users.get(username)
             if stored is not None and check_password(password, stored):
                 return User(role=UserRole.User, name=username)
-            _logger.warning("OPC UA: refused user %r (unknown user or wrong password)", username)
+            # (a configured name only: an unknown one is whatever a client sent, 1 MB of it)
+            _logger.warning("OPC UA: refused %s", f"user {username!r}: wrong password"
+                            if stored is not None else "an unknown user name")  # fmt: skip
             return None
         if certificate:
             name = self._certificates.get(bytes(certificate))

@@ -39,7 +39,7 @@ from typing import Any
 from ..core import schema as sc
 from ..core.config import DEFAULT_STATE_DIR, CellConfig
 from ..core.schema import ConfigError, Node, invalid
-from ..core.secrets import resolve
+from ..core.secrets import redact_urls, resolve
 
 #: ``security_policy`` names -> asyncua ``security_policies.SecurityPolicy<name>`` suffixes.
 POLICIES = {
@@ -121,7 +121,9 @@ def secret(n: Node, base: Path) -> str:
 def _endpoint(n: Node) -> str:
     s = sc.text(n).strip()
     if not s.startswith("opc.tcp://") or len(s) <= len("opc.tcp://"):
-        raise invalid(f"{s[:100]!r} is not an OPC UA endpoint (opc.tcp://host:port/...)")
+        raise invalid(
+            f"{redact_urls(s[:100])!r} is not an OPC UA endpoint (opc.tcp://host:port/...)"
+        )
     return s
 
 

@@ -63,11 +63,11 @@ from packml_interfaces.srv import (
     SetUnitParameters,
 )
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.node import Node
 from std_msgs.msg import Header, String
 from std_srvs.srv import Trigger as TriggerSrv
 
 from .. import convert, qos, responses, run
+from ..boundary import GuardedNode
 from ..core import CellConfig, Cmd, UnitConfig, load_cell, state_name
 from ..core import config as cfg
 from ..core.alarms import select_events
@@ -98,7 +98,7 @@ UNSUPPORTED = {
 Answer = tuple[bool, int, str]
 
 
-class PlcUnitNode(Node):
+class PlcUnitNode(GuardedNode):
     """The bridge of PLC unit ``config`` (``plc``: its validated ``plc:`` block)."""
 
     def __init__(

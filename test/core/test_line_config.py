@@ -4,6 +4,7 @@ days, daylight saving), and the refusals of a bad calendar."""
 from __future__ import annotations
 
 import datetime as dt
+import math
 from typing import Any
 
 import pytest
@@ -105,3 +106,49 @@ def test_a_bad_line_block_is_refused_at_its_key(line: dict[str, Any], problem: s
     with pytest.raises(ConfigError) as err:
         cell(line)
     assert problem in str(err.value) and "line." in str(err.value), str(err.value)
+
+
+SHIFTS = {"timezone": "Europe/Berlin", "shifts": {
+    "early": {"start": "06:00", "end": "14:00"},
+    "night": {"start": "22:00", "end": "06:00", "breaks": [{"name": "meal", "start": "02:00", "end": "02:30"}]}}}  # fmt: skip
+EXTREMES = (-(2**63), -(10**30), -1, 0, 1, 2**31 * NS, 2**63 - 1, 2**63, 10**30)
+
+
+@pytest.mark.parametrize("key", ["9999-12-31 early", "0001-01-01 night", "2262-04-12 early",
+                                 "1969-12-31 night", "1970-01-01 early"])  # fmt: skip
+def test_a_shift_outside_the_calendar_s_dates_is_no_shift_not_an_overflow(key: str) -> None:
+    """Issue 25 item 1: ``shift:9999-12-31 early`` raised OverflowError in the date arithmetic
+    (and ended the coordinator)."""
+    cal = cell(SHIFTS).line.calendar
+    assert cal.instance(key) is None
+    for t in (t for t in EXTREMES if t != 2**31 * NS):
+        assert cal.instance_at(t) is None
+        assert cal.previous(t) is None
+        assert [p.planned for p in cal.pieces(t, t + 3600 * NS)] == [NO_SHIFT]
+    assert cal.instance("2262-04-01 early") is not None  # the last day a ROS time can name
+
+
+def test_every_window_of_query_losses_with_any_numbers_is_an_answer_or_a_refusal() -> None:
+    """Seeded fuzz of ``Line.query_losses`` (what ``line/query_losses``, ``/api/line`` and
+    ``packml report`` ask): windows, since/until/step/count at and past their extremes."""
+    import random
+
+    from packml_ros2.core.line.line import Line
+
+    now = ns("2025-06-16T10:00", "Europe/Berlin")
+    line = Line(cell(SHIFTS), lambda: 0.0, lambda: now)
+    rng = random.Random(2525)
+    days = ["9999-12-31", "0001-01-01", "2262-04-12", "2262-04-01", "1970-01-01", "2025-06-16",
+            "2025-02-30", "+2025-01-01", "20250616", "2025-06-16T06:00"]  # fmt: skip
+    windows = ["", "shift", "shift:current", "shift:previous", "15min", "1h", "reset", "lifetime",
+               "since", "shifts", "trend", "shift:", "shift: early", "nonsense"]  # fmt: skip
+    windows += [f"shift:{d} {s}" for d in days for s in ("early", "night", "none", "")]
+    numbers = [*EXTREMES, now, now - 3600 * NS, now + 10**18]
+    steps = [0.0, -1.0, 1e-12, 0.5, 900.0, 1e7, 1e12, 1e300, math.inf, -math.inf, math.nan]
+    counts = [0, 1, -1, 200, 201, 2**31 - 1, -(2**31)]
+    for _ in range(3000):
+        window = rng.choice(windows)
+        views, why = line.query_losses(window, rng.choice(numbers), rng.choice(numbers),
+                                       rng.choice(steps), rng.choice(counts))  # fmt: skip
+        assert bool(views) != bool(why), (window, why)
+        assert len(views) <= 200

@@ -120,3 +120,32 @@ def test_packml_hmi_token_option_points_to_the_token_too(tmp_path: Path) -> None
     assert hmi("--token", "env:PACKML_TEST_TOKEN", PACKML_TEST_TOKEN=TOKEN).returncode == 0
     short = hmi(PACKML_HMI_TOKEN="abc")
     assert short.returncode == 2 and "$PACKML_HMI_TOKEN: a token needs at least 8" in short.stderr
+
+
+def test_credentials_in_a_url_are_refused_at_load_and_redacted_wherever_shown(
+    tmp_path: Path,
+) -> None:
+    """Issue 25 item 10: ``opc.tcp://user:pw@host`` as a PLC endpoint was accepted, used, and
+    published on ``~/config``, in bags and in refusals."""
+    from packml_ros2.core.limits import printable
+    from packml_ros2.core.secrets import REDACTED, redact_urls, redacted_yaml
+
+    url = f"opc.tcp://plcuser:{PASSWORD}@10.0.0.21:4840/"
+    doc = {"units": {"u": {"plc": {"endpoint": url}}, "v": {"description": f"see http://x:{PASSWORD}@h/"}}}  # fmt: skip
+    path = write(tmp_path, doc)
+    with pytest.raises(ConfigError) as info:
+        load_cell(path)
+    assert [p for p, _ in info.value.problems] == ["units.u.plc.endpoint", "units.v.description"]
+    assert "a URL never holds a user name or password" in str(info.value)
+    assert PASSWORD not in str(info.value) and "plcuser" not in str(info.value)
+    result = subprocess.run([sys.executable, "-m", "packml_ros2.cli.main", "launch", str(path), "--check"],
+                            capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert result.returncode == 2, result
+    assert "units.u.plc.endpoint: a URL never holds" in result.stderr, result.stderr
+    assert PASSWORD not in result.stderr + result.stdout
+    # wherever a URL is shown: ~/config and bags (redacted_yaml), log lines (printable), messages
+    assert redact_urls(f"failed: {url} and mqtt://u@b:1883") == (
+        f"failed: opc.tcp://{REDACTED}@10.0.0.21:4840/ and mqtt://{REDACTED}@b:1883")  # fmt: skip
+    assert redact_urls("mail a@b.c, opc.tcp://10.0.0.21:4840/x@y") == "mail a@b.c, opc.tcp://10.0.0.21:4840/x@y"  # fmt: skip
+    assert PASSWORD not in redacted_yaml(yaml.safe_dump({"cell": "c", "units": {"u": {"plc": {"endpoint": url}}}}))  # fmt: skip
+    assert PASSWORD not in printable(f"PLC {url} lost") and "10.0.0.21:4840" in printable(f"PLC {url} lost")  # fmt: skip

@@ -286,6 +286,7 @@ def test_event_streams_are_bounded(make_cell: Any, monkeypatch: pytest.MonkeyPat
     from packml_ros2.hmi import server
 
     monkeypatch.setattr(server, "MAX_STREAMS", 2)
+    monkeypatch.setattr(server, "OPERATOR_STREAMS", 0)  # (none kept for operators here)
     cell = make_cell()
     with serving(cell.bridge) as http, ExitStack() as streams:
         open_ = []  # (an abandoned line iterator closes its stream: keep them)

@@ -125,3 +125,69 @@ def test_every_loader_exits_2_with_one_line_per_problem(tmp_path: Path, loader: 
             f"{what}:\n{result.stderr}"
         )
         check_report("\n".join(line.split(": ", 1)[1] for line in lines), path, what)
+
+
+def _run(argv: list[str], timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, *argv], capture_output=True, text=True,
+                          timeout=timeout, check=False)  # fmt: skip
+
+
+def _argv(loader: str, path: Path) -> list[str]:
+    if loader.startswith("packml"):
+        return [*LOADERS[loader][:-1], str(path), LOADERS[loader][-1]]
+    return [*LOADERS[loader], str(path)]
+
+
+@pytest.mark.parametrize("loader", list(LOADERS))
+def test_a_name_ros_cannot_take_is_refused_at_load_by_every_loader(tmp_path: Path, loader: str) -> None:  # fmt: skip
+    """Issue 25 item 12: a cell named ``zellü`` passed ``--check``, then every node died with a
+    traceback (rcl takes ASCII names only)."""
+    path = tmp_path / "cell.yaml"
+    path.write_text("cell: zellü\nunits:\n  fillör: {}\n", encoding="utf-8")
+    result = _run(_argv(loader, path))
+    assert result.returncode == 2, result
+    assert "Traceback" not in result.stderr + result.stdout, result.stderr
+    assert f"{path}: cell: 'zellü' is not a valid ROS name (ASCII letters" in result.stderr, result.stderr  # fmt: skip
+    assert f"{path}: units.fillör: 'fillör' is not a valid ROS name" in result.stderr, result.stderr  # fmt: skip
+
+
+def test_a_fifo_as_cell_token_or_users_file_is_refused_at_once(tmp_path: Path) -> None:
+    """Issue 25 item 12: a named pipe as the cell file, the token file or the users file hung
+    every loader in ``open`` (nobody writes to it)."""
+    import os
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    cell = tmp_path / "cell.yaml"
+    started = time.monotonic()
+    for loader in ("unit_node", "packml launch", "packml hmi"):
+        result = _run(_argv(loader, fifo), timeout=30)
+        assert result.returncode == 2 and "Traceback" not in result.stderr, result
+        assert f"{fifo}: <top>: cannot read: not a regular file: a named pipe (FIFO)" in result.stderr, result.stderr  # fmt: skip
+    cell.write_text("cell: c\nunits: {u: {}}\nhmi: {token: file:pipe}\n")
+    result = _run(["-m", "packml_ros2.cli.main", "hmi", str(cell), "--check"], timeout=30)
+    assert result.returncode == 2 and "hmi.token: cannot read" in result.stderr, result
+    assert "not a regular file: a named pipe (FIFO)" in result.stderr, result.stderr
+    cell.write_text("cell: c\nunits: {u: {}}\nhmi: {users_file: pipe}\n")
+    result = _run(["-m", "packml_ros2.cli.main", "hmi", str(cell), "--check"], timeout=30)
+    assert result.returncode == 2 and "not a regular file: a named pipe (FIFO)" in result.stderr, result  # fmt: skip
+    assert time.monotonic() - started < 60
+
+
+def test_an_hmi_open_to_every_machine_without_logins_is_a_warning_at_check(tmp_path: Path) -> None:
+    """Issue 25 item 12: ``hmi.host: 0.0.0.0`` with neither logins nor a token passed ``--check``
+    without a word (the server warned only once it served)."""
+    import os
+
+    cell = tmp_path / "cell.yaml"
+    cell.write_text("cell: c\nunits: {u: {}}\nhmi: {host: 0.0.0.0}\n")
+    env = {k: v for k, v in os.environ.items() if k != "PACKML_HMI_TOKEN"}
+    for verb in (["hmi", str(cell), "--check"], ["launch", str(cell), "--hmi", "--check"]):
+        result = subprocess.run([sys.executable, "-m", "packml_ros2.cli.main", *verb], env=env,
+                                capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+        assert result.returncode == 0, result
+        assert "warning" in result.stderr and "serving on 0.0.0.0 without logins or a token" in result.stderr, result  # fmt: skip
+    cell.write_text("cell: c\nunits: {u: {}}\nhmi: {host: 127.0.0.1}\n")
+    result = subprocess.run([sys.executable, "-m", "packml_ros2.cli.main", "hmi", str(cell), "--check"],
+                            env=env, capture_output=True, text=True, timeout=60, check=False)  # fmt: skip
+    assert result.returncode == 0 and "warning" not in result.stderr, result

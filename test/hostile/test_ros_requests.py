@@ -380,3 +380,137 @@ def test_hostile_cell_requests_at_the_coordinator_change_nothing(ros: Any, tmp_p
         assert (now.state_current, now.unit_mode_current) == (
             before[name].state_current, before[name].unit_mode_current)  # fmt: skip
     assert {R.REMOTE_DISABLED, R.INVALID_ARGUMENT, R.UNKNOWN_COMMAND} <= set(counts)
+
+
+LINE_REQUESTS = 1200
+DAYS = ("9999-12-31", "0001-01-01", "2262-04-12", "2038-01-19", "1970-01-01", "2025-06-16",
+        "2025-02-30", "+2025-01-01", "20250616")  # fmt: skip
+WINDOWS = ("", "shift", "shift:current", "shift:previous", "15min", "1h", "reset", "lifetime",
+           "since", "shifts", "trend", "shift:", "nonsense", *(f"shift:{d} {s}" for d in DAYS
+           for s in ("early", "night", "x")))  # fmt: skip
+SECONDS = (0, 1, 2**31 - 1, -(2**31), 1_750_000_000)  # Time.sec is int32
+NANOS = (0, 999_999_999, 2**32 - 1)  # Time.nanosec is uint32
+STEPS = (0.0, -1.0, 1e-300, 900.0, 1e7, 1e300, math.inf, -math.inf, math.nan)
+COUNTS = (0, 1, 200, 201, 2**31 - 1, 2**32 - 1)  # uint32
+
+
+def line_requests(rng: random.Random) -> Iterator[tuple[Any, str, dict[str, Any], set[int]]]:
+    """Every field of ``line/query_losses`` and ``line/query_episodes`` at and past its extremes."""
+    from builtin_interfaces.msg import Time
+    from packml_interfaces.srv import QueryEpisodes, QueryLosses
+
+    def stamp() -> Time:
+        return Time(sec=rng.choice(SECONDS), nanosec=rng.choice(NANOS))
+
+    any_answer = {R.ACCEPTED, R.INVALID_ARGUMENT}
+    while True:
+        if rng.random() < 0.7:
+            yield QueryLosses, "line/query_losses", {
+                "window": rng.choice(WINDOWS), "since": stamp(), "until": stamp(),
+                "step": rng.choice(STEPS), "count": rng.choice(COUNTS)}, any_answer  # fmt: skip
+        else:
+            yield QueryEpisodes, "line/query_episodes", {
+                "since": stamp(), "until": stamp(), "unit": rng.choice(["", "cell", "filler", "ghost"]),
+                "bucket": rng.choice(["", "starved", "x"]), "reason": rng.choice(["", "jam"]),
+                "open_only": rng.random() < 0.5, "limit": rng.choice(COUNTS)}, any_answer  # fmt: skip
+
+
+def test_no_line_query_ends_the_coordinator(ros: Any, tmp_path: Any, processes: Any) -> None:
+    """Issue 25 item 1: ``line/query_losses`` with window ``shift:9999-12-31 early`` raised an
+    OverflowError in the shift calendar, which escaped the callback: the coordinator process
+    exited. A seeded fuzz of every field of the line queries against a coordinator process with
+    a shift calendar: each request is answered (a refusal says why), the process lives on, and
+    its log holds no traceback."""
+    import yaml
+    from packml_interfaces.srv import QueryLosses
+
+    from test.ros.cells import write_cell
+
+    path, cell = write_cell(tmp_path, {"filler": {}, "packer": {}})
+    doc = yaml.safe_load(path.read_text())
+    doc["line"] = {"order": ["filler", "packer"], "timezone": "Europe/Berlin", "shifts": {
+        "early": {"start": "06:00", "end": "14:00"}, "night": {"start": "22:00", "end": "06:00"}}}  # fmt: skip
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    coordinator = processes.module("coordinator", "packml_ros2.coordinator_node", str(path))
+    base = f"/{cell}/coordinator"
+    ros.wait_for_service(QueryLosses, f"{base}/line/query_losses", 30)
+    clients: dict[tuple[Any, str], Any] = {}
+    first = pipelined(ros, clients, base, [(QueryLosses, "line/query_losses",
+                                           {"window": "shift:9999-12-31 early"}, set())])  # fmt: skip
+    resp = first[0][0]
+    assert (resp.accepted, resp.result) == (False, R.INVALID_ARGUMENT), resp.message
+    assert "9999-12-31 early" in resp.message, resp.message
+    rng = random.Random(SEED)
+    requests = line_requests(rng)
+    counts: dict[int, int] = {}
+    for _ in range(LINE_REQUESTS // 100):
+        for resp, what, expected in pipelined(ros, clients, base, [next(requests) for _ in range(100)]):  # fmt: skip
+            assert resp.result in expected, f"{what}: {resp.result} {resp.message}"
+            assert resp.accepted == (resp.result == R.ACCEPTED), what
+            assert 0 < len(resp.message) < 600 and resp.message.isprintable(), what
+            assert "could not handle" not in resp.message, f"{what}: {resp.message}"
+            counts[resp.result] = counts.get(resp.result, 0) + 1
+        assert coordinator.running(), coordinator.output()[-3000:]
+    assert set(counts) == {R.ACCEPTED, R.INVALID_ARGUMENT}, counts
+    assert "Traceback" not in coordinator.output(), coordinator.output()[-3000:]
+
+
+FAULTY_NODE = """
+import sys
+from packml_interfaces.srv import Command
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+from packml_ros2 import responses, run
+from packml_ros2.boundary import GuardedNode
+
+run.init()
+node = GuardedNode("faulty", namespace=sys.argv[1])
+def boom(*args):
+    raise OverflowError("date value out of range (opc.tcp://plc:s3cret-pw@10.0.0.1:4840)")
+responses.create_service(node, Command, "~/command", boom)
+node.create_service(Trigger, "~/trigger", boom)
+node.create_subscription(String, "~/in", boom, 10)
+node.create_timer(0.02, boom)
+node.declare_parameter("x", 1)
+node.add_on_set_parameters_callback(boom)
+print("up", flush=True)
+sys.exit(run.spin([node]))
+"""
+
+
+def test_no_callback_that_raises_ends_a_node(ros: Any, processes: Any) -> None:
+    """Issue 25 item 1: the boundary of every callback. A node process (the EventsExecutor, as
+    every node runs) whose service handlers, topic callback, timer and parameter check all raise:
+    each request is answered as a refusal naming the exception's type, the node lives on, and its
+    log has one bounded, rate-limited line per kind of failure, no traceback, no URL password."""
+    from rcl_interfaces.msg import Parameter, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+    from std_msgs.msg import String
+    from std_srvs.srv import Trigger
+
+    ns = f"/faulty{os.getpid()}"
+    proc = processes.start("faulty", "-c", FAULTY_NODE, ns)
+    base = f"{ns}/faulty"
+    pub = ros.node.create_publisher(String, f"{base}/in", 10)
+    for i in range(30):
+        answer = ros.call(Command, f"{base}/command", Command.Request(command=1), 30)
+        assert (answer.accepted, answer.result) == (False, R.INVALID_ARGUMENT), answer
+        assert answer.message == f"refused: {base}/command could not handle this request (OverflowError); see its log"  # fmt: skip
+        trigger = ros.call(Trigger, f"{base}/trigger", Trigger.Request(), 10)
+        assert not trigger.success and "(OverflowError)" in trigger.message, trigger
+        pub.publish(String(data=str(i)))
+    value = ParameterValue(type=2, integer_value=5)
+    params = ros.call(SetParameters, f"{base}/set_parameters",
+                      SetParameters.Request(parameters=[Parameter(name="x", value=value)]), 10)  # fmt: skip
+    assert not params.results[0].successful and "OverflowError" in params.results[0].reason
+    wait_until(lambda: pub.get_subscription_count() >= 1, what="the node subscribed")
+    pub.publish(String(data="last"))
+    wait_until(lambda: "topic" in proc.output(), 10, "the topic callback's failure logged")
+    assert proc.running(), proc.output()[-3000:]
+    log = proc.output()
+    assert "Traceback" not in log and "s3cret" not in log, log[-3000:]
+    failures = [line for line in log.splitlines() if "failed: OverflowError" in line]
+    kinds = {k for k in ("/command", "/trigger", "topic", "a timer", "parameter check") if any(k in f for f in failures)}  # fmt: skip
+    assert kinds == {"/command", "/trigger", "topic", "a timer", "parameter check"}, log[-3000:]
+    assert len(failures) <= 5 * 5 and all(len(f) < 800 for f in failures), len(failures)
+    assert "(at " in failures[0] and "<redacted>@10.0.0.1" in failures[0], failures[0]

@@ -521,3 +521,32 @@ def test_user_names_are_recorded_as_they_are_or_refused_at_their_key(
         assert "is not a user name" in paths.pop(f"opcua.{key}"), key
     assert "anonymous sessions" in str(err.value)
     assert paths == {}  # mes@line-3.x and scada_1 are names
+
+
+def test_iteration_counts_are_bounded_at_load_and_unknown_names_never_logged(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 25 item 9 (in part): a stored hash of 10**9 iterations made every guess, and the
+    rightful user's login, cost minutes of a core in the event loop; every refused user name was
+    logged whole (1 MB of it)."""
+    import logging
+
+    huge = hash_password("pw12", 1000).replace("$1000$", "$1000000000$")
+    for users, key in (({"op": huge}, "opcua.users.op"),):
+        with pytest.raises(ConfigError) as err:
+            parse_opcua(load_cell(_cell(tmp_path, {"users": users})))
+        assert "1000000000 iterations" in dict(err.value.problems)[key]
+    assert not check_password("pw12", huge)  # (what a store from elsewhere could hold)
+    doc = {"cell": "c", "units": {"u": {}}, "hmi": {"users": {"anna": {"level": "operator", "password": huge}}}}  # fmt: skip
+    from packml_ros2.hmi import hmi_settings
+
+    with pytest.raises(ConfigError) as err:
+        hmi_settings(parse_cell(doc))
+    assert "1000000000 iterations" in str(err.value)
+    config = parse_opcua(load_cell(_cell(tmp_path, {"users": {"op": hash_password("pw12", 1000)}})))
+    users = security.Users(config, {})
+    caplog.set_level(logging.WARNING)
+    assert users.get_user(None, "x" * 1_000_000, "guess") is None
+    assert users.get_user(None, "op", "guess") is None
+    logged = [r.getMessage() for r in caplog.records]
+    assert logged == ["OPC UA: refused an unknown user name", "OPC UA: refused user 'op': wrong password"], logged  # fmt: skip

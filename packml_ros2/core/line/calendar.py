@@ -7,6 +7,10 @@ every machine, so a replay in CI agrees with the plant). A shift whose end is no
 runs past midnight (``22:00``-``06:00``); ``days`` are the weekdays its instances *start* on.
 Breaks are times of day inside the shift. Daylight-saving changes are followed (a night shift
 across one is an hour longer or shorter).
+
+The calendar spans the dates a time of the line can name: :data:`FIRST_DAY` to :data:`LAST_DAY`
+(a ROS time is int64 nanoseconds: 1970 to 2262). A date or a time outside it names no shift (a
+query of ``shift:9999-12-31 early`` is "no shift", not an overflow of the date arithmetic).
 """
 
 from __future__ import annotations
@@ -21,6 +25,13 @@ NS = 1_000_000_000
 DAY_S = 86_400
 DAYS = ("mon", "tue", "wed", "thu", "fri", "sat", "sun")
 NO_SHIFT = "no shift"
+#: The days the calendar knows (inclusive): what a ROS time (int64 ns since the epoch) can name,
+#: less a margin for the time zone and the days :meth:`Calendar.instances` looks back.
+FIRST_DAY = _dt.date(1970, 1, 3)
+LAST_DAY = _dt.date(2262, 4, 1)
+#: ns: the times the calendar knows, midnight UTC of FIRST_DAY to midnight UTC after LAST_DAY
+FIRST_NS = (FIRST_DAY - _dt.date(1970, 1, 1)).days * DAY_S * NS
+LAST_NS = (LAST_DAY - _dt.date(1970, 1, 1) + _dt.timedelta(days=1)).days * DAY_S * NS
 
 
 @dataclass(frozen=True)
@@ -107,7 +118,8 @@ class Calendar:
         return tuple(sorted(out, key=lambda i: i.start))
 
     def instances(self, a: int, b: int) -> Iterator[Instance]:
-        """Shift instances overlapping [a, b), by start."""
+        """Shift instances overlapping [a, b), by start (those of days the calendar knows)."""
+        a, b = max(a, FIRST_NS), min(b, LAST_NS)
         if not self.shifts or b <= a:
             return
         first = _dt.datetime.fromtimestamp(a // NS, self.zone).date() - _dt.timedelta(days=2)
@@ -128,6 +140,8 @@ class Calendar:
         try:
             day = _dt.date.fromisoformat(day_text)
         except ValueError:
+            return None
+        if not FIRST_DAY <= day <= LAST_DAY:
             return None
         return next((i for i in self._day(day) if i.shift == name), None)
 

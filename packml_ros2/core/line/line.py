@@ -34,6 +34,7 @@ NS = 1_000_000_000
 WALL_SLACK = 1e-6
 MEMORY_FACTS = 200_000  # facts a line without a store keeps for its queries
 MAX_WINDOWS = 200  # windows one query may ask for (trend, shifts)
+MAX_STEP = 1e7  # s: the widest window of a trend (116 days)
 MAX_EPISODES = 1000
 EPISODE_BUCKETS = (PLANNED, *DOWN)  #: the buckets an episode's root cause can be in
 
@@ -387,8 +388,8 @@ class Line:
             return found[::-1], ""
         if window == "trend":
             n = min(max(count, 1), MAX_WINDOWS)
-            if not step > 0:
-                return [], "window trend needs a step in seconds"
+            if not 0 < step <= MAX_STEP:  # (NaN too)
+                return [], f"window trend needs a step in seconds (0 < step <= {MAX_STEP:g})"
             width = int(step * NS)
             end = until if until > 0 else now
             try:

@@ -908,8 +908,16 @@
     }
   }
 
-  function connect() {
-    const es = new EventSource("/api/events");
+  async function streamUrl() {
+    // an operator who has logged in asks for a one-use ticket (EventSource sends no
+    // Authorization header): the server keeps streams for operators that others cannot take
+    if (!me.credential) return "/api/events";
+    const r = await post("/api/events/ticket", {});
+    return r.status === 200 ? `/api/events?ticket=${encodeURIComponent(r.body.ticket)}` : "/api/events";
+  }
+
+  async function connect() {
+    const es = new EventSource(await streamUrl());
     setInterval(() => {
       if (conn.ok && Date.now() - conn.heard > hmi.silenceMs) {
         setConn(false);
