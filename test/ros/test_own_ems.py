@@ -99,7 +99,7 @@ HERE = Host()
 
 
 def packml(tmp_path: Path, *args: str, host: Host = HERE,
-           timeout: float = 60.0) -> subprocess.CompletedProcess[str]:  # fmt: skip
+           timeout: float = 120.0) -> subprocess.CompletedProcess[str]:  # fmt: skip
     return subprocess.run([*host.prefix, *PACKML, *args], check=False, capture_output=True,
                           text=True, timeout=timeout, env=env_for(tmp_path, host.env))  # fmt: skip
 
