@@ -63,7 +63,7 @@ EMS = textwrap.dedent(
 
     def main() -> int:
         run.init()
-        cam = Traced(os.environ.get("CAMERA", "camera"), "press", sys.argv[1])
+        cam = Traced(os.environ.get("PACKML_EM", "camera"), "press", sys.argv[1])
         return run.spin([cam], on_shutdown=cam.close)
 
     if __name__ == "__main__":
@@ -239,18 +239,28 @@ def cleanup() -> Iterator[list[object]]:
             thing.proc.wait()
 
 
+#: the camera as a program the launcher starts (run: a function, with a placeholder argument)
+PROGRAM = {**MIXED, "camera": {"run": ["my_ems:main", "{cell}"]}}
+
+
 @pytest.mark.timeout(300)  # eight packml cmd processes
-@pytest.mark.parametrize("processes", [False, True], ids=["one-process", "processes"])
-def test_a_cell_of_sim_run_and_external_ems(tmp_path: Path, cleanup: list[object],
-                                            processes: bool) -> None:  # fmt: skip
-    cell = f"own{os.getpid()}{int(processes)}"
-    path = write_cell(tmp_path, cell, MIXED)
+@pytest.mark.parametrize(
+    ("processes", "ems"),
+    [(False, MIXED), (True, MIXED), (False, PROGRAM)],
+    ids=["one-process", "processes", "program"],
+)
+def test_a_cell_of_sim_run_and_external_ems(
+    tmp_path: Path, cleanup: list[object], processes: bool, ems: dict[str, object]
+) -> None:
+    cell = f"own{os.getpid()}{int(processes)}{len(str(ems))}"
+    path = write_cell(tmp_path, cell, ems)
     args = ["--processes", str(path)] if processes else [str(path)]
     launch = LaunchedHere(args, tmp_path)
     cleanup.append(launch)
-    launch.wait_text("waiting for external EM(s) press/camera")
-    assert "is up" not in launch.output()
-    cleanup.append(Camera(tmp_path, cell))
+    if ems is MIXED:
+        launch.wait_text("waiting for external EM(s) press/camera")
+        assert "is up" not in launch.output()
+        cleanup.append(Camera(tmp_path, cell))
     launch.wait_ready()
     if processes:
         assert "4 processes" in launch.output()  # the unit, the feeder, the gripper, coordinator
