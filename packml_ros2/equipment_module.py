@@ -292,6 +292,7 @@ class EquipmentModule(Node):
             self._loop.close()  # else its __del__ complains at interpreter exit
 
     async def _stop_tasks(self) -> None:
+        self.hooks.close()  # a finishing step does not hold the shutdown up
         current = asyncio.current_task()
         tasks = [t for t in asyncio.all_tasks() if t is not current]
         for t in tasks:

@@ -76,6 +76,7 @@ class StateContext:
     cancelled: threading.Event = field(default_factory=threading.Event)
     next_state: State = State.UNDEFINED  # set when the unit leaves the state
     _finishing: set[asyncio.Future[Any]] = field(default_factory=set, repr=False)
+    _closing: bool = field(default=False, repr=False)  # the EM shuts down: nothing is finished
 
     def sleep(self, seconds: float) -> bool:
         """For plain-function hooks: wait ``seconds``; False (early) if the state was left."""
@@ -87,7 +88,7 @@ class StateContext:
         ``aw`` is cancelled at once (and awaited: its own clean-up ends before the next hook)."""
         task = asyncio.ensure_future(aw)
         self._finishing.add(task)
-        if self.next_state is State.ABORTING:
+        if self.next_state is State.ABORTING or self._closing:
             task.cancel()
         interrupted = False
         try:
@@ -101,6 +102,13 @@ class StateContext:
         if interrupted and (task.cancelled() or task.exception() is None):
             raise asyncio.CancelledError
         return task.result()
+
+    def close(self) -> None:
+        """The EM shuts down: cut what ``finish`` waits for, now and later (loop thread)."""
+        self._closing = True
+        self.cancelled.set()
+        for task in list(self._finishing):
+            task.cancel()
 
     def left(self, next_state: State) -> None:
         """The unit went on to ``next_state`` (called again for each later status)."""
@@ -200,6 +208,11 @@ class HookRunner:
         ctx.left(_state(pending.state))
         if first:
             task.cancel()
+
+    def close(self) -> None:
+        """Loop thread, at shutdown: the running hook's ``finish`` steps end now."""
+        if self._ctx is not None:
+            self._ctx.close()
 
     def _finished(self, _: asyncio.Task[None]) -> None:
         """Loop thread: the hook ended; handle a status that arrived meanwhile."""
