@@ -19,11 +19,12 @@ Hook names: ``on_resetting``, ``on_starting``, ``execute``, ``on_completing``, `
 ``on_unholding``, ``on_suspending``, ``on_unsuspending``, ``on_stopping``, ``on_aborting``,
 ``on_clearing``, and ``on_mode_change`` (during a unit mode change). When a hook returns, the base
 class reports State Complete for that (state, sequence); states without a hook are reported
-complete at once. When the unit leaves the state, the running hook is cancelled: a coroutine gets
-``CancelledError`` at its next ``await`` (``ctx.finish(aw)`` lets one step complete first, except
-when the unit aborts), a plain function sees ``ctx.cancelled`` set (``ctx.sleep(s)`` returns
-False; ``ctx.next_state`` tells where the unit went). The next state's hook starts
-only after the previous one has ended. An exception in a hook raises the EM's fault alarm.
+complete at once. When the unit leaves the state, the running hook is cancelled (once: later
+statuses only update ``ctx.next_state``): a coroutine gets ``CancelledError`` at its next
+``await`` (``ctx.finish(aw)`` lets one step complete first, except when the unit aborts), a plain
+function sees ``ctx.cancelled`` set (``ctx.sleep(s)`` returns False; ``ctx.next_state`` tells where
+the unit went). The next state's hook starts only after the previous one has ended (the rules:
+:mod:`packml_ros2.core.em_hooks`). An exception in a hook raises the EM's fault alarm.
 
 ``self.state``, ``self.sequence`` and ``self.mode`` follow the unit; ``self.status`` is its latest
 status as the EM reads it (read from the message's bytes: state, sequence, mode, this EM's entry)
@@ -40,13 +41,11 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
-import inspect
 import threading
 import time
 import traceback
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass, field
-from typing import Any, NamedTuple, TypeVar
+from typing import Any, TypeVar
 
 from builtin_interfaces.msg import Time
 from packml_interfaces.msg import EmReport, Status
@@ -55,25 +54,15 @@ from rclpy.serialization import deserialize_message
 from . import qos, run
 from .boundary import GuardedNode
 from .cdr_fields import Unreadable, field_reader
-from .core.numbers import ACTING, Cmd, State, state_name
+from .core.em_hooks import HOOKS, HookRunner, StateContext, StatusView
+from .core.numbers import Cmd, State, state_name
 from .core.reports import Writers
 from .presence import with_info
 
+__all__ = ["HOOKS", "EquipmentModule", "StateContext", "StatusView", "status_view"]
+
 T = TypeVar("T")
 
-HOOKS: dict[State, str] = {
-    State.RESETTING: "on_resetting",
-    State.STARTING: "on_starting",
-    State.EXECUTE: "execute",
-    State.COMPLETING: "on_completing",
-    State.HOLDING: "on_holding",
-    State.UNHOLDING: "on_unholding",
-    State.SUSPENDING: "on_suspending",
-    State.UNSUSPENDING: "on_unsuspending",
-    State.STOPPING: "on_stopping",
-    State.ABORTING: "on_aborting",
-    State.CLEARING: "on_clearing",
-}
 COUNTERS = {"consumed": EmReport.COUNTER_CONSUMED, "processed": EmReport.COUNTER_PROCESSED,
             "defective": EmReport.COUNTER_DEFECTIVE}  # fmt: skip
 FAULT_ALARM_ID = 9100  # default ID of the alarm raised when a hook fails
@@ -86,21 +75,6 @@ _EM_FIELDS = ["name", "active", "state_complete"]
 #: What an EM reads of each status, straight from its bytes (a quarter of a full decode's time;
 #: the full message is decoded only for who reads :attr:`EquipmentModule.unit_status`).
 _read_status = field_reader(Status, _STATUS_FIELDS, {"equipment_modules": _EM_FIELDS})
-
-
-class StatusView(NamedTuple):
-    """What an EM follows of its unit's status."""
-
-    state: int
-    sequence: int
-    mode: int
-    mode_requested: int
-    mode_changing: bool
-    mine: tuple[bool, bool] | None  # this EM's entry: (active, state_complete); None: not listed
-
-    @property
-    def key(self) -> tuple[int, int]:
-        return self.state, self.sequence
 
 
 def status_view(raw: bytes, em: str) -> StatusView:
@@ -117,33 +91,6 @@ def status_view(raw: bytes, em: str) -> StatusView:
         entries = [tuple(getattr(e, f) for f in _EM_FIELDS) for e in msg.equipment_modules]
     mine = next(((active, done) for name, active, done in entries if name == em), None)
     return StatusView(*head, mine)
-
-
-@dataclass
-class StateContext:
-    """What a hook gets: the (state, sequence) it works for, the unit mode, and cancellation."""
-
-    state: State
-    sequence: int
-    mode: int
-    cancelled: threading.Event = field(default_factory=threading.Event)
-    next_state: State = State.UNDEFINED  # set when the unit leaves the state
-
-    def sleep(self, seconds: float) -> bool:
-        """For plain-function hooks: wait ``seconds``; False (early) if the state was left."""
-        return not self.cancelled.wait(seconds)
-
-    async def finish(self, aw: Awaitable[T]) -> T:
-        """Run ``aw`` to its end even if the unit leaves the state meanwhile (finish the move),
-        then let the cancellation proceed; when the unit aborts, ``aw`` is cancelled at once."""
-        task = asyncio.ensure_future(aw)
-        try:
-            return await asyncio.shield(task)
-        except asyncio.CancelledError:
-            if self.next_state is State.ABORTING:
-                task.cancel()
-            await asyncio.gather(task, return_exceptions=True)
-            raise
 
 
 class EquipmentModule(GuardedNode):
@@ -163,12 +110,10 @@ class EquipmentModule(GuardedNode):
         self.unit_name = unit
         self.lease = lease
         self.fault_alarm_id = fault_alarm_id
-        self.status: StatusView | None = None  # the unit's latest status, as this EM reads it
         self._status_raw: bytes | None = None
         self._status_msg: tuple[bytes, Status] | None = None  # decoded on demand (unit_status)
         self.refused_statuses = 0  # messages on the status topic that were no status
-        self.active = True
-        self._key: tuple[int, int] | None = None  # (state, sequence) being worked on
+        self._reported: tuple[int, int, float] | None = None  # last SC: (state, sequence, when)
         self._pub = self.create_publisher(EmReport, "em_reports", qos.EM_REPORTS)
         self._beats = self.create_publisher(EmReport, "em_heartbeats", qos.EM_HEARTBEATS)
         self._follow_unit(unit_lost_state)
@@ -179,13 +124,26 @@ class EquipmentModule(GuardedNode):
             target=self._loop.run_forever, name=f"em-{name}", daemon=True
         )
         self._thread.start()
-        self._lock = threading.Lock()
-        self._running = False  # a hook task is in flight (started or finishing)
-        self._pending: StatusView | None = None  # newest status that arrived while it was
-        self._task: asyncio.Task[None] | None = None
-        self._ctx: StateContext | None = None
-        self._reported: tuple[int, int, float] | None = None  # last SC: (state, sequence, when)
+        #: what follows the unit's statuses and runs the hooks (packml_ros2.core.em_hooks)
+        self.hooks = HookRunner(
+            name,
+            self._loop,
+            self.hook_for,
+            lambda: getattr(self, "on_mode_change", None),
+            self.report_complete,
+            self._hook_failed,
+        )
         self._heartbeat()
+
+    @property
+    def status(self) -> StatusView | None:
+        """The unit's latest status, as this EM reads it."""
+        return self.hooks.status
+
+    @property
+    def active(self) -> bool:
+        """This EM is active in its unit (the unit's status says so)."""
+        return self.hooks.active
 
     # -- what integrators call -------------------------------------------------------------------------
     @property
@@ -382,100 +340,23 @@ class EquipmentModule(GuardedNode):
             self.refused_statuses += 1
             self.get_logger().warning(f"status refused: {exc}"[:200], throttle_duration_sec=10.0)
             return
-        with self._lock:
+        with self.hooks.lock:
             self._status_raw = raw
         self._on_status(view)
 
     def _on_status(self, msg: StatusView) -> None:
-        """Executor thread. With no hook in flight the decision is taken right here (a state
-        without a hook is reported complete at once); otherwise the running hook is cancelled
-        first and the newest status handled when it has ended."""
-        with self._lock:
-            self.status = msg
-            self.active = msg.mine[0] if msg.mine is not None else True
-            if msg.key == self._key:
-                return
-            if self._running:
-                self._pending = msg
-                self._loop.call_soon_threadsafe(self._cancel_running)
-                return
-            self._dispatch(msg)
+        """Executor thread: follow the unit (:meth:`HookRunner.on_status`)."""
+        self.hooks.on_status(msg)
 
-    def _dispatch(self, msg: StatusView) -> None:
-        """Under the lock: start the hook for ``msg``'s (state, sequence), or report at once."""
-        if (msg.mine is not None and msg.mine[1]) or not self.active:
-            # Already reported (an EM that restarted), or switched inactive: the (state,
-            # sequence) is not taken, so an EM switched active while the unit waits in this state
-            # joins it with its next status (PACKML rules: it owes State Complete for it).
-            return
-        self._key = msg.key
-        state = State(msg.state) if msg.state in State._value2member_map_ else State.UNDEFINED
-        if msg.mode_changing:
-            ctx = StateContext(state, msg.sequence, msg.mode_requested)
-            hook = getattr(self, "on_mode_change", None)
-        elif state in ACTING:
-            ctx = StateContext(state, msg.sequence, msg.mode)
-            hook = self.hook_for(state)
-        else:
-            return
-        if hook is None:
-            self.report_complete(ctx.state, ctx.sequence)
-            return
-        self._running = True
-        self._loop.call_soon_threadsafe(self._start, hook, ctx)
-
-    def _start(self, hook: Callable[[StateContext], Any], ctx: StateContext) -> None:
-        self._ctx = ctx
-        self._task = self._loop.create_task(self._run(hook, ctx))
-        self._task.add_done_callback(self._finished)
-
-    def _cancel_running(self) -> None:
-        if self._task is not None and not self._task.done() and self._ctx is not None:
-            with self._lock:
-                pending = self._pending
-            if pending is not None and pending.state in State._value2member_map_:
-                self._ctx.next_state = State(pending.state)
-            self._ctx.cancelled.set()
-            self._task.cancel()
-
-    def _finished(self, _: asyncio.Task[None]) -> None:
-        """Loop thread: the hook ended; handle a status that arrived meanwhile."""
-        with self._lock:
-            self._task, self._ctx = None, None
-            self._running = False
-            pending, self._pending = self._pending, None
-            if pending is not None and pending.key != self._key:
-                self._dispatch(pending)
-
-    async def _run(self, hook: Callable[[StateContext], Any] | None, ctx: StateContext) -> None:
-        try:
-            if hook is not None:
-                if inspect.iscoroutinefunction(hook):
-                    await hook(ctx)
-                else:
-                    future = self._loop.run_in_executor(None, hook, ctx)
-                    try:
-                        result = await asyncio.shield(future)
-                    except asyncio.CancelledError:
-                        ctx.cancelled.set()
-                        await future  # a plain function cannot be interrupted: let it return
-                        raise
-                    if inspect.isawaitable(result):
-                        await result
-        except asyncio.CancelledError:
-            return
-        except Exception as exc:
-            name = getattr(hook, "__name__", "hook")
-            self.get_logger().error(
-                f"{name} failed in {state_name(ctx.state)}: {exc}\n{traceback.format_exc()}"
-            )
-            self.raise_alarm(
-                self.fault_alarm_id, 0, f"{self.em_name}: {name} failed: {exc}"[:200], category=2
-            )
-            return
-        status = self.status
-        if status is not None and status.key == (int(ctx.state), ctx.sequence):
-            self.report_complete(ctx.state, ctx.sequence)
+    def _hook_failed(self, hook: Callable[[StateContext], Any], ctx: StateContext,
+                     exc: Exception) -> None:  # fmt: skip
+        name = getattr(hook, "__name__", "hook")
+        self.get_logger().error(
+            f"{name} failed in {state_name(ctx.state)}: {exc}\n{traceback.format_exc()}"
+        )
+        self.raise_alarm(
+            self.fault_alarm_id, 0, f"{self.em_name}: {name} failed: {exc}"[:200], category=2
+        )
 
     def run_coroutine(self, coro: Awaitable[T]) -> concurrent.futures.Future[T]:
         """Run a coroutine on the EM's asyncio loop from any thread."""
@@ -508,6 +389,7 @@ class EquipmentModule(GuardedNode):
             self._loop.close()  # else its __del__ complains at interpreter exit
 
     async def _stop_tasks(self) -> None:
+        self.hooks.close()  # a finishing step does not hold the shutdown up
         current = asyncio.current_task()
         tasks = [t for t in asyncio.all_tasks() if t is not current]
         for t in tasks:

@@ -1,7 +1,9 @@
-"""Start a whole PackML cell from its YAML file: units, simulated EMs and the coordinator, in one
-process (a multi-threaded executor) or one process per node (``processes=True``). It waits until
-every unit and the coordinator answer and every simulated EM is online at its unit (so the first
-``reset`` is not refused for a missing EM), prints what to try, and stops everything on Ctrl-C.
+"""Start a whole PackML cell from its YAML file: units, EMs (each as its entry says it runs:
+packml_ros2.em_launch) and the coordinator, in one process (a multi-threaded executor) or one
+process per node (``processes=True``). It waits until every unit and the coordinator answer and
+every EM is online at its unit (so the first ``reset`` is not refused for a missing EM; an
+external EM is waited for up to its timeout, naming it meanwhile), prints what to try, and stops
+everything on Ctrl-C.
 """
 
 from __future__ import annotations
@@ -26,9 +28,12 @@ from rclpy.node import Node
 
 from . import qos, run
 from .core import CellConfig, ConfigError, load_cell
+from .em_launch import EmRun, groups, host_arguments, program_env, resolve
 from .sim_em import SimConfig, parse_sim
 
 READY_TIMEOUT = 60.0
+#: Seconds between the launcher's notes on the external EMs it still waits for.
+WAITING_NOTE_EVERY = 5.0
 
 
 @dataclass
@@ -39,22 +44,29 @@ class Plan:
     cell: CellConfig
     source: str
     sims: dict[tuple[str, str], SimConfig] = field(default_factory=dict)
+    #: every EM and how it runs (packml_ros2.em_launch)
+    ems: list[EmRun] = field(default_factory=list)
+    simulate: bool = False  # --sim: every EM simulated
 
     @property
     def node_count(self) -> int:
-        return len(self.cell.units) + len(self.sims) + (1 if self.cell.coordinator.enabled else 0)
+        started = sum(1 for r in self.ems if r.kind != "external")
+        return len(self.cell.units) + started + (1 if self.cell.coordinator.enabled else 0)
 
 
-def plan(file: str | os.PathLike[str]) -> Plan:
-    """Load and validate the cell, including every EM's ``sim:`` block (ConfigError lists all)."""
+def plan(file: str | os.PathLike[str], simulate: bool = False) -> Plan:
+    """Load and validate the cell, including how every EM runs and every ``sim:`` block
+    (ConfigError lists all). ``simulate``: every EM simulated (a dry run of a real cell)."""
     path = Path(file)
     cell = load_cell(path)
-    p = Plan(path, cell, path.read_text(encoding="utf-8"))
-    problems: list[tuple[str, str]] = []
+    p = Plan(path, cell, path.read_text(encoding="utf-8"), simulate=simulate)
+    p.ems, problems = resolve(cell, path, simulate)
     for uname, unit in cell.units.items():
         if unit.plc is not None:
             problems += _plc_problems(cell, uname)
         for em in unit.equipment_modules:
+            if not simulate and em.runs != "sim":
+                continue
             key = f"units.{uname}.equipment_modules.{em.name}.sim"
             try:
                 p.sims[(uname, em.name)] = parse_sim(em.sim, key, str(path), unit.em_lease)
@@ -63,6 +75,12 @@ def plan(file: str | os.PathLike[str]) -> Plan:
     if problems:
         raise ConfigError(str(path), problems)
     return p
+
+
+def how_ems_run(p: Plan) -> str:
+    """``packml launch --check``: one line per EM."""
+    width = max((len(r.name) for r in p.ems), default=0)
+    return "\n".join(f"  {r.name:<{width}}  {r.describe()}" for r in p.ems)
 
 
 def _plc_problems(cell: CellConfig, unit: str) -> list[tuple[str, str]]:
@@ -83,11 +101,13 @@ def wait_ready(
     timeout: float = READY_TIMEOUT,
     alive: Callable[[], bool] = lambda: True,
     spin: Callable[[float], None] = time.sleep,
+    note: Callable[[str], None] = lambda _: None,
 ) -> list[str]:
-    """Wait until every unit's and the coordinator's command service answers and every EM the
-    cell file simulates is online in its unit's status; returns what is still missing (empty:
-    all ready). ``spin(seconds)`` lets ``node``'s subscriptions run (default: another thread
-    spins it)."""
+    """Wait until every unit's and the coordinator's command service answers and every EM is
+    online in its unit's status (an external one: up to its own timeout; ``note`` hears every
+    :data:`WAITING_NOTE_EVERY` s which external EMs are still awaited); returns what is still
+    missing (empty: all ready). ``spin(seconds)`` lets ``node``'s subscriptions run (default:
+    another thread spins it)."""
     cell = p.cell.cell
     services = [f"/{cell}/{u}/command" for u in p.cell.units]
     if p.cell.coordinator.enabled:
@@ -98,25 +118,44 @@ def wait_ready(
         node.create_subscription(
             Status, f"/{cell}/{u}/status", lambda m, u=u: latest.__setitem__(u, m), qos.STATUS
         )
-        for u in {u for u, _ in p.sims}
+        for u in {r.unit for r in p.ems}
     ]
-    deadline = time.monotonic() + timeout
+    start = time.monotonic()
+    deadline = start + timeout
     silent = list(services)
     while silent and time.monotonic() < deadline and alive():
         silent = [name for name in silent if not clients[name].service_is_ready()]
         if silent:
             clients[silent[0]].wait_for_service(timeout_sec=0.2)
     missing = silent
+    noted = start - WAITING_NOTE_EVERY  # the first note at once, then every few seconds
     while not silent and alive():
-        missing = [f"EM {u}/{em} (offline)" for u, em in p.sims if not _online(latest.get(u), em)]
-        if not missing or time.monotonic() >= deadline:
+        now = time.monotonic()
+        offline = [r for r in p.ems if not _online(latest.get(r.unit), r.em)]
+        late = [
+            r for r in offline if now >= (start + r.timeout if r.kind == "external" else deadline)
+        ]
+        awaited = [r for r in offline if r.kind == "external" and r not in late]
+        if not offline or len(late) == len(offline):
+            missing = [f"EM {r.name} ({_why_missing(r)})" for r in late]
             break
+        if awaited and now - noted >= WAITING_NOTE_EVERY:
+            noted = now
+            note("waiting for external EM(s) " + ", ".join(
+                f"{r.name} ({max(0.0, start + r.timeout - now):.0f} s left)" for r in awaited))  # fmt: skip
         spin(0.05)
     for client in clients.values():
         node.destroy_client(client)
     for subscription in subscriptions:
         node.destroy_subscription(subscription)
     return missing
+
+
+def _why_missing(r: EmRun) -> str:
+    if r.kind == "external":
+        return (f"external, not online after {r.timeout:g} s: start it where it runs; the unit "
+                "refuses Reset and Start until it is online")  # fmt: skip
+    return "offline"
 
 
 def _online(status: Status | None, em: str) -> bool:
@@ -163,6 +202,7 @@ def summary(p: Plan, mode: str) -> str:
 # -- one process -----------------------------------------------------------------------------------------
 def build_nodes(p: Plan, **node_kwargs: Any) -> list[Node]:
     """Every node of the cell, in start order: units first, then EMs, then the coordinator."""
+    from .em_launch import build
     from .sim_em import SimulatedEm
     from .unit_node import UnitNode
 
@@ -175,8 +215,15 @@ def build_nodes(p: Plan, **node_kwargs: Any) -> list[Node]:
             nodes.append(make_node(p.cell, u.name, p.source, **node_kwargs))
         else:
             nodes.append(UnitNode(u, source=p.source, unit_lease=lease, **node_kwargs))
-    for (uname, em), sim in p.sims.items():
-        nodes.append(SimulatedEm(em, uname, p.cell.cell, sim, **node_kwargs))
+    for r in p.ems:
+        if r.kind != "class":
+            continue  # a program runs as its own process (start_programs); an external one elsewhere
+        sim = p.sims.get((r.unit, r.em))
+        nodes.append(
+            SimulatedEm(r.em, r.unit, p.cell.cell, sim, **node_kwargs)
+            if sim is not None
+            else build(r, p.cell, p.file, **node_kwargs)
+        )
     if p.cell.coordinator.enabled:
         from .coordinator_node import CoordinatorNode
 
@@ -193,6 +240,7 @@ def launch_in_process(p: Plan, threads: int = 0, ready: Callable[[str], None] = 
     except BaseException:  # StoreError: an admin store cannot be opened
         rclpy.try_shutdown()
         raise
+    programs = start_programs(p)
 
     def announce() -> None:
         # The probe has its own executor and is gone once the cell is up: the ROS graph shows
@@ -202,7 +250,11 @@ def launch_in_process(p: Plan, threads: int = 0, ready: Callable[[str], None] = 
         executor.add_node(probe)
         try:
             missing = wait_ready(
-                probe, p, alive=rclpy.ok, spin=lambda s: executor.spin_once(timeout_sec=s)
+                probe,
+                p,
+                alive=rclpy.ok,
+                spin=lambda s: executor.spin_once(timeout_sec=s),
+                note=ready,
             )
         finally:
             executor.shutdown(timeout_sec=1)
@@ -221,6 +273,7 @@ def launch_in_process(p: Plan, threads: int = 0, ready: Callable[[str], None] = 
             close = getattr(node, "close", None)
             if close is not None:
                 close()
+        _stop_children(programs)
 
     # Units and EMs never block in a callback: one thread spins them all (idle, they cost
     # nothing). The coordinator's and a PLC bridge's service handlers wait for other nodes: they
@@ -228,10 +281,13 @@ def launch_in_process(p: Plan, threads: int = 0, ready: Callable[[str], None] = 
     if threads > 1:
         return run.spin(nodes, threads=threads, on_shutdown=shutdown)
     from .equipment_module import EquipmentModule
+    from .sim_em import SimulatedEm
     from .unit_node import UnitNode
 
-    blocking = [n for n in nodes if not isinstance(n, (UnitNode, EquipmentModule))]
-    light = [n for n in nodes if isinstance(n, (UnitNode, EquipmentModule))]
+    # (an integrator's EM may wait in a callback: it is not light)
+    light = [n for n in nodes if isinstance(n, (UnitNode, SimulatedEm))
+             or type(n) is EquipmentModule]  # fmt: skip
+    blocking = [n for n in nodes if n not in light]
     return run.spin(light, on_shutdown=shutdown, blocking=blocking)
 
 
@@ -241,9 +297,11 @@ class NodeSpec:
     """One node of a cell as an executable of this package (setup.py entry points)."""
 
     name: str
-    executable: str  # unit_node | plc_bridge | em_node | coordinator
+    executable: str  # unit_node | plc_bridge | em_node | coordinator ("": a program, argv)
     module: str
     arguments: tuple[str, ...]
+    argv: tuple[str, ...] = ()  # a program EM (run: ...): its whole command
+    env: tuple[tuple[str, str], ...] = ()  # set for it besides the launcher's environment
 
 
 def node_specs(p: Plan) -> list[NodeSpec]:
@@ -256,17 +314,41 @@ def node_specs(p: Plan) -> list[NodeSpec]:
         else NodeSpec(f"unit {u}", "unit_node", "packml_ros2.unit_node", (f, u))
         for u, unit in p.cell.units.items()
     ]
+    for group in groups(p.ems):
+        label = " ".join(r.name for r in group)
+        out.append(NodeSpec(f"em {label}", "em_node", "packml_ros2.sim_em",
+                            host_arguments(group, f, p.simulate)))  # fmt: skip
     out += [
-        NodeSpec(f"em {u}/{em}", "em_node", "packml_ros2.sim_em", (f, u, em)) for (u, em) in p.sims
+        NodeSpec(f"em {r.name}", "", "", (), r.argv, tuple(program_env(r, p.cell, f).items()))
+        for r in p.ems
+        if r.kind == "program"
     ]
     if p.cell.coordinator.enabled:
         out.append(NodeSpec("coordinator", "coordinator", "packml_ros2.coordinator_node", (f,)))
     return out
 
 
+def argv_of(spec: NodeSpec) -> list[str]:
+    """The command of a node process, with this interpreter (a program EM: its own command)."""
+    return list(spec.argv) if spec.argv else [sys.executable, "-m", spec.module, *spec.arguments]
+
+
 def commands(p: Plan) -> list[tuple[str, list[str]]]:
     """(name, argv) of every node process, with this interpreter."""
-    return [(s.name, [sys.executable, "-m", s.module, *s.arguments]) for s in node_specs(p)]
+    return [(s.name, argv_of(s)) for s in node_specs(p)]
+
+
+def _popen(spec: NodeSpec, out: Any = None) -> subprocess.Popen[bytes]:
+    # Own process group: Ctrl-C reaches the launcher only, which stops the children in order.
+    env = {**os.environ, **dict(spec.env)} if spec.env else None
+    return subprocess.Popen(argv_of(spec), stdout=out, stderr=subprocess.STDOUT if out else None,
+                            start_new_session=True, env=env)  # fmt: skip
+
+
+def start_programs(p: Plan) -> list[tuple[str, subprocess.Popen[bytes]]]:
+    """One-process mode: the EMs that are programs (``run:`` a program or function) still run
+    as processes of their own."""
+    return [(s.name, _popen(s)) for s in node_specs(p) if s.argv]
 
 
 def launch_processes(
@@ -282,7 +364,8 @@ def launch_processes(
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     logs = ExitStack()
     try:
-        for name, argv in commands(p):
+        for spec in node_specs(p):
+            name = spec.name
             out = (
                 logs.enter_context(
                     open(log_dir / f"{name.replace(' ', '_').replace('/', '_')}.log", "ab")  # noqa: SIM115
@@ -290,9 +373,7 @@ def launch_processes(
                 if log_dir
                 else None
             )
-            # Own process group: Ctrl-C reaches the launcher only, which stops the children in order.
-            children.append((name, subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT if out else None,
-                                                    start_new_session=True)))  # fmt: skip
+            children.append((name, _popen(spec, out)))
         rclpy.init(signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
         probe = Node("packml_launch_probe")
         missing = wait_ready(
@@ -300,6 +381,7 @@ def launch_processes(
             p,
             alive=lambda: not stopping.is_set() and all(c.poll() is None for _, c in children),
             spin=lambda seconds: rclpy.spin_once(probe, timeout_sec=seconds),
+            note=ready,
         )
         probe.destroy_node()
         rclpy.try_shutdown()

@@ -8,9 +8,11 @@ interlock (``blocked`` / ``starved``: the unit suspends), or ``repeat_complete``
 delivers every State Complete report of the EM a second time, :data:`REPEAT_AFTER` seconds later
 (by then usually stale: the unit ignores and counts it).
 
-Run: ``em_node <cell.yaml> <unit> <em> [<em> ...]``; ``packml launch`` starts these for every
-configured EM. Several EMs named: they run composed in one process on one executor (one thread),
-as an integrator runs all EMs of one controller (``run.spin([em1, em2, ...])``).
+Run: ``em_node [--sim] <cell.yaml> <unit> <em> [<em> ...]`` (packml_ros2.em_launch.host_main: an
+EM whose entry says ``run: module:Class`` is built from that class, one that says nothing or all
+with ``--sim`` are simulated); ``packml launch`` starts these for every EM the file simulates or
+runs as a Python class. Several EMs named: they run composed in one process on one executor (one
+thread), as an integrator runs all EMs of one controller (``run.spin([em1, em2, ...])``).
 """
 
 from __future__ import annotations
@@ -28,9 +30,9 @@ from typing import Any
 from packml_interfaces.msg import Status
 from std_srvs.srv import SetBool
 
-from . import qos, responses, run
+from . import qos, responses
 from .core import schema as sc
-from .core.config import load_cell
+from .core.config import CellConfig, load_cell
 from .core.numbers import ACTING, State, parse_state
 from .core.schema import ConfigError, Node
 from .equipment_module import EquipmentModule, StateContext, StatusView
@@ -146,6 +148,15 @@ class SimulatedEm(EquipmentModule):
                 self, SetBool, f"~/fault/{fault.name}", partial(self._srv_fault, fault)
             )
 
+    @classmethod
+    def from_cell(cls, cell: CellConfig, unit: str, em: str, *, file: str = "<memory>",
+                  **node_kwargs: Any) -> SimulatedEm:  # fmt: skip
+        """The simulated EM ``em`` of ``unit`` as its ``sim:`` block says (packml_ros2.em_launch)."""
+        config = cell.units[unit]
+        entry = next((e.sim for e in config.equipment_modules if e.name == em), {})
+        sim = parse_sim(entry, f"units.{unit}.equipment_modules.{em}.sim", file, config.em_lease)
+        return cls(em, unit, cell.cell, sim, **node_kwargs)
+
     # -- acting states: wait for the configured duration --------------------------------------------------
     def hook_for(self, state: State):  # type: ignore[no-untyped-def]
         """Execute cycles; other acting states take their configured duration (none: at once)."""
@@ -259,34 +270,14 @@ def create(cell_file: str, unit: str, em: str, **node_kwargs: Any) -> SimulatedE
     cell = load_cell(cell_file)
     if unit not in cell.units:
         raise SystemExit(f"{cell_file} has no unit {unit!r} (units: {', '.join(cell.units)})")
-    config = cell.units[unit]
-    ems = {e.name: e for e in config.equipment_modules}
-    sim = parse_sim(ems[em].sim if em in ems else {},
-                    f"units.{unit}.equipment_modules.{em}.sim", cell_file, config.em_lease)  # fmt: skip
-    return SimulatedEm(em, unit, cell.cell, sim, **node_kwargs)
+    return SimulatedEm.from_cell(cell, unit, em, file=cell_file, **node_kwargs)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = run.init(argv)
-    if len(args) < 3:
-        print(__doc__)
-        return 2
-    cell_file, unit, *names = args
-    nodes: list[SimulatedEm] = []
-    try:
-        for name in names:
-            nodes.append(create(cell_file, unit, name))
-    except (ConfigError, OSError) as exc:
-        for node in nodes:
-            node.destroy_node()
-        print(f"em_node: {exc}", file=sys.stderr)
-        return 2
+    """``em_node``: the EM host (packml_ros2.em_launch.host_main)."""
+    from .em_launch import host_main
 
-    def close() -> None:
-        for node in nodes:
-            node.close()
-
-    return run.spin(nodes, on_shutdown=close)
+    return host_main(argv)
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ast
 import importlib.util
+import sys
 from pathlib import Path
 
 import pytest
@@ -58,3 +59,31 @@ def test_the_launch_file_builds_its_nodes() -> (
     source = PythonLaunchDescriptionSource(str(ROOT / "launch" / "cell.launch.py"))
     description = source.get_launch_description(LaunchContext())
     assert description.entities
+
+
+def test_ems_naming_one_process_share_it_and_programs_run_alone(tmp_path: Path) -> None:
+    """Issue 26: EM classes with one ``process:`` are one em_node (across units too); a program
+    EM is its own command, with its placeholders and environment."""
+    path = tmp_path / "c.yaml"
+    path.write_text(
+        "cell: c\nunits:\n"
+        "  a:\n    equipment_modules:\n"
+        "      arm: {sim: {}, process: ctl}\n      wrist: {sim: {}, process: ctl}\n"
+        "      belt: {sim: {}}\n"
+        f"      cam: {{run: [{sys.executable}, -c, pass, '{{cell}}/{{unit}}/{{em}}']}}\n"
+        "      remote: {external: true}\n"
+        "  b:\n    equipment_modules:\n      tool: {sim: {}, process: ctl}\n"
+    )
+    specs = {s.name: s for s in node_specs(plan(path))}
+    ctl = specs["em a/arm a/wrist b/tool"]
+    assert (ctl.executable, ctl.arguments) == (
+        "em_node",
+        (str(path), "a", "arm", "wrist", "b/tool"),
+    )
+    assert specs["em a/belt"].arguments == (str(path), "a", "belt")
+    cam = specs["em a/cam"]
+    assert cam.executable == "" and cam.argv == (sys.executable, "-c", "pass", "c/a/cam")
+    assert dict(cam.env)["PACKML_EM"] == "cam" and dict(cam.env)["PACKML_UNIT"] == "a"
+    assert not any("remote" in name for name in specs)  # external: not started here
+    dry = {s.name: s for s in node_specs(plan(path, simulate=True))}
+    assert dry["em a/cam"].arguments[:2] == ("--sim", str(path))

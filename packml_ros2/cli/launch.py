@@ -15,7 +15,7 @@ from .main import EXIT_USAGE
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = subparsers.add_parser(
         "launch",
-        help="start a cell: units, simulated EMs, coordinator",
+        help="start a cell: units, EMs (simulated, run or external), coordinator",
         description="Start every node of a cell file, wait until they answer, print what to try. "
         "Ctrl-C stops everything (exit code 0).",
     )
@@ -33,7 +33,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     p.add_argument(
         "--logs", type=Path, help="with --processes: write each node's output to this directory"
     )
-    p.add_argument("--check", action="store_true", help="only validate the cell file and exit")
+    p.add_argument(
+        "--check",
+        action="store_true",
+        help="only validate the cell file, list how every EM will run, and exit",
+    )
+    p.add_argument(
+        "--sim",
+        action="store_true",
+        help="simulate every EM (a dry run of a real cell file: run: and external: EMs too, "
+        "each with its sim: block if it has one)",
+    )
     p.add_argument(
         "--hmi",
         nargs="?",
@@ -62,7 +72,7 @@ def launch(args: argparse.Namespace) -> int:
     opcua = getattr(args, "opcua", None)
     exposure = None
     try:
-        plan = launcher.plan(args.cell_file)
+        plan = launcher.plan(args.cell_file, simulate=getattr(args, "sim", False))
         if hmi is not None:  # the optional faces' blocks are checked before anything starts
             from ..hmi import hmi_settings
             from .hmi import TOKEN_ENV
@@ -80,6 +90,9 @@ def launch(args: argparse.Namespace) -> int:
         print(f"{args.cell_file}: valid ({plan.node_count} nodes)")
         if hmi is not None and exposure:
             print(f"packml launch: warning: the HMI: {exposure}", file=sys.stderr)
+        if plan.ems:
+            print("Equipment modules:")
+            print(launcher.how_ems_run(plan))
         return 0
     server = _start_server("hmi", args.cell_file, hmi) if hmi is not None else None
     opcua_server = _start_server("opcua", args.cell_file, opcua) if opcua is not None else None

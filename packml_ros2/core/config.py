@@ -88,12 +88,26 @@ class RemoteInterfaceDef:
     name: str = ""
 
 
+#: How an EM of a cell file runs: the key of its entry that says so -> the EquipmentModule class
+#: (``module:Class``) started for it, which reads that block (packml_ros2.em_launch). ``run``
+#: names its own class, entry point or program; ``external`` is started elsewhere (not by the
+#: launcher). One row per kind: a new kind of EM is one row here and its class.
+EM_RUNS: dict[str, str] = {
+    "sim": "packml_ros2.sim_em:SimulatedEm",
+    "run": "",
+    "external": "",
+}
+
+
 @dataclass(frozen=True)
 class EmConfig:
     name: str
     active: bool = True
     lost_reaction: int | None = None  # None: the unit's em_lost_reaction
     sim: Mapping[str, Any] = field(default_factory=dict)  # simulated behaviour (packml_ros2.sim_em)
+    runs: str = ""  # how it runs: a key of EM_RUNS ("": the entry does not say)
+    spec: Any = None  # that key's value in the entry (checked by packml_ros2.em_launch)
+    process: str = ""  # EMs naming one process run composed in it (--processes, ros2 launch)
 
 
 @dataclass(frozen=True)
@@ -367,14 +381,20 @@ def _ems(n: Node) -> tuple[EmConfig, ...]:
     out = []
     for key, child in n.items():
         Node(key, child.path, child.problems).parse(sc.name, "")
-        child.check_keys({"active", "lost_reaction", "sim"})
+        child.check_keys({"active", "lost_reaction", "process", *EM_RUNS})
         sim: dict[str, Any] = child.get("sim", lambda x: dict(x.mapping()), {})
+        kinds = [k for k in EM_RUNS if k in child.mapping()]
+        if len(kinds) > 1:
+            child.error(f"both {' and '.join(kinds)} given: an EM runs one way only")
         out.append(
             EmConfig(
                 key,
                 child.get("active", sc.boolean, True),
                 child.get("lost_reaction", _LOST_REACTION, None),
                 sim,
+                kinds[0] if kinds else "",
+                child.mapping().get(kinds[0]) if kinds else None,
+                child.get("process", sc.name, ""),
             )
         )
     return tuple(out)

@@ -243,7 +243,7 @@ def test_packml_launch_starts_a_bridge_for_each_plc_unit(tmp_path: Path) -> None
 
     path = cell_file(tmp_path, {"endpoint": "opc.tcp://127.0.0.1:4840"})
     doc = yaml.safe_load(path.read_text())
-    doc["units"]["robot"] = {"equipment_modules": {"gripper": {}}}
+    doc["units"]["robot"] = {"equipment_modules": {"gripper": {"sim": {}}}}
     path.write_text(yaml.safe_dump(doc))
     specs = {s.name: (s.executable, s.module, s.arguments) for s in node_specs(plan(path))}
     assert specs["plc wrapper"] == ("plc_bridge", "packml_ros2.plc.node", (str(path), "wrapper"))

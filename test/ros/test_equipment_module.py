@@ -105,6 +105,14 @@ def to_execute(client: UnitClient) -> None:
     client.wait_state("EXECUTE")
 
 
+def start_unit(ros, cell_file: Path, cell_name: str) -> UnitClient:
+    """Unit ``u`` of ``cell_file`` in the test's executor, and a client of it once it answers."""
+    ros.add(UnitNode(unit_config_of(cell_file, "u"), context=ros.context))
+    client = UnitClient(ros, cell_name, "u")
+    client.ready()
+    return client
+
+
 def online(client: UnitClient, name: str = "robot") -> None:
     client.wait_status(
         lambda s: any(e.name == name and e.online for e in s.equipment_modules),
@@ -260,9 +268,7 @@ def test_an_em_switched_active_mid_state_joins_it(ros, tmp_path: Path) -> None:
         {"u": {"initial_mode": "maintenance", "em_lease": 2.0,
                "equipment_modules": {"busy": {}, "late": {"active": False}}}},
     )  # fmt: skip
-    ros.add(UnitNode(unit_config_of(cell_file, "u"), context=ros.context))
-    client = UnitClient(ros, cell_name, "u")
-    client.ready()
+    client = start_unit(ros, cell_file, cell_name)
     busy = em(ros, Busy, cell_name, "busy")
     late = em(ros, Late, cell_name, "late")
     online(client, "busy")
@@ -338,3 +344,53 @@ def test_a_status_from_a_second_writer_does_not_drive_the_em(ros, cell) -> None:
     client.trigger("reset")  # the real unit's Resetting runs the hook
     client.wait_state("IDLE")
     assert robot.names() == [f"resetting {real.sequence + 1}"]
+
+
+def test_stop_during_a_move_then_another_ems_alarm_does_not_cut_the_move(
+    ros, tmp_path: Path
+) -> None:
+    """Issue 26: Stop during a move wrapped in ``ctx.finish``, then 0.5 s later an alarm raised by
+    another EM of the unit. Each new status used to cancel the hook again, and the second cancel
+    killed the wait for the move: the move was cut and ``on_stopping`` started mid-move."""
+
+    class Arm(Recorder):
+        async def execute(self, ctx: StateContext) -> None:
+            while True:
+                await ctx.finish(self.move())
+
+        async def move(self) -> None:
+            self.note("move begin")
+            try:
+                await asyncio.sleep(1.5)
+            except asyncio.CancelledError:
+                self.note("move cut")
+                raise
+            self.note("move end")
+
+        async def on_stopping(self, ctx: StateContext) -> None:
+            self.note("stopping")
+
+    cell_file, cell_name = write_cell(
+        tmp_path,
+        {"u": {"em_lease": 2.0, "equipment_modules": {"arm": {}, "camera": {}},
+               "alarms": [{"id": 600, "message": "guard open", "category": 3}]}},
+    )  # fmt: skip
+    client = start_unit(ros, cell_file, cell_name)
+    arm = em(ros, Arm, cell_name, "arm")
+    camera = em(ros, Recorder, cell_name, "camera")
+    online(client, "arm")
+    online(client, "camera")
+    to_execute(client)
+    wait_note(arm, "move begin")
+    assert client.trigger("stop").success
+    stopping_at = client.wait_state("STOPPING")
+    time.sleep(0.5)  # the reported timing: the other EM's alarm half a second into Stopping
+    camera.raise_alarm(600)
+    client.alarms.wait_for(lambda a: any(x.id == 600 for x in a.alarms), 5, "the camera's alarm")
+    client.wait_state("STOPPED", timeout=10)
+    names = arm.names()
+    assert "move cut" not in names, names
+    last_begin = max(i for i, n in enumerate(names) if n == "move begin")
+    assert names[last_begin:] == ["move begin", "move end", "stopping"], names
+    assert arm.when("move end") >= arm.when("move begin") + 1.5
+    assert stopping_at.state_current_name == "STOPPING"
