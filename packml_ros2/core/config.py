@@ -94,6 +94,9 @@ class EmConfig:
     active: bool = True
     lost_reaction: int | None = None  # None: the unit's em_lost_reaction
     sim: Mapping[str, Any] = field(default_factory=dict)  # simulated behaviour (packml_ros2.sim_em)
+    #: an EM made of an existing action server / service (packml_ros2.interface_em validates them)
+    action: Mapping[str, Any] = field(default_factory=dict)
+    service: Mapping[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -364,14 +367,20 @@ def _ems(n: Node) -> tuple[EmConfig, ...]:
     out = []
     for key, child in n.items():
         Node(key, child.path, child.problems).parse(sc.name, "")
-        child.check_keys({"active", "lost_reaction", "sim"})
+        child.check_keys({"active", "lost_reaction", "sim", "action", "service"})
         sim: dict[str, Any] = child.get("sim", lambda x: dict(x.mapping()), {})
+        action: dict[str, Any] = child.get("action", lambda x: dict(x.mapping()), {})
+        service: dict[str, Any] = child.get("service", lambda x: dict(x.mapping()), {})
+        if action and service:
+            child.error("an EM is an action EM or a service EM, not both (action: and service:)")
         out.append(
             EmConfig(
                 key,
                 child.get("active", sc.boolean, True),
                 child.get("lost_reaction", _LOST_REACTION, None),
                 sim,
+                action,
+                service,
             )
         )
     return tuple(out)

@@ -31,7 +31,7 @@ from packml_interfaces.msg import Alarm, EmReport, TransitionEvent
 
 from .. import qos
 from ..core import load_cell
-from ..core.numbers import ACTING, State
+from ..core.numbers import State
 from .harness import Collector, RosHarness
 from .unit_client import UnitClient
 
@@ -104,8 +104,15 @@ class EmTestUnit(UnitClient):
         """Trigger ``trigger`` (``reset``, ``start``, ``hold``...; accepted, or AssertionError)
         and wait until the unit enters ``state``; the transition into it."""
         answer = self.trigger(trigger)
-        assert answer.success, f"{trigger} refused: {answer.message}"
+        assert answer.success, f"{trigger} refused: {answer.message}; {self.recent()}"
         return self.wait_entered(state, timeout)
+
+    def recent(self, n: int = 4) -> str:
+        """The last ``n`` transitions, for a failure's message."""
+        last = list(self.transitions.messages)[-n:]
+        steps = [f"{t.from_state_name}->{t.to_state_name} ({t.trigger_name} {t.source} {t.detail})".replace(" )", ")")
+                 for t in last]  # fmt: skip
+        return "last transitions: " + "; ".join(steps)
 
     def to_execute(self, timeout: float = 10.0) -> None:
         """From Stopped (or Idle): Reset and Start, back once the unit is in Execute."""
@@ -165,14 +172,15 @@ class EmTestUnit(UnitClient):
         return int(getattr(admin, name)[index].count)
 
     def wait_alarm(self, alarm_id: int, timeout: float = 10.0, warning: bool = False) -> Alarm:
-        """An active alarm (``warning``: warning) ``alarm_id`` in the unit's list."""
+        """Alarm (``warning``: warning) ``alarm_id`` in the unit's list, active or latched (an
+        EM may raise and clear it at once: an event; it stays latched until Reset)."""
         field = "warnings" if warning else "alarms"
         alarms = self.alarms.wait_for(
-            lambda a: any(x.id == alarm_id and x.trigger for x in getattr(a, field)),
+            lambda a: any(x.id == alarm_id and (x.trigger or x.latched) for x in getattr(a, field)),
             timeout,
-            f"active alarm {alarm_id}",
+            f"alarm {alarm_id}",
         )
-        return next(x for x in getattr(alarms, field) if x.id == alarm_id and x.trigger)
+        return next(x for x in getattr(alarms, field) if x.id == alarm_id)
 
     def stale_reports(self, em: str) -> int:
         """State Complete reports of ``em`` the unit ignored as stale (not for the current pair)."""
