@@ -26,6 +26,7 @@ from rclpy.node import Node
 
 from . import qos, run
 from .core import CellConfig, ConfigError, load_cell
+from .interface_em import interface_block, parse_interface
 from .sim_em import SimConfig, parse_sim
 
 READY_TIMEOUT = 60.0
@@ -39,10 +40,17 @@ class Plan:
     cell: CellConfig
     source: str
     sims: dict[tuple[str, str], SimConfig] = field(default_factory=dict)
+    #: EMs made of an action server or a service (packml_ros2.interface_em)
+    interfaces: dict[tuple[str, str], Any] = field(default_factory=dict)
+
+    @property
+    def ems(self) -> list[tuple[str, str]]:
+        """(unit, EM) of every EM the launcher starts."""
+        return [*self.sims, *self.interfaces]
 
     @property
     def node_count(self) -> int:
-        return len(self.cell.units) + len(self.sims) + (1 if self.cell.coordinator.enabled else 0)
+        return len(self.cell.units) + len(self.ems) + (1 if self.cell.coordinator.enabled else 0)
 
 
 def plan(file: str | os.PathLike[str]) -> Plan:
@@ -57,6 +65,14 @@ def plan(file: str | os.PathLike[str]) -> Plan:
         for em in unit.equipment_modules:
             key = f"units.{uname}.equipment_modules.{em.name}.sim"
             try:
+                block = interface_block(em)
+                if block is not None:  # an action / service EM (issue 26)
+                    kind, data = block
+                    where = f"units.{uname}.equipment_modules.{em.name}.{kind}"
+                    p.interfaces[(uname, em.name)] = parse_interface(
+                        data, kind, where, str(path), unit
+                    )
+                    continue
                 p.sims[(uname, em.name)] = parse_sim(em.sim, key, str(path), unit.em_lease)
             except ConfigError as exc:
                 problems += exc.problems
@@ -98,7 +114,7 @@ def wait_ready(
         node.create_subscription(
             Status, f"/{cell}/{u}/status", lambda m, u=u: latest.__setitem__(u, m), qos.STATUS
         )
-        for u in {u for u, _ in p.sims}
+        for u in {u for u, _ in p.ems}
     ]
     deadline = time.monotonic() + timeout
     silent = list(services)
@@ -108,7 +124,7 @@ def wait_ready(
             clients[silent[0]].wait_for_service(timeout_sec=0.2)
     missing = silent
     while not silent and alive():
-        missing = [f"EM {u}/{em} (offline)" for u, em in p.sims if not _online(latest.get(u), em)]
+        missing = [f"EM {u}/{em} (offline)" for u, em in p.ems if not _online(latest.get(u), em)]
         if not missing or time.monotonic() >= deadline:
             break
         spin(0.05)
@@ -163,6 +179,7 @@ def summary(p: Plan, mode: str) -> str:
 # -- one process -----------------------------------------------------------------------------------------
 def build_nodes(p: Plan, **node_kwargs: Any) -> list[Node]:
     """Every node of the cell, in start order: units first, then EMs, then the coordinator."""
+    from .interface_em import InterfaceEm
     from .sim_em import SimulatedEm
     from .unit_node import UnitNode
 
@@ -177,6 +194,8 @@ def build_nodes(p: Plan, **node_kwargs: Any) -> list[Node]:
             nodes.append(UnitNode(u, source=p.source, unit_lease=lease, **node_kwargs))
     for (uname, em), sim in p.sims.items():
         nodes.append(SimulatedEm(em, uname, p.cell.cell, sim, **node_kwargs))
+    for (uname, em), config in p.interfaces.items():
+        nodes.append(InterfaceEm(em, uname, p.cell.cell, config, **node_kwargs))
     if p.cell.coordinator.enabled:
         from .coordinator_node import CoordinatorNode
 
@@ -258,6 +277,10 @@ def node_specs(p: Plan) -> list[NodeSpec]:
     ]
     out += [
         NodeSpec(f"em {u}/{em}", "em_node", "packml_ros2.sim_em", (f, u, em)) for (u, em) in p.sims
+    ]
+    out += [
+        NodeSpec(f"em {u}/{em}", "interface_em", "packml_ros2.interface_em", (f, u, em))
+        for (u, em) in p.interfaces
     ]
     if p.cell.coordinator.enabled:
         out.append(NodeSpec("coordinator", "coordinator", "packml_ros2.coordinator_node", (f,)))

@@ -209,3 +209,30 @@ def test_a_wrong_action_block_is_refused_with_its_key_path(tmp_path, change, whe
 def test_an_em_cannot_be_both_an_action_and_a_service(tmp_path) -> None:
     with pytest.raises(ConfigError, match="not both"):
         unit_of(tmp_path, {"action": {"type": "x"}, "service": {"type": "y"}})
+
+
+def test_the_launcher_starts_an_action_em_as_interface_em_and_refuses_a_wrong_block(
+    tmp_path: Path,
+) -> None:
+    from packml_ros2 import launcher
+
+    good = move_em({"starting": {"goal": {"order": 2}}})
+    path = tmp_path / "cell.yaml"
+    cell = {"cell": "c", "units": {"u": {"equipment_modules": {"mover": good, "sim": {}}}}}
+    path.write_text(yaml.safe_dump(cell))
+    plan = launcher.plan(path)
+    assert list(plan.interfaces) == [("u", "mover")] and list(plan.sims) == [("u", "sim")]
+    specs = {s.name: s for s in launcher.node_specs(plan)}
+    assert specs["em u/mover"].module == "packml_ros2.interface_em"
+    assert specs["em u/mover"].arguments == (str(path), "u", "mover")
+    cell["units"]["u"]["equipment_modules"]["mover"]["action"]["states"]["starting"] = {
+        "goal": {"speed": 1}
+    }
+    path.write_text(yaml.safe_dump(cell))
+    with pytest.raises(ConfigError) as info:
+        launcher.plan(path)
+    assert any(
+        p == "units.u.equipment_modules.mover.action.states.starting.goal"
+        and "no field 'speed'" in t
+        for p, t in info.value.problems
+    ), info.value.problems
