@@ -12,6 +12,7 @@
     packml opcua <cell.yaml>                 the cell as OPC UA (OPC 30050) objects
     packml policy <cell.yaml>                the SROS2 permission policy of the cell
     packml report [cell]                     the line's losses, OEE and stop episodes
+    packml new em <name>                     an equipment-module package (the EM kit)
 
 Exit codes: 0 done, 1 refused by the unit (the reason is printed), 2 usage or configuration
 error, 3 a unit or service did not answer.
@@ -36,6 +37,7 @@ VERB_MODULES = {
     "opcua": ("opcua",),
     "policy": ("policy",),
     "report": ("report",),
+    "new": ("new",),
 }
 
 EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_UNAVAILABLE = 0, 1, 2, 3
