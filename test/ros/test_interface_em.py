@@ -236,3 +236,17 @@ def test_the_launcher_starts_an_action_em_as_interface_em_and_refuses_a_wrong_bl
         and "no field 'speed'" in t
         for p, t in info.value.problems
     ), info.value.problems
+
+
+def test_the_readme_action_and_service_example_is_a_valid_cell(tmp_path: Path) -> None:
+    from packml_ros2 import launcher
+    from test.workspace.tools import code_blocks
+
+    blocks = [b for b in code_blocks("yaml") if "action:" in b and "service:" in b]
+    assert len(blocks) == 1, "the README's action/service EM example was not found"
+    path = tmp_path / "cell.yaml"
+    path.write_text("cell: readme\n" + blocks[0])
+    plan = launcher.plan(path)
+    assert sorted(plan.interfaces) == [("robot_cell", "gripper"), ("robot_cell", "mover")]
+    mover = plan.interfaces[("robot_cell", "mover")]
+    assert mover.category == 2  # reaction stop: the unit's first category that stops
