@@ -86,6 +86,7 @@ setup(
         ("share/{name}", ["package.xml", "cell.yaml"]),
     ],
     install_requires=["setuptools"],
+    extras_require={{"test": ["pytest"]}},  # colcon test runs pytest
     zip_safe=True,
     entry_points={{"console_scripts": ["{name} = {name}.em:main"]}},
 )
