@@ -36,6 +36,7 @@ setup(
             "unit_node = packml_ros2.unit_node:main",
             "plc_bridge = packml_ros2.plc.node:main",
             "em_node = packml_ros2.sim_em:main",
+            "interface_em = packml_ros2.interface_em:main",
             "coordinator = packml_ros2.coordinator_node:main",
             "pick_and_place = packml_ros2.examples.pick_and_place:main",
         ],

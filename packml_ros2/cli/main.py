@@ -13,6 +13,7 @@
     packml policy <cell.yaml>                the SROS2 permission policy of the cell
     packml report [cell]                     the line's losses, OEE and stop episodes
     packml doctor [cell.yaml]                check this host's DDS setup, say what to change
+    packml new em <name>                     an equipment-module package (the EM kit)
 
 Exit codes: 0 done, 1 refused by the unit (the reason is printed), 2 usage or configuration
 error, 3 a unit or service did not answer (``packml status`` still prints the cell, the lost units
@@ -39,6 +40,7 @@ VERB_MODULES = {
     "policy": ("policy",),
     "report": ("report",),
     "doctor": ("doctor",),
+    "new": ("new",),
 }
 
 EXIT_OK, EXIT_REFUSED, EXIT_USAGE, EXIT_UNAVAILABLE = 0, 1, 2, 3

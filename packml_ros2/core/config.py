@@ -96,6 +96,8 @@ EM_RUNS: dict[str, str] = {
     "sim": "packml_ros2.sim_em:SimulatedEm",
     "run": "",
     "external": "",
+    "action": "packml_ros2.interface_em:InterfaceEm",  # an existing action server's goals
+    "service": "packml_ros2.interface_em:InterfaceEm",  # an existing service's calls
 }
 
 
