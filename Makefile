@@ -6,9 +6,9 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 CELL ?= config/demo_cell.yaml
 
-# DDS traffic stays on this machine; discovery is quick (see config/fastdds_localhost.xml).
+# DDS traffic stays on this machine, its sockets on loopback; discovery is quick (config/fastdds_loopback.xml).
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
-export FASTDDS_DEFAULT_PROFILES_FILE ?= $(CURDIR)/config/fastdds_localhost.xml
+export FASTDDS_DEFAULT_PROFILES_FILE ?= $(CURDIR)/config/fastdds_loopback.xml
 export AMENT_PREFIX_PATH := $(CURDIR)/$(VENV)$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH))
 
 .PHONY: setup setup-test demo test lint format typecheck pytest bench clean
