@@ -18,6 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 ROSDEP = {
     "yaml": "python3-yaml",
     "rosbags": "python3-rosbags-pip",
+    "lz4": "python3-lz4",  # rosbags brings it; the bag reader bounds its decompression
     "fastapi": "python3-fastapi",
     "uvicorn": "python3-uvicorn",
     "starlette": "python3-fastapi",  # FastAPI's own foundation, installed with it

@@ -77,6 +77,9 @@ class NotWritten(RuntimeError):
 #: SQLite's primary result codes of a store that cannot be written *now* (not of a file that is
 #: not a store): full, I/O error, cannot open, read-only, permission, busy, locked, no memory.
 _TRANSIENT = frozenset({13, 10, 14, 8, 3, 5, 6, 7})
+#: the same as SQLite words them, for an error that carries no code
+_TRANSIENT_WORDS = ("full", "disk i/o", "unable to open", "readonly", "read-only", "locked",
+                    "busy", "out of memory", "permission")  # fmt: skip
 
 
 def not_writable(exc: BaseException) -> bool:
@@ -84,8 +87,12 @@ def not_writable(exc: BaseException) -> bool:
     store is retried, never moved aside."""
     if isinstance(exc, OSError):
         return True
+    if not isinstance(exc, sqlite3.OperationalError):
+        return False
     code = getattr(exc, "sqlite_errorcode", None)
-    return isinstance(exc, sqlite3.OperationalError) and (code is None or code & 0xFF in _TRANSIENT)
+    if code is None:  # (raised by Python's sqlite3 itself, e.g. a TEXT that is not UTF-8: by what
+        return any(words in str(exc).lower() for words in _TRANSIENT_WORDS)  # it says)
+    return code & 0xFF in _TRANSIENT
 
 
 def os_reason(exc: BaseException) -> str:

@@ -81,11 +81,16 @@ def test_the_readme_policy_command_writes_an_enclave_per_node_with_least_privile
         assert {f"{base}/status", f"{base}/transitions", f"{base}/config"} <= of(
             base, "topics", "publish"
         )
-        assert of(base, "topics", "subscribe") == {f"{base}/em_reports", "/parameter_events"}
+        assert of(base, "topics", "subscribe") == {
+            f"{base}/em_reports",
+            f"{base}/em_heartbeats",
+            "/parameter_events",
+        }
         for em in ems[u]:
             path = f"{base}/{em}"
             assert of(path, "topics", "publish") == {
                 f"{base}/em_reports",
+                f"{base}/em_heartbeats",
                 "/rosout",
                 "/parameter_events",
             }

@@ -207,7 +207,7 @@ def test_a_wrong_action_block_is_refused_with_its_key_path(tmp_path, change, whe
 
 
 def test_an_em_cannot_be_both_an_action_and_a_service(tmp_path) -> None:
-    with pytest.raises(ConfigError, match="not both"):
+    with pytest.raises(ConfigError, match="both action and service given: an EM runs one way only"):
         unit_of(tmp_path, {"action": {"type": "x"}, "service": {"type": "y"}})
 
 
@@ -218,12 +218,14 @@ def test_the_launcher_starts_an_action_em_as_interface_em_and_refuses_a_wrong_bl
 
     good = move_em({"starting": {"goal": {"order": 2}}})
     path = tmp_path / "cell.yaml"
-    cell = {"cell": "c", "units": {"u": {"equipment_modules": {"mover": good, "sim": {}}}}}
+    cell = {"cell": "c", "units": {"u": {"equipment_modules": {"mover": good, "sim": {"sim": {}}}}}}
     path.write_text(yaml.safe_dump(cell))
     plan = launcher.plan(path)
-    assert list(plan.interfaces) == [("u", "mover")] and list(plan.sims) == [("u", "sim")]
+    runs = {(r.unit, r.em): r for r in plan.ems}
+    assert runs[("u", "mover")].key == "action" and runs[("u", "sim")].key == "sim"
+    assert runs[("u", "mover")].target == "packml_ros2.interface_em:InterfaceEm"
     specs = {s.name: s for s in launcher.node_specs(plan)}
-    assert specs["em u/mover"].module == "packml_ros2.interface_em"
+    assert specs["em u/mover"].executable == "em_node"  # hosted like every EM class
     assert specs["em u/mover"].arguments == (str(path), "u", "mover")
     cell["units"]["u"]["equipment_modules"]["mover"]["action"]["states"]["starting"] = {
         "goal": {"speed": 1}
@@ -247,6 +249,9 @@ def test_the_readme_action_and_service_example_is_a_valid_cell(tmp_path: Path) -
     path = tmp_path / "cell.yaml"
     path.write_text("cell: readme\n" + blocks[0])
     plan = launcher.plan(path)
-    assert sorted(plan.interfaces) == [("robot_cell", "gripper"), ("robot_cell", "mover")]
-    mover = plan.interfaces[("robot_cell", "mover")]
+    kinds = {(r.unit, r.em): r.key for r in plan.ems}
+    assert kinds == {("robot_cell", "mover"): "action", ("robot_cell", "gripper"): "service"}
+    from packml_ros2.interface_em import _parsed
+
+    mover = _parsed(plan.cell, "robot_cell", "mover", str(path))
     assert mover.category == 2  # reaction stop: the unit's first category that stops

@@ -232,7 +232,7 @@ def cleanup() -> Iterator[list[object]]:
     started: list[object] = []
     yield started
     for thing in reversed(started):
-        if isinstance(thing, Camera):
+        if isinstance(thing, Camera | Servers):
             thing.stop()
         elif isinstance(thing, Launched) and thing.proc.poll() is None:
             thing.proc.kill()
@@ -242,29 +242,65 @@ def cleanup() -> Iterator[list[object]]:
 #: the camera as a program the launcher starts (run: a function, with a placeholder argument)
 PROGRAM = {**MIXED, "camera": {"run": ["my_ems:main", "{cell}"]}}
 
+#: an EM made of an existing ROS 2 action server (no code: interface_em), beside the others
+SERVERS = Path(__file__).with_name("fake_servers.py")
+MOVER = {"action": {"type": "test_msgs/action/Fibonacci", "name": "move", "timeout": 10,
+                    "alarm": {"id": 5001, "category": 2},
+                    "states": {"starting": {"goal": {"order": 2}},
+                               "execute": {"goal": {"order": 2}, "repeat": True}}}}  # fmt: skip
+WITH_ACTION = {**MIXED, "mover": MOVER}
+
+
+class Servers:
+    """The robot's existing drivers (an action server and a service) in a process of their own."""
+
+    def __init__(self, tmp_path: Path, cell: str, host: Host = HERE) -> None:
+        self.log_path = tmp_path / "servers.log"
+        self.log = self.log_path.open("wb")
+        base = f"/{cell}/press"
+        argv = [*host.prefix, sys.executable, str(SERVERS), f"{base}/move", f"{base}/grip", "0.05"]
+        self.proc = subprocess.Popen(argv, stdout=self.log, stderr=subprocess.STDOUT,
+                                     env=env_for(tmp_path, host.env))  # fmt: skip
+        deadline = time.monotonic() + 60
+        while "drivers ready" not in self.output():
+            assert self.proc.poll() is None and time.monotonic() < deadline, self.output()
+            time.sleep(0.05)
+
+    def output(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def stop(self) -> None:
+        Camera.stop(self)  # type: ignore[arg-type]
+
 
 @pytest.mark.timeout(300)  # eight packml cmd processes
 @pytest.mark.parametrize(
     ("processes", "ems"),
-    [(False, MIXED), (True, MIXED), (False, PROGRAM)],
-    ids=["one-process", "processes", "program"],
+    [(False, MIXED), (True, MIXED), (False, PROGRAM), (False, WITH_ACTION), (True, WITH_ACTION)],
+    ids=["one-process", "processes", "program", "action-one-process", "action-processes"],
 )
 def test_a_cell_of_sim_run_and_external_ems(
     tmp_path: Path, cleanup: list[object], processes: bool, ems: dict[str, object]
 ) -> None:
     cell = f"own{os.getpid()}{int(processes)}{len(str(ems))}"
     path = write_cell(tmp_path, cell, ems)
+    servers = None
+    if "mover" in ems:
+        servers = Servers(tmp_path, cell)
+        cleanup.append(servers)
     args = ["--processes", str(path)] if processes else [str(path)]
     launch = LaunchedHere(args, tmp_path)
     cleanup.append(launch)
-    if ems is MIXED:
+    if "external" in ems["camera"]:  # type: ignore[operator]
         launch.wait_text("waiting for external EM(s) press/camera")
         assert "is up" not in launch.output()
         cleanup.append(Camera(tmp_path, cell))
     launch.wait_ready()
-    if processes:
-        assert "4 processes" in launch.output()  # the unit, the feeder, the gripper, coordinator
+    if processes:  # the unit, the feeder, the gripper, (the mover,) the coordinator
+        assert f"{4 + (servers is not None)} processes" in launch.output()
     run_through_the_states(tmp_path)
+    if servers is not None:  # the mover's goals: Starting's twice, and Execute's
+        assert servers.output().count("goal 2 succeeded") >= 3, servers.output()
     assert launch.ctrl_c() == 0, launch.output()[-3000:]
 
 
