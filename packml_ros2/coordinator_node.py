@@ -386,6 +386,9 @@ class CoordinatorNode(GuardedNode):
                 return step
             calls, wait = step
             for call in calls:
+                # kept before it is sent: a coordinator killed before the answer arrives still
+                # says the unit may have acted on it
+                self._in_flight_reached(call.unit)
                 future = self._proxies[call.unit].call(call.service, **call.fields)
                 future.add_done_callback(partial(self._answered, run, call.unit, call.service))
             self._cond.wait(min(wait, POLL))
@@ -400,7 +403,6 @@ class CoordinatorNode(GuardedNode):
                             int(getattr(r, "state_current", 0)), int(getattr(r, "state_requested", 0)))  # fmt: skip
         with self._cond:
             run.answer(unit, service, answer)
-            self._in_flight_reached(unit)
             self._cond.notify_all()
 
     # -- the cell command in flight, kept in the line store (issue 25): a coordinator killed in

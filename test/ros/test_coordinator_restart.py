@@ -14,7 +14,7 @@ from packml_ros2.core import Cmd
 from packml_ros2.testing.processes import Processes
 from test.ros.cells import UnitClient, start_em_process, start_unit_process, write_cell
 
-SLOW_START = {"sim": {"durations": {"starting": 4.0}, "lease": 2.0}}
+SLOW_START = {"sim": {"durations": {"starting": 4.0}, "lease": 5.0}}
 
 
 def test_a_restarted_coordinator_says_which_command_was_interrupted(

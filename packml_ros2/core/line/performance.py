@@ -263,7 +263,10 @@ class Performance:
                     tr.online, tr.lost_why = False, "restarted"
                     self._close_unit(tr, t.time)
                     tr.online, tr.lost_why = True, ""
-            new = Step(t.sequence, t.time, t.to_state, t.to_mode, reason_id=step.reason_id)
+            # a restarted unit's stop reason is not the one before (a crash replaces it): unknown
+            # (not planned) until its status says it
+            reason = 0 if restart else step.reason_id
+            new = Step(t.sequence, t.time, t.to_state, t.to_mode, reason_id=reason)
             self._describe(new, t)
             self._step(now, tr, new)
             if tr.ahead is not None and tr.ahead[0].sequence <= new.sequence:
