@@ -105,8 +105,8 @@ def test_a_goal_the_server_aborts_raises_the_alarm(ros, processes, tmp_path) -> 
     unit, _, _ = start(ros, processes, tmp_path, em)
     unit.command_to("reset", "IDLE")
     unit.command_to("start", "STARTING")
-    alarm = unit.wait_alarm(ALARM)
-    assert alarm.value == Failure.FAILED and "aborted" in alarm.message
+    alarm = unit.wait_alarm(ALARM, timeout=30)  # (a loaded CI took more than 10 s)
+    assert alarm.value == Failure.FAILED and "aborted" in alarm.message, alarm.message
     unit.wait_state("STOPPED")
 
 
