@@ -66,7 +66,7 @@ from .core.line.cell import (
     interlock_failure,
 )
 from .core.line.line import Line
-from .core.line.sequence import POLL, START_LIKE, STOP_LIKE, Answer, Outcome, Run
+from .core.line.sequence import POLL, START_LIKE, STOP_LIKE, Answer, Outcome, Run, StopWaits
 from .core.line.store import LineStore
 from .core.numbers import command_name
 from .core.persistence import StoreError
@@ -92,7 +92,6 @@ TARGET: dict[Cmd, State] = {
 #: s: a call the coordinator could not send (the unit's service not discovered yet) is tried again
 CALL_RETRY = 0.1
 THREADS = 8  # executor threads of main(): sequences block one each, callbacks need the rest
-STOP_GIVE_UP = 5.0  # s past step_timeout a STOP waits for a running sequence to end
 
 
 class CoordinatorNode(GuardedNode):
@@ -466,17 +465,10 @@ class CoordinatorNode(GuardedNode):
         started = time.monotonic()
         with self._cond:
             begun = self.line.begin_command(command, caller)
-            if command is Cmd.STOP:  # cancels what runs, and waits for it to end
-                give_up = started + self.config.step_timeout + STOP_GIVE_UP
-                while isinstance(begun, Outcome) and self.line.runs.sequence is not None and time.monotonic() < give_up:  # fmt: skip
-                    joined = self.line.runs.running_stop()
-                    if joined is not None:  # a STOP runs already: this one joins it
-                        begun = Outcome(True, Result.ACCEPTED, f"STOP joined the STOP in progress ({joined})")  # fmt: skip
-                        break
-                    self.line.runs.cancel_all("STOP")
-                    self._cond.notify_all()
-                    self._cond.wait(0.1)
-                    begun = self.line.begin_command(command, caller)
+            while isinstance(begun, StopWaits):  # the core cancelled the sequence: it ends soon
+                self._cond.notify_all()
+                self._cond.wait(begun.poll)  # (woken when a run ends)
+                begun = self.line.begin_command(command, caller, begun.since)
             if isinstance(begun, Outcome):
                 outcome = begun
             else:
@@ -487,6 +479,7 @@ class CoordinatorNode(GuardedNode):
                 finally:
                     self.line.end(run_id)
                     self._in_flight_end()
+                    self._cond.notify_all()  # a STOP waiting for this run begins
             text = f"{command.name} from {caller}: {outcome.message}"
             if outcome.accepted:  # rclpy ties a severity to each call site: one call per level
                 self.get_logger().info(text)
@@ -505,7 +498,7 @@ class CoordinatorNode(GuardedNode):
         with self._cond:
             begun = self.line.begin_mode(mode, mode_name)
             if isinstance(begun, Outcome):
-                if "busy" not in begun.message:
+                if not begun.busy:
                     self.get_logger().warning(f"from {caller}: {begun.message}")
                 return begun.accepted, begun.result, begun.message, begun.mode
             run_id, run = begun
@@ -514,6 +507,7 @@ class CoordinatorNode(GuardedNode):
             finally:
                 self.line.end(run_id)
                 self._flush()
+                self._cond.notify_all()
             if outcome.accepted:
                 self.get_logger().info(f"from {caller}: {outcome.message}")
             else:

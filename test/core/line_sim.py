@@ -19,7 +19,7 @@ from typing import Any
 from packml_ros2.core import ACTING, Cmd, State, Unit, parse_cell
 from packml_ros2.core.line.cell import Call, interlock_failure
 from packml_ros2.core.line.line import Line
-from packml_ros2.core.line.sequence import Answer, Outcome, Run
+from packml_ros2.core.line.sequence import Answer, Outcome, Run, StopWaits
 from packml_ros2.core.line.store import LineStore
 from packml_ros2.driver import FrozenClock, UnitDriver
 
@@ -318,6 +318,13 @@ class SimLine:
         """Begin a cell command; the list receives its outcome when it ends."""
         out: list[Outcome] = []
         begun = self.line.begin_command(cmd, caller)
+        # a STOP waits for the sequence it cancelled (that one ends on its next step)
+        for _ in range(100):
+            if not isinstance(begun, StopWaits):
+                break
+            self._poll_runs()
+            begun = self.line.begin_command(cmd, caller, begun.since)
+        assert not isinstance(begun, StopWaits), "the cancelled sequence did not end"
         if isinstance(begun, Outcome):
             out.append(begun)
             return out

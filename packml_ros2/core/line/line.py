@@ -26,7 +26,7 @@ from .episodes import Episode, Root
 from .ledger import ROLLING, Fact, History, Ledger, MemoryHistory, add_clipped
 from .losses import DOWN, LINE, PLANNED, Summary, Totals, summarize
 from .performance import AHEAD_WAIT, Performance
-from .sequence import AbortRun, CommandRun, ModeRun, Outcome, Run, Runs
+from .sequence import AbortRun, CommandRun, ModeRun, Outcome, Run, Runs, StopWaits
 from .store import LineStore
 
 NS = 1_000_000_000
@@ -102,6 +102,10 @@ def published_windows(perf: Performance, now: int) -> list[LossesView]:
         names.append(f"shift:{inst.key}")
     names += [*ROLLING, "reset", "lifetime"]
     return [window_view(perf, n, now) for n in names]
+
+
+#: Seconds past ``step_timeout`` a cell STOP waits for a running sequence to end.
+STOP_GIVE_UP = 5.0
 
 
 class BoundedHistory(MemoryHistory):
@@ -238,15 +242,28 @@ class Line:
     # ================================================================================================
     # Cell commands and mode changes
     # ================================================================================================
-    def begin_command(self, cmd: Cmd, caller: str) -> tuple[int, Run] | Outcome:
-        """A run for cell command ``cmd`` (registered), or why not."""
+    def begin_command(self, cmd: Cmd, caller: str, asked: float | None = None) -> tuple[int, Run] | Outcome | StopWaits:  # fmt: skip
+        """A run for cell command ``cmd`` (registered), or why not. ABORT cancels what runs and
+        begins at once; STOP cancels the sequence that runs and waits for it to end
+        (:class:`StopWaits`; ``asked``: when it was first asked, given back when asking again),
+        joins a STOP in progress, and is refused as busy after ``step_timeout`` +
+        :data:`STOP_GIVE_UP` s; any other command is refused while a sequence runs."""
         if cmd is Cmd.ABORT:
             self.runs.cancel_all("ABORT")
             run: Run = AbortRun(self.cell, self.monotonic())
             exclusive = False
         else:
             if self.runs.sequence is not None:
-                return Outcome(False, Reason.COMMAND_NOT_ALLOWED, f"{cmd.name} refused: busy ({self.runs.busy_text()})")  # fmt: skip
+                if cmd is Cmd.STOP:
+                    joined = self.runs.running_stop()
+                    if joined is not None:
+                        return Outcome(True, Reason.ACCEPTED, f"STOP joined the STOP in progress ({joined})")  # fmt: skip
+                    now = self.monotonic()
+                    since = now if asked is None else asked
+                    if now < since + self.config.coordinator.step_timeout + STOP_GIVE_UP:
+                        self.runs.cancel_all("STOP")
+                        return StopWaits(since)
+                return self._busy(cmd.name)
             command = CommandRun(self.cell, cmd)
             refused = command.refusals(self.monotonic())
             if refused is not None:
@@ -254,14 +271,18 @@ class Line:
             run, exclusive = command, True
         run_id = self.runs.add(run, exclusive)
         if run_id is None:
-            return Outcome(False, Reason.COMMAND_NOT_ALLOWED, f"{cmd.name} refused: busy ({self.runs.busy_text()})")  # fmt: skip
+            return self._busy(cmd.name)
         self._input(inputs.CELL, "", {"command": int(cmd), "caller": caller})
         return run_id, run
+
+    def _busy(self, what: str, mode: int = 0) -> Outcome:
+        text = f"{what} refused: busy ({self.runs.busy_text()})"
+        return Outcome(False, Reason.COMMAND_NOT_ALLOWED, text, mode, busy=True)
 
     def begin_mode(self, mode: int, mode_name: str) -> tuple[int, Run] | Outcome:
         run = ModeRun(self.cell, mode, mode_name)
         if self.runs.sequence is not None:
-            return Outcome(False, Reason.COMMAND_NOT_ALLOWED, f"mode {run.wanted} refused: busy ({self.runs.busy_text()})", run.old)  # fmt: skip
+            return self._busy(f"mode {run.wanted}", run.old)
         refused = run.refusals()
         if refused is not None:
             return refused

@@ -42,6 +42,17 @@ class Outcome:
     result: int
     message: str
     mode: int = 0  #: mode runs: the mode the cell has now (0: mixed)
+    busy: bool = False  #: refused because another sequence runs (not a fault of the request)
+
+
+@dataclass(frozen=True)
+class StopWaits:
+    """A cell STOP asked while another sequence runs: that sequence is cancelled and the STOP
+    begins once it has ended; ask again (``Line.begin_command(..., asked=since)``) when a run
+    ends, at the latest after ``poll`` seconds. ``since``: when the STOP was first asked."""
+
+    since: float
+    poll: float = POLL
 
 
 @dataclass(frozen=True)
