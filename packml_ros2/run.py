@@ -22,6 +22,9 @@ from rclpy.executors import (
 )
 from rclpy.node import Node
 
+from .core import discovery
+from .core.discovery import DiscoveryConfig
+from .core.safe_yaml import read_document
 from .paths import fastdds_profile
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -59,12 +62,38 @@ def shutdown_reason() -> str:
     return _shutdown.reason
 
 
-def default_environment() -> None:
-    """Keep DDS on this machine unless the user chose otherwise, and discover quickly."""
+def default_environment(tool: bool = False) -> None:
+    """Keep DDS on this machine unless the user chose otherwise, and discover quickly. ``tool``:
+    a process that looks at the whole graph (CLI, HMI, OPC UA face, recorder) is a Discovery
+    Server super client when a server is set (core/discovery.py)."""
     discovery_range = os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     profile = fastdds_profile(discovery_range)  # LOCALHOST: transports on loopback only
     if profile.exists():
         os.environ.setdefault("FASTDDS_DEFAULT_PROFILES_FILE", str(profile))
+    if tool and os.environ.get("ROS_DISCOVERY_SERVER", "").strip():
+        os.environ.setdefault("ROS_SUPER_CLIENT", "TRUE")
+
+
+def cell_environment(d: DiscoveryConfig, tool: bool = False) -> None:
+    """Put this process into the cell's discovery setup (its ``discovery:`` block): before
+    rclpy.init. The cell file's choice wins over the environment's."""
+    os.environ.update(discovery.environment(d, super_client=tool))
+
+
+def _cell_file_discovery(args: Sequence[str]) -> None:
+    """A node started by hand with its cell file (``unit_node cell.yaml unit``) joins the cell's
+    discovery setup; an unreadable file is left to the node's own loading to report."""
+    for arg in args[1:]:
+        if arg == "--ros-args":
+            break
+        if arg.endswith((".yaml", ".yml")) and os.path.isfile(arg):
+            try:
+                found = discovery.from_document(read_document(arg))
+            except Exception:  # reported when the node loads the file
+                return
+            if found is not None:
+                cell_environment(found)
+            return
 
 
 def make_executor(nodes: int, threads: int = 0) -> Executor:
@@ -217,9 +246,11 @@ def _drain(executor: Executor, timeout: float) -> None:
 
 
 def init(argv: Sequence[str] | None = None) -> list[str]:
-    """rclpy.init with the default environment; returns the non-ROS arguments."""
-    default_environment()
+    """rclpy.init with the default environment (and the discovery setup of the cell file among
+    the arguments); returns the non-ROS arguments."""
     args = list(sys.argv if argv is None else argv)
+    _cell_file_discovery(args)
+    default_environment()
     rclpy.init(args=args, signal_handler_options=rclpy.signals.SignalHandlerOptions.ALL)
     catch_stop_signals()
     return rclpy.utilities.remove_ros_args(args)[1:]

@@ -314,7 +314,7 @@ def replay_live(path: str | Path, speed: float = 1.0, units: Sequence[str] = (),
     t_start = time.monotonic()
     rec = load(path)
     chosen = [rec.unit(u) for u in units] if units else list(rec.units.values())
-    run.default_environment()
+    run.default_environment(tool=True)
     context = Context()
     kwargs: dict[str, Any] = {
         "context": context,

@@ -174,7 +174,7 @@ def record(args: argparse.Namespace) -> int:
         return _fail("--duration must be > 0", EXIT_USAGE)
     if args.storage != "mcap":
         return _fail(f"--storage {args.storage}: packml record writes mcap; {SQLITE_WHY}", EXIT_USAGE)  # fmt: skip
-    run.default_environment()
+    run.default_environment(tool=True)
     context = Context()
     rclpy.init(context=context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     stop = {"now": False}

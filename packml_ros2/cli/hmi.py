@@ -131,7 +131,8 @@ def serve(cell: CellConfig, settings: HmiSettings) -> int:
     from ..hmi.bridge import Bridge
     from ..hmi.server import Server, bind, url_of
 
-    run.default_environment()
+    run.cell_environment(cell.discovery, tool=True)
+    run.default_environment(tool=True)
     logging.basicConfig(level=logging.WARNING, format="packml hmi: %(message)s")
     try:
         sock = bind(settings.host, settings.port)

@@ -94,6 +94,18 @@ def launch(args: argparse.Namespace) -> int:
             print("Equipment modules:")
             print(launcher.how_ems_run(plan))
         return 0
+    from .. import run
+    from ..discovery_server import DiscoveryServerError, HostedServer
+
+    run.cell_environment(plan.cell.discovery)  # the cell's domain and server, for every child
+    found = plan.cell.discovery
+    try:
+        hosted = HostedServer(*found.servers[0]) if found.host_server else None
+    except DiscoveryServerError as exc:
+        print(f"packml launch: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    if hosted is not None:
+        print(f"Discovery server on {hosted.address} (ROS_DISCOVERY_SERVER={found.server_text})", flush=True)  # fmt: skip
     server = _start_server("hmi", args.cell_file, hmi) if hmi is not None else None
     opcua_server = _start_server("opcua", args.cell_file, opcua) if opcua is not None else None
     try:
@@ -110,6 +122,8 @@ def launch(args: argparse.Namespace) -> int:
             launcher._stop_children([("hmi", server)])
         if opcua_server is not None:
             launcher._stop_children([("opcua", opcua_server)])
+        if hosted is not None:  # last: the nodes said goodbye through it
+            hosted.stop()
 
 
 def _start_server(verb: str, cell_file: Path, port: int) -> subprocess.Popen[bytes]:

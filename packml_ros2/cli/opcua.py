@@ -65,7 +65,8 @@ def opcua(args: argparse.Namespace) -> int:
     from .. import run
     from ..opcua.server import quiet_asyncua, serve
 
-    run.default_environment()
+    run.cell_environment(cell.discovery, tool=True)
+    run.default_environment(tool=True)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     quiet_asyncua()
     try:

@@ -28,7 +28,7 @@ class Session:
         self.topics = topics  # what the units' proxies follow (see UnitProxy.topics)
         self.timeout: float = getattr(args, "timeout", 5.0)
         self.context = Context()
-        run.default_environment()
+        run.default_environment(tool=True)
         rclpy.init(
             context=self.context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO
         )

@@ -16,6 +16,7 @@ from typing import Any
 from . import schema as sc
 from .alarms import DEFAULT_REACTIONS, NUM_CATEGORIES, REACTIONS, AlarmDef
 from .counters import KINDS, CounterDef
+from .discovery import DiscoveryConfig, parse_discovery
 from .line.config import LINE_STORE, LineConfig, parse_line
 from .modes import GROUPS, ModeDef, default_modes, make_mode
 from .numbers import ACTING, MANDATORY, MAX_MODE, WAIT, Cmd, Mode, State, parse_state
@@ -204,6 +205,8 @@ class CellConfig:
     opcua: Mapping[str, Any] = field(default_factory=dict)
     #: ``line:``: the units' order on the line, its output, shifts, the store of its losses
     line: LineConfig = field(default_factory=LineConfig)
+    #: ``discovery:``: the cell's domain and Discovery Server (core/discovery.py)
+    discovery: DiscoveryConfig = field(default_factory=DiscoveryConfig)
 
 
 # -- parsing ---------------------------------------------------------------------------------------------
@@ -642,7 +645,7 @@ def _coordinator(n: Node, units: Mapping[str, UnitConfig]) -> CoordinatorConfig:
 
 
 #: The top-level keys of a cell file (config/reference_cell.yaml shows each).
-CELL_KEYS = ("cell", "defaults", "units", "coordinator", "line", "hmi", "opcua")
+CELL_KEYS = ("cell", "defaults", "units", "coordinator", "line", "hmi", "opcua", "discovery")
 
 
 def parse_cell(data: Any, file: str = "<memory>", base_dir: Path | None = None) -> CellConfig:
@@ -678,13 +681,14 @@ def parse_cell(data: Any, file: str = "<memory>", base_dir: Path | None = None) 
     line = parse_line(root.child("line", root.mapping().get("line")), cell, list(units),
                       coord.interlocks, base_dir or Path.cwd(),
                       str(Path(stores[0]).parent / LINE_STORE) if stores else None)  # fmt: skip
+    discovery = root.get("discovery", parse_discovery, DiscoveryConfig())
     root.problems.extend(plain_secrets(data))
     if root.problems:
         raise ConfigError(file, root.problems)
     extras = {k: dict(root.child(k, root.mapping().get(k)).mapping()) for k in ("hmi", "opcua")}
     if root.problems:
         raise ConfigError(file, root.problems)
-    return CellConfig(cell, units, coord, file, **extras, line=line)
+    return CellConfig(cell, units, coord, file, **extras, line=line, discovery=discovery)
 
 
 def load_cell(path: str | os.PathLike[str]) -> CellConfig:
