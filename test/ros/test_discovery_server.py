@@ -1,17 +1,20 @@
 """Issue 29 item 2: a cell behind a Fast DDS Discovery Server that `packml launch` hosts (the cell
-file's ``discovery:`` block). Its nodes are the server's clients; `packml status` and `packml cmd`
-are super clients and see the cell with ROS_DISCOVERY_SERVER set, and do not see it without (the
+file's ``discovery:`` block). Its nodes are the server's clients; `packml status`, `packml cmd`
+and the HMI are super clients and see the cell with ROS_DISCOVERY_SERVER set; simple discovery does not (the
 cell really uses the server: its participants do not announce themselves by simple discovery).
 Real processes: the launcher, the server, the CLI."""
 
 from __future__ import annotations
 
 import os
+import re
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
+import httpx
 import pytest
 import yaml
 
@@ -43,13 +46,14 @@ def test_a_cell_behind_the_discovery_server_it_hosts(tmp_path: Path, ros_domain:
         "units": {"filler": {"persistence": False,
                              "equipment_modules": {"nozzle": {"sim": {"durations": FAST}}}}},
         "discovery": {"domain": ros_domain, "server": f"127.0.0.1:{port}", "host_server": True},
+        "hmi": {"port": 0},
     }  # fmt: skip
     path = tmp_path / "cell.yaml"
     path.write_text(yaml.safe_dump(doc))
     # the launcher is given no discovery variable: the cell file names the server
     base = {k: v for k, v in os.environ.items() if not k.startswith(("ROS_DISCOVERY", "ROS_SUPER"))}
     os.environ.pop("ROS_DISCOVERY_SERVER", None)
-    launch = Launched([str(path)], tmp_path / "launch.log")
+    launch = Launched([str(path), "--hmi"], tmp_path / "launch.log")
     try:
         up = launch.wait_ready(90)
         assert f"Discovery server on 127.0.0.1:{port}" in up, up
@@ -59,6 +63,16 @@ def test_a_cell_behind_the_discovery_server_it_hosts(tmp_path: Path, ros_domain:
         assert "filler" in status.stdout and "STOPPED" in status.stdout, status.stdout
         reset = packml(client, "cmd", "filler", "reset", "--cell", name, "--timeout", "20")
         assert reset.returncode == 0, reset.stdout + reset.stderr
+        # the HMI (a child of the launcher, a super client) sees the unit through the server
+        url = re.search(r"(http://127\.0\.0\.1:\d+/)", launch.output())
+        assert url is not None, launch.output()
+        deadline = time.monotonic() + 30
+        while True:
+            units = httpx.get(f"{url.group(1)}api/snapshot", timeout=10).json()["units"]
+            if units.get("filler", {}).get("status", {}).get("state_name") == "IDLE":
+                break
+            assert time.monotonic() < deadline, units
+            time.sleep(0.1)
         # simple discovery in the same domain finds no unit of the cell
         blind = packml(base, "status", "--cell", name, "--timeout", "3")
         assert blind.returncode != 0 and "filler" not in blind.stdout, blind.stdout + blind.stderr
