@@ -1,8 +1,7 @@
 """Issue 29 item 2: a cell behind a Fast DDS Discovery Server that `packml launch` hosts (the cell
-file's ``discovery:`` block). Its nodes are the server's clients; `packml status`, `packml cmd`
-and the HMI are super clients and see the cell with ROS_DISCOVERY_SERVER set; simple discovery does not (the
-cell really uses the server: its participants do not announce themselves by simple discovery).
-Real processes: the launcher, the server, the CLI."""
+file's ``discovery:`` block). Its nodes are the server's clients; `packml status`, `packml cmd` and
+the HMI are super clients and see the cell with ROS_DISCOVERY_SERVER set; simple discovery does not
+(the cell really uses the server). Real processes: the launcher, the server, the CLI, the HMI."""
 
 from __future__ import annotations
 
