@@ -1,5 +1,5 @@
 """Issue 29 item 2: a cell behind a Fast DDS Discovery Server that `packml launch` hosts (the cell
-file's ``discovery:`` block). Its nodes are the server's clients; `packml status`, `packml cmd` and
+file's ``discovery:`` block). Its nodes are the server's clients; `packml status`, `cmd`, `watch` and
 the HMI are super clients and see the cell with ROS_DISCOVERY_SERVER set; simple discovery does not
 (the cell really uses the server). Real processes: the launcher, the server, the CLI, the HMI."""
 
@@ -62,6 +62,8 @@ def test_a_cell_behind_the_discovery_server_it_hosts(tmp_path: Path, ros_domain:
         assert "filler" in status.stdout and "STOPPED" in status.stdout, status.stdout
         reset = packml(client, "cmd", "filler", "reset", "--cell", name, "--timeout", "20")
         assert reset.returncode == 0, reset.stdout + reset.stderr
+        watch = packml(client, "watch", "--cell", name, "--frames", "1", "--plain", "--timeout", "20")  # fmt: skip
+        assert watch.returncode == 0 and "filler" in watch.stdout, watch.stdout + watch.stderr
         # the HMI (a child of the launcher, a super client) sees the unit through the server
         url = re.search(r"(http://127\.0\.0\.1:\d+/)", launch.output())
         assert url is not None, launch.output()
