@@ -35,7 +35,8 @@ from ..core.alarms import AlarmEvent, Kind
 from ..core.config import UnitConfig
 from ..core.numbers import ACTING, WAIT, Cmd, State, command_name, state_name
 from ..core.reasons import Reason
-from ..core.rules import SETTLE, Rules, Trigger, rules_of
+from ..core.rules import COMMANDS, SETTLE, Rules, Trigger, command_priority, rules_of
+from ..core.rules import REACTIONS as RULE_REACTIONS
 from ..core.unit import Transition
 from ..opcua.mapping import COMMAND_METHODS
 from ..opcua.nodeset import MachineDef, PackMLModel
@@ -45,21 +46,11 @@ S = State
 HOLD = 0.3
 #: Seconds a command the bridge sent stays expected when the PLC does not react.
 EXPECT_FOR = 10.0
-#: The command a PLC-made transition is taken for when several lead there: the engine's priority.
-PRIORITY = (
-    Cmd.ABORT,
-    Cmd.STOP,
-    Cmd.HOLD,
-    Cmd.SUSPEND,
-    Cmd.CLEAR,
-    Cmd.RESET,
-    Cmd.START,
-    Cmd.UNHOLD,
-    Cmd.UNSUSPEND,
-    Cmd.COMPLETE,
-)
+#: The command a PLC-made transition is taken for when several lead there: the engine's priority
+#: (the rule book's, ties in command order).
+PRIORITY = tuple(sorted(COMMANDS, key=command_priority))
 #: The commands an alarm's reaction gives: a PLC-made transition of theirs waits for its cause.
-REACTIONS = frozenset({Cmd.ABORT, Cmd.STOP, Cmd.HOLD, Cmd.SUSPEND})
+REACTIONS = frozenset(Cmd(c) for c in RULE_REACTIONS.values() if c)
 
 #: The variables the bridge follows, relative to the unit object (those a PLC does not have are
 #: left out). The three ``CurrentState`` (and their ``Id``) are mandatory in OPC 30050, as are

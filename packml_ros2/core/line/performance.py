@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from ..interlocks import INTERLOCK_KIND
+from ..modes import GROUPS
 from ..numbers import Mode, State, command_name, state_name
 from ..rules import Trigger
 from ..stopreason import planned_stop
@@ -41,8 +42,8 @@ from .episodes import (
 from .ledger import Count, Fact, Ledger, Segment
 from .losses import BLOCKED, HELD, LINE, PLANNED, RUNNING, STARVED, UNPLANNED, at_speed
 
-HOLD_STATES = frozenset({State.HOLDING, State.HELD, State.UNHOLDING})
-SUSPEND_STATES = frozenset({State.SUSPENDING, State.SUSPENDED, State.UNSUSPENDING})
+HOLD_STATES = GROUPS["HOLD"]  # (the state groups a configuration names: one declaration)
+SUSPEND_STATES = GROUPS["SUSPEND"]
 #: Source of the coordinator's commands to units, and of its interlocks.
 COORDINATOR_SOURCE = "remote:coordinator"
 INTERLOCK_SOURCE = "coordinator"
