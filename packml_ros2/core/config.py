@@ -20,7 +20,14 @@ from .discovery import DiscoveryConfig, parse_discovery
 from .line.config import LINE_STORE, LineConfig, parse_line
 from .modes import GROUPS, ModeDef, default_modes, make_mode
 from .numbers import ACTING, MANDATORY, MAX_MODE, WAIT, Cmd, Mode, State, parse_state
-from .rules import MODELS, TransitionTable, build_table, corrected_disabled
+from .rules import (
+    COMPLETE_CONFIGURABLE,
+    HOLD_CONFIGURABLE,
+    MODELS,
+    TransitionTable,
+    build_table,
+    corrected_disabled,
+)
 from .safe_yaml import read_document
 from .schema import ConfigError, Node, invalid
 from .secrets import plain_secrets
@@ -420,25 +427,8 @@ def _unit(name: str, n: Node, cell: str, base_dir: Path) -> UnitConfig:
     sizes = n.get("sizes", _sizes, ArraySizes())
     modes = n.get("modes", _modes, default_modes())
     model = n.get("model", sc.choice({m: m for m in MODELS}), "2022")
-    hold_ok = (
-        frozenset(State)
-        - {State.UNDEFINED, State.HOLDING, State.HELD}
-        - {State.STOPPING, State.STOPPED, State.ABORTING, State.ABORTED, State.CLEARING}
-    )
-    complete_ok = frozenset(
-        {
-            State.EXECUTE,
-            State.HELD,
-            State.SUSPENDED,
-            State.HOLDING,
-            State.SUSPENDING,
-            State.UNHOLDING,
-            State.UNSUSPENDING,
-            State.STARTING,
-        }
-    )
-    hold_from = n.get("hold_from", lambda x: _states(x, hold_ok), None)
-    complete_from = n.get("complete_from", lambda x: _states(x, complete_ok), None)
+    hold_from = n.get("hold_from", lambda x: _states(x, HOLD_CONFIGURABLE), None)
+    complete_from = n.get("complete_from", lambda x: _states(x, COMPLETE_CONFIGURABLE), None)
 
     def mode_ref(x: Node) -> int:
         by_name = {m.name.lower(): num for num, m in modes.items()}

@@ -92,6 +92,15 @@ COMPLETE_FROM = {
     "2022": frozenset({S.EXECUTE, S.HELD, S.SUSPENDED}),
     "2015": frozenset({S.EXECUTE}),
 }
+#: The states a configuration's ``hold_from`` may name (not a Hold state itself, nor a stopping,
+#: stopped or aborting one) and its ``complete_from`` (Execute, and the states around it).
+HOLD_CONFIGURABLE: frozenset[State] = frozenset(State) - {
+    S.UNDEFINED, S.HOLDING, S.HELD, S.STOPPING, S.STOPPED, S.ABORTING, S.ABORTED, S.CLEARING,
+}  # fmt: skip
+COMPLETE_CONFIGURABLE: frozenset[State] = frozenset({
+    S.EXECUTE, S.HELD, S.SUSPENDED, S.HOLDING, S.SUSPENDING, S.UNHOLDING, S.UNSUSPENDING,
+    S.STARTING,
+})  # fmt: skip
 MODELS = ("2022", "2015")
 
 
