@@ -1,4 +1,4 @@
-"""The cell coordinator: the ISA-88 "procedure" level above the units of a cell (PACKML.md section 4),
+"""The cell coordinator: the ISA-88 "procedure" level above the units of a cell (docs/packml.md §4),
 and the line's performance (stop episodes, losses, OEE per shift).
 
 Node ``/<cell>/coordinator``, a thin shell around :class:`packml_ros2.core.line.Line` (the logic:

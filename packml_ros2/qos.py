@@ -1,4 +1,4 @@
-"""QoS profiles of packml_ros2's topics (ROS_API.md), shared by nodes, tools and tests."""
+"""QoS profiles of packml_ros2's topics (docs/ros-api.md), shared by nodes, tools and tests."""
 
 from __future__ import annotations
 

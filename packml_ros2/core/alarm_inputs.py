@@ -1,5 +1,5 @@
 """Alarms as inputs of a unit: raised and cleared (by an operator, a remote source or an EM),
-acknowledged, reset (PACKML.md section 9). The alarm list is :class:`~.alarms.AlarmManager`'s; a
+acknowledged, reset (docs/packml.md §9). The alarm list is :class:`~.alarms.AlarmManager`'s; a
 rising alarm's reaction is queued for the state machine (:meth:`~.machine.UnitMachine._raise`).
 """
 

@@ -1,4 +1,4 @@
-"""Alarms and warnings (PACKML.md section 7).
+"""Alarms and warnings (docs/packml.md §7).
 
 An alarm is keyed by (ID, Value). It latches: once raised it stays listed, with ``trigger`` showing
 whether the condition is active now, until an alarm reset finds it inactive. Re-activation before

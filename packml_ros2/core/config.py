@@ -51,7 +51,7 @@ DEFAULT_STATE_DIR = "~/.local/state/packml_ros2"
 
 @dataclass(frozen=True)
 class ArraySizes:
-    """PackTags array capacities; the defaults are Mitsubishi's (PACKML.md section 5)."""
+    """PackTags array capacities; the defaults are Mitsubishi's (docs/packml.md §5)."""
 
     parameters: int = 10
     admin_parameters: int = 10

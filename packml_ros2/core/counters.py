@@ -1,4 +1,4 @@
-"""Production counters (PACKML.md section 6): ProdConsumed/Processed/DefectiveCount[i] with a
+"""Production counters (docs/packml.md §6): ProdConsumed/Processed/DefectiveCount[i] with a
 resettable ``Count`` and a lifetime ``AccCount``; EMs increment them."""
 
 from __future__ import annotations

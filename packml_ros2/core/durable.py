@@ -1,4 +1,4 @@
-"""What survives a restart of a unit (PACKML.md 6): its admin data, never its state.
+"""What survives a restart of a unit (docs/packml.md §6): its admin data, never its state.
 
 :class:`Durable` links the unit's parts (times, counters, alarms, stop reason) to its
 :class:`~.persistence.Store`: the snapshot document (:meth:`Durable.document`), the journal of each

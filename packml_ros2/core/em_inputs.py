@@ -1,6 +1,6 @@
 """What a unit's equipment modules tell it, beyond State Complete: an EM seen (registration where
 the configuration allows it), lost (its configured reaction), its command requests, interlocks,
-counts, and an operator switching it active or inactive (PACKML.md section 4, rules section 7).
+counts, and an operator switching it active or inactive (docs/packml.md §4, rules section 7).
 
 State Complete itself (:meth:`~.machine.UnitMachine.em_complete`) is the state machine's: it runs
 for every EM in every acting state.
@@ -75,7 +75,7 @@ class EquipmentInputs(UnitMachine):
             return Answer.no(Reason.NOTHING_TO_DO, f"EM {name!r} is not online")
         em.online = False
         self.equipment.changed_roster()
-        # Inactive EMs are ignored (PACKML.md 4): switched off for diagnosis, losing them is no fault.
+        # Inactive EMs are ignored (docs/packml.md §4): off for diagnosis, their loss is no fault.
         reaction = self._lost_reaction(em.lost_reaction) if em.active else 0
         if self.state in EXCUSE_OFFLINE or not reaction:
             self.equipment.excuse(name)
@@ -177,6 +177,6 @@ class EquipmentInputs(UnitMachine):
             self.equipment.excuse(name)
             self.interlocks.clear(f"em:{name}")
             # An inactive EM is no longer missing: its "EM lost" alarm goes inactive (latched), so
-            # Clear and Reset recover without it (PACKML.md 9).
+            # Clear and Reset recover without it (docs/packml.md §9).
             self.alarms.clear(self.config.system_alarms.em_lost, em.index, self._t)
         return Answer.ok(f"EM {name} {word}")

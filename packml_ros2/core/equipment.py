@@ -1,4 +1,4 @@
-"""Equipment modules as their unit sees them, and State Complete aggregation (PACKML.md section 4).
+"""Equipment modules as their unit sees them, and State Complete aggregation (docs/packml.md §4).
 
 Unit SC for acting state S = every active EM has reported SC for (S, sequence). A report for another
 state or sequence is stale: ignored and counted. Which EMs must report is fixed when the unit

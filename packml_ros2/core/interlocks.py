@@ -1,4 +1,4 @@
-"""Line interlocks (PACKML.md 4): Blocked/Starved reported by the unit's EMs and interlocks set from
+"""Line interlocks (docs/packml.md §4): Blocked/Starved from the unit's EMs and interlocks set from
 outside (the coordinator) suspend the unit while it is in Execute and unsuspend it when all are
 cleared, if the unit was suspended by one (``interlock_reaction: suspend``; the rule:
 :data:`.rules.INTERLOCK_SUSPEND`, :data:`.rules.INTERLOCK_RESUME`).

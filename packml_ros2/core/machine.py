@@ -393,7 +393,7 @@ class UnitMachine(ModeChanges):
 
     def step(self, requests: Sequence[Request]) -> list[Answer]:
         """Several requests in one evaluation step, applied by priority: Abort > Stop > Hold >
-        Suspend > other commands > mode changes > State Complete (PACKML.md section 2)."""
+        Suspend > other commands > mode changes > State Complete (docs/packml.md §2)."""
         self._enter()
         if self.on_input is not None:
             self._record(inputlog.STEP, [inputlog.request_to_dict(r) for r in requests])

@@ -1,4 +1,4 @@
-"""Mode changes of a unit (PACKML.md section 3), once a request is accepted: the EMs'
+"""Mode changes of a unit (docs/packml.md §3), once a request is accepted: the EMs'
 acknowledgement awaited, the change finished (the mode's compiled rules and times switched, the
 transition recorded) or abandoned by a fault command, and the mode-change-not-allowed flag.
 :class:`ModeChanges` owns the mode's fields (``mode``, ``mode_requested``,

@@ -1,7 +1,7 @@
 """Unit modes as configured: each mode's corrected set of disabled states and the states mode
 changes are allowed in, and the three standard modes' defaults.
 
-A :class:`ModeDef` is one mode's configuration after the implication rules of PACKML.md section 3
+A :class:`ModeDef` is one mode's configuration after the implication rules of docs/packml.md §3
 (:data:`.rules.IMPLIED_DISABLED`) have been applied; the rules that read it (skip-through, the
 mode-change matrix) are in :mod:`.rules`.
 """

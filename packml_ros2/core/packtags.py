@@ -1,4 +1,4 @@
-"""PackTags (PACKML.md section 5): the Command/Status/Admin tag model of a unit.
+"""PackTags (docs/packml.md §5): the Command/Status/Admin tag model of a unit.
 
 :class:`StatusView` and :class:`AdminView` are immutable snapshots taken from a
 :class:`~.unit.Unit`; :func:`flat_tags` turns them into the standard dotted names

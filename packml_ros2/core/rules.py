@@ -4,9 +4,9 @@ Where is a transition decided? Here. The engine (:mod:`.unit`) and the faces (HM
 AvailableStates/AvailableTransitions, the coordinator's targets) read these declarations through a
 :class:`Rules` compiled once per unit configuration; nothing else restates them.
 
-1. **The transition table** (PACKML.md 2): TR88-2022 and the 2015 model, the Stop and Abort sets,
+1. **Transition table** (docs/packml.md §2): TR88-2022 and the 2015 model, the Stop and Abort sets,
    the Hold/Complete per-state masks.
-2. **Modes** (PACKML.md 3): disabled-state implications, skip-through of disabled acting states,
+2. **Modes** (docs/packml.md §3): disabled-state implications, skipping disabled acting states,
    the mode-change matrix.
 3. **Priority** of requests in one evaluation step.
 4. **Sources**: the kinds of source a request names, which are remote, and the remote lock
@@ -16,7 +16,7 @@ AvailableStates/AvailableTransitions, the coordinator's targets) read these decl
    code and the sentence an operator reads.
 6. **Entry actions**: what entering a state does besides the transition (alarm reset, first-out
    clear, stop reason).
-7. **Equipment modules** (PACKML.md 4): who owes State Complete, who is excused, when an EM may
+7. **Equipment modules** (docs/packml.md §4): who owes State Complete, who is excused, when one may
    register at run time, when an EM switched active joins.
 8. **Compiled** (:class:`Rules`): the per-unit lookups the engine's fast path indexes, and the
    questions faces ask (:meth:`Rules.edges`, :meth:`Rules.available_states`,
@@ -45,7 +45,7 @@ from .reasons import Answer, Reason
 S, C = State, Cmd
 
 # ==================================================================================================
-# 1. The transition table (PACKML.md section 2)
+# 1. The transition table (docs/packml.md §2)
 # ==================================================================================================
 #: (from, command) -> to, TR88-2022, without the Stop and Abort sets; Hold and Complete are
 #: masked per model (``HOLD_FROM``, ``COMPLETE_FROM``) or per configuration.
@@ -153,7 +153,7 @@ def build_table(
 
 
 # ==================================================================================================
-# 2. Modes (PACKML.md section 3)
+# 2. Modes (docs/packml.md §3)
 # ==================================================================================================
 #: Disabling a wait state disables the acting states that only serve it.
 IMPLIED_DISABLED: Mapping[State, frozenset[State]] = {
@@ -218,7 +218,7 @@ def mode_change_refusal(current: ModeRules, target: ModeRules, state: State) -> 
 MODE_CHANGE_NOT_ALLOWED_SECONDS = 3.0
 
 # ==================================================================================================
-# 3. Priority in one evaluation step (PACKML.md section 2)
+# 3. Priority in one evaluation step (docs/packml.md §2)
 # ==================================================================================================
 #: Abort > Stop > Hold > Suspend > other commands, then mode changes, then State Complete.
 PRIORITY: Mapping[int, int] = {C.ABORT: 0, C.STOP: 1, C.HOLD: 2, C.SUSPEND: 3}
@@ -372,7 +372,7 @@ BLOCKED_BY_REACTION: Mapping[int, frozenset[Cmd]] = {
     C.HOLD: MOTION,
     C.SUSPEND: MOTION,
 }
-#: Fault commands pass a mode change in process (which is then abandoned): PACKML.md 2,
+#: Fault commands pass a mode change in process (which is then abandoned): docs/packml.md §2,
 #: "Abort -> Aborting from every state".
 FAULT_COMMANDS: frozenset[Cmd] = frozenset({C.ABORT, C.STOP})
 
@@ -509,7 +509,7 @@ REACTIONS: Mapping[str, int] = {
     "suspend": C.SUSPEND,
 }
 #: Alarm category -> reaction by default: 0-1 Abort, 2-4 Stop, 5-9 none (Mitsubishi); a
-#: configuration may change any category and any alarm (PACKML.md 7). Warnings never react.
+#: configuration may change any category and any alarm (docs/packml.md §7). Warnings never react.
 DEFAULT_REACTIONS: Mapping[int, int] = {
     0: C.ABORT,
     1: C.ABORT,
@@ -584,7 +584,7 @@ ENTRY: Mapping[State, Entry] = {
 PLANNED_STOP_STATES: frozenset[State] = frozenset({S.STOPPED, S.IDLE, S.STOPPING})
 
 # ==================================================================================================
-# 7. Equipment modules (PACKML.md section 4)
+# 7. Equipment modules (docs/packml.md §4)
 # ==================================================================================================
 #: States in which every active EM owes State Complete for (state, sequence); those of
 #: ONLY_WITH_ACTIVE_EMS only while at least one EM is active (without one, the production run ends

@@ -1,4 +1,4 @@
-"""The StopReason (PACKML.md 7): the first event that took the unit out of Execute (or into
+"""The StopReason (docs/packml.md §7): the first event that took the unit out of Execute (or into
 Stopping, Aborting, Holding, Suspending) — an alarm, an interlock, or an operator or remote command
 with its source — and the OEE planned-stop rule that reads it.
 

@@ -1,5 +1,5 @@
 """The unit's Admin and Command tags as inputs: resetting times and counters, the machine speed,
-parameters and products (PACKML.md sections 5, 6). Times are
+parameters and products (docs/packml.md sections 5, 6). Times are
 :class:`~.times.ModeStateTimes`', counters :class:`~.counters.Counters`'.
 """
 

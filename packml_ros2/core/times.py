@@ -1,4 +1,4 @@
-"""Mode and state times (PACKML.md section 6): current and cumulative, per mode and per
+"""Mode and state times (docs/packml.md §6): current and cumulative, per mode and per
 (mode, state), AccTimeSinceReset, both reset scopes and the Int32 rollover.
 
 Time only advances at state and mode changes (:meth:`ModeStateTimes.enter_states`,
@@ -101,7 +101,7 @@ class ModeStateTimes:
         self._close(now)
         if mode != self._mode:
             # ModeCurrentTime is "since the unit last entered mode m": 0 for the modes it is not
-            # in (PACKML.md 6)
+            # in (docs/packml.md §6)
             self.mode_current[self._mode] = 0.0
             self.mode_current[mode] = 0.0
             self.modes_used.add(mode)

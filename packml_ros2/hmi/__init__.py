@@ -1,4 +1,4 @@
-"""The operator HMI in the browser (``packml hmi <cell.yaml>``; PACKML.md section 8).
+"""The operator HMI in the browser (``packml hmi <cell.yaml>``; docs/packml.md §8).
 
 - :mod:`.settings`: the ``hmi:`` block of the cell file (host, port, token, title), validated;
 - :mod:`.bridge`: the ROS side: a node that follows the cell's units and coordinator, turns their

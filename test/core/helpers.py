@@ -1,9 +1,9 @@
-"""Shared helpers of the engine tests: a settable clock, PACKML.md sections 1-3 encoded as data
+"""Shared helpers of the engine tests: a settable clock, docs/packml.md sections 1-3 encoded as data
 independently of ``packml_ros2.core.transitions``/``modes``, and a walker that drives a unit into a
 state legitimately (by commands and State Complete reports along a path of the spec's graph).
 
 Only the number enums (``State``, ``Cmd``, ``Reason``) are taken from the engine; test_conformance
-checks their numbers against PACKML.md section 1.
+checks their numbers against docs/packml.md §1.
 """
 
 from __future__ import annotations
@@ -32,8 +32,8 @@ class FakeClock:
         return self.t
 
 
-# -- PACKML.md section 1 -------------------------------------------------------------------------------
-#: name -> number, as printed in PACKML.md section 1.
+# -- docs/packml.md §1 -----------------------------------------------------------------------------
+#: name -> number, as printed in docs/packml.md §1.
 SPEC_STATE_NUMBERS = {
     "UNDEFINED": 0, "CLEARING": 1, "STOPPED": 2, "STARTING": 3, "IDLE": 4, "SUSPENDED": 5,
     "EXECUTE": 6, "STOPPING": 7, "ABORTING": 8, "ABORTED": 9, "HOLDING": 10, "HELD": 11,
@@ -59,7 +59,7 @@ BAD_COMMANDS = (11, 42, -1)
 #: Commands that start motion (refused while an active EM is offline or a reacting alarm is active).
 MOTION = frozenset({C.RESET, C.START, C.UNHOLD, C.UNSUSPEND})
 
-# -- PACKML.md section 2, the TR88-2022 table -------------------------------------------------------------
+# -- docs/packml.md §2, the TR88-2022 table --------------------------------------------------------
 SPEC_COMMAND_TABLE: Mapping[tuple[State, Cmd], State] = {
     (S.STOPPED, C.RESET): S.RESETTING,
     (S.IDLE, C.START): S.STARTING,
@@ -90,7 +90,7 @@ SPEC_SC_TABLE: Mapping[State, State] = {
 STOP_FROM = ALL_STATES - {S.STOPPING, S.STOPPED, S.ABORTING, S.ABORTED, S.CLEARING}
 ABORT_FROM = ALL_STATES - {S.ABORTING, S.ABORTED}
 
-# -- PACKML.md section 3 -------------------------------------------------------------------------------------
+# -- docs/packml.md §3 -----------------------------------------------------------------------------
 IMPLIES = {
     S.HELD: {S.HOLDING, S.UNHOLDING},
     S.SUSPENDED: {S.SUSPENDING, S.UNSUSPENDING},
@@ -133,7 +133,7 @@ DEFAULT_SPEC_MODES = {
 
 @dataclass
 class Spec:
-    """The decided behaviour of PACKML.md sections 2-3 for one configuration."""
+    """The decided behaviour of docs/packml.md sections 2-3 for one configuration."""
 
     model: str = "2022"
     hold_from: frozenset[State] | None = None

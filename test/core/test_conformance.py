@@ -1,4 +1,4 @@
-"""Conformance of the engine with PACKML.md sections 1-3, table-driven.
+"""Conformance of the engine with docs/packml.md sections 1-3, table-driven.
 
 The expected behaviour is the spec's table encoded in :mod:`helpers` (``Spec``), not the engine's
 ``transitions.py``/``modes.py``. Every (configuration, mode, state, command) combination and every

@@ -29,7 +29,7 @@ S = State
 PYTHON = sys.executable
 
 
-# -- 4: ModeCurrentTime of a mode left is 0 (PACKML.md 6) -----------------------------------------------
+# -- 4: ModeCurrentTime of a mode left is 0 (docs/packml.md §6) ------------------------------------
 def test_mode_current_time_is_zero_after_leaving_the_mode() -> None:
     clock = FakeClock()
     unit = Unit(cell_unit({}), clock)

@@ -1,4 +1,4 @@
-"""Persistence (PACKML.md section 6): times, counters, alarm history, stop reason and the
+"""Persistence (docs/packml.md §6): times, counters, alarm history, stop reason and the
 sequence survive a restart; the state never does. A child process killed with SIGKILL at random
 moments leaves a store that is intact and consistent."""
 

@@ -1,4 +1,4 @@
-"""Scenarios from the vendor documents (research/) and PACKML.md sections 3-7, each a short story
+"""Scenarios from docs/packml.md sections 3-7 and the vendor documents it cites, each a short story
 told to the engine with a fake clock."""
 
 from __future__ import annotations
@@ -781,7 +781,7 @@ def test_times_current_and_cumulative_per_mode_and_state() -> None:
     times = unit.admin().times
     P, M, N = Mode.PRODUCTION, Mode.MAINTENANCE, 18
     assert times.mode_current[P] == 3 and times.mode_cumulative[P] == 18
-    assert times.mode_current[M] == 0 and times.mode_cumulative[M] == 7  # left: 0 (PACKML.md 6)
+    assert times.mode_current[M] == 0 and times.mode_cumulative[M] == 7  # docs/packml.md §6
     assert times.state_current[P * N + S.IDLE] == 3
     assert times.state_cumulative[P * N + S.IDLE] == 8
     assert times.state_cumulative[P * N + S.STOPPED] == 10

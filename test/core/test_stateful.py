@@ -1,6 +1,6 @@
 """The engine against an independent oracle over long random sequences of inputs.
 
-The oracle is a small dict-based model of PACKML.md (sections 2-4, 7) written here: the state
+The oracle is a small dict-based model of docs/packml.md (sections 2-4, 7) written here: the state
 table comes from :class:`helpers.Spec`, everything else (EM aggregation, losses, alarms and their
 reactions, mode changes, timeouts, minimum dwell, priorities in one step) is modelled below from
 the spec and the decided engine semantics. Every answer's reason and the state, mode, sequence,
@@ -97,7 +97,7 @@ ALARMS = {
     105: (5, C.SUSPEND, False),
     106: (0, None, True),
 }
-#: PACKML.md 7: 0-1 Abort, 2-4 Stop, 5-9 none.
+#: docs/packml.md §7: 0-1 Abort, 2-4 Stop, 5-9 none.
 CATEGORY_REACTION = {0: C.ABORT, 1: C.ABORT, 2: C.STOP, 3: C.STOP, 4: C.STOP}
 EM_LOST, STATE_TIMEOUT, MODE_TIMEOUT = 9001, 9002, 9003
 TIMEOUTS = {S.STARTING: 5.0, S.HOLDING: 3.0, S.CLEARING: 4.0}

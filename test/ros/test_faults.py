@@ -140,7 +140,7 @@ def test_em_killed_in_an_acting_state_triggers_the_reaction(
         and refused.result == Result.ALARM_ACTIVE
         and "gripper" in refused.message
     )
-    # recovery without the gripper (PACKML.md 9): Maintenance, switch it inactive, Clear, Reset
+    # recovery without the gripper (docs/packml.md §9): Maintenance, switch it off, Clear, Reset
     assert client.call(SetMode, "set_mode", mode_name="maintenance").accepted
     # accepted, the change waits for the online EM (robot) to confirm it: switching EMs needs it done
     client.wait_status(lambda s: s.unit_mode_current_name == "MAINTENANCE", 10, "Maintenance")
