@@ -268,12 +268,13 @@ class Plant:
         return [p.name for p in self.procs if p.popen.poll() is not None]
 
     def wait_ready(self, launched: float, before: dict[str, dict[str, int]],
-                   timeout: float) -> tuple[float, dict[str, Any]]:  # fmt: skip
-        """Until every unit is ready; the traffic of the first window is read on the way."""
+                   timeout: float) -> tuple[list[float], dict[str, Any]]:  # fmt: skip
+        """Until every unit is ready: the seconds each took from the launch, in order; the traffic
+        of the first window is read on the way."""
         assert self.observer is not None
         first = None
         deadline = launched + timeout
-        ready_at = None
+        ready_at: list[float] | None = None
         while True:
             now = time.monotonic()
             if first is None and now >= launched + self.args.window:
@@ -281,9 +282,9 @@ class Plant:
             if ready_at is None:
                 times = self.observer.ask("ready")
                 if all(t is not None for t in times.values()):
-                    ready_at = max(times.values())
+                    ready_at = sorted(t - launched for t in times.values())
             if ready_at is not None and first is not None:
-                return ready_at - launched, first
+                return ready_at, first
             if now > deadline:
                 raise TimeoutError(f"{self.setup}: not every unit ready in {timeout:g} s: "
                                    f"{self.observer.ask('ready')}")  # fmt: skip
@@ -293,9 +294,10 @@ class Plant:
             time.sleep(0.1)
 
     def at_rest(self, seconds: float) -> dict[str, Any]:
-        """CPU (percent of one core over ``seconds``) and RSS per cell and in total, and the
-        traffic meanwhile."""
+        """CPU (percent of one core over ``seconds``) and RSS per cell and in total, the same of
+        the discovery server (``server``), and the traffic meanwhile."""
         pids = {c: p.pids() for c, p in self.cell_procs.items()}
+        pids.update({p.name: p.pids() for p in self.procs if p.name == "discovery_server"})
         t0, c0 = time.monotonic(), self.net.counters()
         cpu0 = {c: sum(_cpu(p) for p in ps) for c, ps in pids.items()}
         time.sleep(seconds)  # the measurement window
@@ -304,7 +306,9 @@ class Plant:
         net = traffic(c0, self.net.counters(), t1 - t0)
         cpu = {c: round((cpu1[c] - cpu0[c]) / (t1 - t0) * 100, 2) for c in pids}
         rss = {c: round(sum(_rss(p) for p in ps), 1) for c, ps in pids.items()}
-        return {
+        server = {"cpu_pct": cpu.pop("discovery_server", 0.0),
+                  "rss_mb": rss.pop("discovery_server", 0.0)}  # fmt: skip
+        out = {
             "cpu_pct_total": round(sum(cpu.values()), 2),
             "cpu_pct_per_cell_mean": round(statistics.fmean(cpu.values()), 2),
             "cpu_pct_per_cell_max": max(cpu.values()),
@@ -312,9 +316,12 @@ class Plant:
             "rss_mb_per_cell_mean": round(statistics.fmean(rss.values()), 1),
             "cpu_pct_per_cell": cpu,
             "rss_mb_per_cell": rss,
-            "processes": sum(len(ps) for ps in pids.values()),
+            "processes": sum(len(pids[c]) for c in cpu),
             "traffic": net,
         }
+        if "discovery_server" in pids:
+            out["discovery_server"] = server
+        return out
 
     def line(self) -> dict[str, Any]:
         """``--cycles`` line-wide reset and start (and stop between), each beside a floor call
@@ -360,11 +367,18 @@ class Plant:
             "recover_s": None if recovered is None else round(recovered, 3),
             "recovered": back is not None,
             "lost_because": None if lost is None else lost["reasons"],
+            "note": "counted from the cut; DDS counts the lease from the units' last liveliness "
+            "assertion, which came before the cut by up to its assertion period: detect_s lies "
+            "between the lease less that period and the lease",
         }
 
     def stop(self) -> list[str]:
-        """Cells first, then the floor servers, the observer and the discovery server."""
+        """Cells first (all told at once, then waited for), then the floor servers, the observer
+        and the discovery server."""
         failures = []
+        for proc in self.cell_procs.values():
+            if proc.running():
+                proc.popen.send_signal(signal.SIGINT)
         rank = {"observer": 2, "discovery_server": 3}
         for proc in sorted(
             self.procs, key=lambda p: rank.get(p.name, 1 if "floor" in p.name else 0)
@@ -398,7 +412,10 @@ def run_setup(args: argparse.Namespace, net: Network, setup: str, domains: list[
         ready, result["traffic_first_window"] = plant.wait_ready(
             launched, counters, args.ready_timeout
         )
-        result["ready_s"] = round(ready, 3)
+        result["ready_s"] = round(ready[-1], 3)  # the last unit
+        # the spread: a slow start of every cell, or a few cells that discover late
+        result["ready_spread_s"] = {"first": round(ready[0], 3),
+                                    "median": round(statistics.median(ready), 3)}  # fmt: skip
         result["rest_stopped"] = plant.at_rest(args.window)
         result["line"] = plant.line()
         result["rest_execute"] = plant.at_rest(args.idle)
