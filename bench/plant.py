@@ -497,6 +497,8 @@ def main() -> int:
         "window_s": args.window,
         "idle_s": args.idle,
         "goals_for_20_cells": GOALS,
+        # CPU figures grow with the machine's load (other work on the same cores): beside them
+        "load_average_at_start": os.getloadavg(),
         "setups": {},
     }
     try:
@@ -517,7 +519,7 @@ def main() -> int:
         if problems:
             print("\n".join(problems), file=sys.stderr)
     result["table"] = table(result["setups"])
-    result["load_average"] = os.getloadavg()
+    result["load_average_at_end"] = os.getloadavg()
     json.dump(result, sys.stdout, indent=2)
     print()
     print("\n".join(result["table"]), file=sys.stderr)

@@ -45,6 +45,7 @@ def test_plant_json_has_every_figure_beside_its_goal() -> None:
     assert proc.returncode == 0, err[-3000:]
     result = json.loads(out)
     assert (result["cells"], result["hosts"], result["nodes"]) == (2, 2, 18)
+    assert len(result["load_average_at_start"]) == len(result["load_average_at_end"]) == 3
     assert list(result["setups"]) == ["simple"]
     s = result["setups"]["simple"]
     assert 0 < s["ready_spread_s"]["first"] <= s["ready_spread_s"]["median"] <= s["ready_s"] < 60
