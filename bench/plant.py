@@ -41,7 +41,6 @@ import argparse
 import contextlib
 import json
 import os
-import shutil
 import signal
 import statistics
 import sys
@@ -166,28 +165,6 @@ def cell_doc(name: str, ems: int, lease: float, workdir: Path) -> dict[str, Any]
     }
 
 
-def fastdds_discovery(address: str) -> list[str]:
-    """The command of a Fast DDS Discovery Server listening on ``address``: ``fastdds discovery``
-    where it is on PATH, else the tool the Fast DDS wheel installs in the venv."""
-    on_path = shutil.which("fastdds")
-    venv = Path(sys.prefix)
-    tool = venv / "tools/fastdds/fastdds.py"
-    if tool.exists():
-        return [sys.executable, str(tool), "discovery", "-l", address, "-p", str(DS_PORT)]
-    if on_path:
-        return [on_path, "discovery", "-l", address, "-p", str(DS_PORT)]
-    raise RuntimeError("no Fast DDS discovery server tool (fastdds) found")
-
-
-def fastdds_environment(env: dict[str, str]) -> dict[str, str]:
-    """``env`` with the Fast DDS wheel's libraries on LD_LIBRARY_PATH (the tool's server binary
-    needs them)."""
-    import sysconfig
-
-    libs = [str(Path(sys.prefix) / "lib"), str(Path(sysconfig.get_paths()["purelib"]) / "ros_fastdds.libs")]  # fmt: skip
-    return {**env, "LD_LIBRARY_PATH": os.pathsep.join([*libs, env.get("LD_LIBRARY_PATH", "")])}
-
-
 def summary_ms(samples: list[float]) -> dict[str, float]:
     out: dict[str, float] = {
         "p50_ms": round(statistics.median(samples) * 1e3, 2),
@@ -235,9 +212,7 @@ class Plant:
         """The discovery server (``server``), the observer and the floor servers; then every cell
         at once. Returns the monotonic time of the cells' launch and the links' counters then."""
         if self.setup == "server":
-            env = fastdds_environment(self.env(self.base))
-            self.procs.append(NsProcess(self.net, "ds", "discovery_server",
-                                          fastdds_discovery(self.server), env, self.workdir, cwd=REPO))  # fmt: skip
+            self.start_discovery_server()
         self.observer = Observer(self.net, self.env(self.base, super_client=True), self.workdir)
         self.procs.append(self.observer)
         units = {f"/{c}/unit": self.domain_of[c] for c in self.cells}
@@ -263,6 +238,23 @@ class Plant:
             self.procs.append(proc)
             self.cell_procs[c] = proc
         return launched, counters
+
+    def start_discovery_server(self, timeout: float = 15.0) -> None:
+        """Fast DDS's tool (as ``packml launch`` hosts it), in its namespace, until it says it
+        runs: the plant's infrastructure is up before the cells start."""
+        from packml_ros2.discovery_server import STARTED, server_command
+
+        argv, tool_env = server_command(self.server, DS_PORT)
+        env = {**self.env(self.base), "LD_LIBRARY_PATH": tool_env.get("LD_LIBRARY_PATH", "")}
+        server = NsProcess(self.net, "ds", "discovery_server", argv, env, self.workdir, cwd=REPO)
+        self.procs.append(server)
+        deadline = time.monotonic() + timeout
+        while STARTED.decode() not in server.output():
+            if not server.running() or time.monotonic() > deadline:
+                raise RuntimeError(
+                    f"the discovery server did not start:\n{server.output()[-1000:]}"
+                )
+            time.sleep(0.05)
 
     def dead(self) -> list[str]:
         return [p.name for p in self.procs if p.popen.poll() is not None]

@@ -172,14 +172,15 @@ class NsProcess:
         return answer
 
     def stop(self, timeout: float = 5.0) -> int | None:
-        """End of input (a peer), SIGINT, then SIGKILL to its whole session."""
+        """End of input (a peer), then SIGINT, then SIGKILL, to its whole session."""
         if self.running() and self.popen.stdin is not None:
             with contextlib.suppress(OSError):
                 self.popen.stdin.close()
             with contextlib.suppress(subprocess.TimeoutExpired):
                 self.popen.wait(timeout)
-        if self.running():
-            self.popen.send_signal(signal.SIGINT)
+        if self.running():  # as Ctrl-C would: its process group (a tool and the program it runs)
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.popen.pid, signal.SIGINT)
             try:
                 self.popen.wait(timeout)
             except subprocess.TimeoutExpired:
