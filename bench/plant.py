@@ -151,10 +151,14 @@ class Observer(NsProcess):
 # ====================================================================================================
 # The plant
 # ====================================================================================================
-def cell_doc(name: str, ems: int, lease: float, workdir: Path) -> dict[str, Any]:
+def cell_doc(name: str, ems: int, lease: float, workdir: Path,
+             discovery: dict[str, Any]) -> dict[str, Any]:  # fmt: skip
+    """A cell of one unit with ``ems`` simulated EMs; ``discovery``: its discovery block (the
+    domain, the server), as an integrator names it."""
     sim = {"cycle_time": 0.5, "counter": "processed"}
     return {
         "cell": name,
+        "discovery": discovery,
         "units": {
             "unit": {
                 "equipment_modules": {f"em{i}": {"sim": sim} for i in range(ems)},
@@ -228,13 +232,19 @@ class Plant:
         launched, counters = time.monotonic(), self.net.counters()
         for c in self.cells:
             path = self.workdir / f"{c}.yaml"
-            doc = cell_doc(c, self.args.ems, self.args.lease, self.workdir)
+            discovery: dict[str, Any] = {"domain": self.domain_of[c]}
+            if self.setup == "server":
+                discovery["server"] = f"{self.server}:{DS_PORT}"
+            doc = cell_doc(c, self.args.ems, self.args.lease, self.workdir, discovery)
             path.write_text(yaml.safe_dump(doc, sort_keys=False))
             cmd = [sys.executable, "-m", "packml_ros2.cli.main", "launch", str(path)]
             if self.args.processes:
                 cmd += ["--processes"]
-            proc = NsProcess(self.net, self.host_of[c], c, cmd, self.env(self.domain_of[c]),
-                             self.workdir, cwd=REPO)  # fmt: skip
+            # the cell's domain and server come from its cell file, as they would on a plant
+            env = self.env(self.domain_of[c])
+            for key in ("ROS_DOMAIN_ID", "ROS_DISCOVERY_SERVER"):
+                env.pop(key, None)
+            proc = NsProcess(self.net, self.host_of[c], c, cmd, env, self.workdir, cwd=REPO)
             self.procs.append(proc)
             self.cell_procs[c] = proc
         return launched, counters
