@@ -12,11 +12,12 @@ removes at the end, also on Ctrl-C); an observer namespace holds the measuring c
 namespaces: inside them DDS runs with ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET over UDPv4 only (shared
 memory would bypass the links, and cutting one would change nothing).
 
-The setups, side by side:
+The setups, side by side (each cell names its domain and server in its cell file's
+``discovery:`` block):
 
 - ``simple``: simple discovery (multicast), every cell in one domain;
-- ``server``: a Fast DDS Discovery Server (``fastdds discovery``); the cells' processes are its
-  clients (ROS_DISCOVERY_SERVER), the measuring client a super client (ROS_SUPER_CLIENT);
+- ``server``: a Fast DDS Discovery Server (``fastdds discovery``, in a namespace of its own); the
+  cells' processes are its clients, the measuring client a super client (ROS_SUPER_CLIENT);
 - ``domains``: simple discovery, one domain per cell (the measuring client joins each).
 
 For each: the time from the launch until every unit is ready (its status seen by the measuring
