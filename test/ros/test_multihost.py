@@ -25,8 +25,6 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import selectors
-import shutil
 import signal
 import subprocess
 import sys
@@ -38,6 +36,8 @@ from typing import Any
 
 import pytest
 
+from packml_ros2.testing.netns import Network, NsProcess, why_no_namespaces
+
 REPO = Path(__file__).resolve().parents[2]
 SUBNET = "10.213.0"
 HOSTS = ("units", "ems", "coord", "obs")
@@ -46,85 +46,12 @@ HOSTS = ("units", "ems", "coord", "obs")
 # ====================================================================================================
 # Network namespaces
 # ====================================================================================================
-def _ip(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
-    result = subprocess.run(["ip", *args], capture_output=True, text=True, timeout=10, check=False)
-    if check and result.returncode != 0:
-        raise RuntimeError(f"ip {' '.join(args)}: {result.stderr.strip()}")
-    return result
-
-
-class Network:
-    """The bridge and the hosts; ``cut(host)`` / ``restore(host)`` switch a host's link."""
-
-    def __init__(self) -> None:
-        tag = f"pk{os.getpid() % 100000}"
-        self.bridge = f"{tag}br"
-        self.ns = {host: f"{tag}{host}" for host in HOSTS}
-        self.port = {host: f"{tag}{host[0]}h" for host in HOSTS}  # bridge-side veth end
-        self.address = {host: f"{SUBNET}.{i}" for i, host in enumerate(HOSTS, 1)}
-        self.created: list[str] = []
-
-    def setup(self) -> None:
-        _ip("netns", "add", self.bridge)
-        self.created.append(self.bridge)
-        _ip("-n", self.bridge, "link", "add", "br0", "type", "bridge")
-        _ip("-n", self.bridge, "link", "set", "br0", "type", "bridge", "mcast_snooping", "0")
-        _ip("-n", self.bridge, "link", "set", "br0", "up")
-        for host in HOSTS:
-            ns, port = self.ns[host], self.port[host]
-            _ip("netns", "add", ns)
-            self.created.append(ns)
-            # both ends are created inside namespaces: nothing appears on the machine itself
-            _ip("link", "add", port, "netns", self.bridge, "type", "veth",
-                "peer", "name", "eth0", "netns", ns)  # fmt: skip
-            _ip("-n", self.bridge, "link", "set", port, "master", "br0", "up")
-            _ip("-n", ns, "link", "set", "lo", "up")
-            _ip("-n", ns, "addr", "add", f"{self.address[host]}/24", "dev", "eth0")
-            _ip("-n", ns, "link", "set", "eth0", "up")
-            _ip("-n", ns, "route", "add", "224.0.0.0/4", "dev", "eth0")
-
-    def cut(self, host: str) -> None:
-        _ip("-n", self.bridge, "link", "set", self.port[host], "down")
-
-    def restore(self, host: str) -> None:
-        _ip("-n", self.bridge, "link", "set", self.port[host], "up")
-
-    def exec_args(self, host: str) -> list[str]:
-        return ["ip", "netns", "exec", self.ns[host]]
-
-    def teardown(self) -> list[str]:
-        """Kill what still runs in the namespaces (only processes this test started can be
-        there) and delete them; returns problems."""
-        problems = []
-        for ns in reversed(self.created):
-            pids = _ip("netns", "pids", ns, check=False).stdout.split()
-            for pid in pids:
-                with contextlib.suppress(ProcessLookupError, ValueError):
-                    os.kill(int(pid), signal.SIGKILL)
-                    problems.append(f"killed leftover process {pid} in {ns}")
-            result = _ip("netns", "del", ns, check=False)
-            if result.returncode != 0:
-                problems.append(f"ip netns del {ns}: {result.stderr.strip()}")
-        self.created.clear()
-        return problems
-
-
-def _why_no_namespaces() -> str:
-    if not sys.platform.startswith("linux"):
-        return "network namespaces are Linux only"
-    if shutil.which("ip") is None:
-        return "iproute2 (ip) is not installed"
-    if os.geteuid() != 0:
-        return "creating network namespaces needs root"
-    return ""
-
-
 @pytest.fixture
 def network() -> Iterator[Network]:
-    reason = _why_no_namespaces()
+    reason = why_no_namespaces()
     if reason:
         pytest.skip(reason)
-    net = Network()
+    net = Network(HOSTS, SUBNET)
     try:
         net.setup()
     except (RuntimeError, OSError, subprocess.TimeoutExpired) as exc:
@@ -155,70 +82,21 @@ def _ns_environment() -> dict[str, str]:
     return env
 
 
-class HostProcess:
+class HostProcess(NsProcess):
     """``python -m module args`` inside a host's namespace; output to ``log``."""
 
     def __init__(self, net: Network, host: str, name: str, module: str, *args: str,
                  log_dir: Path, pipe: bool = False) -> None:  # fmt: skip
-        self.name = name
-        self.log = log_dir / f"{name}.log"
-        self._log = self.log.open("ab")
-        cmd = [*net.exec_args(host), sys.executable, "-m", module, *args]
-        self.popen = subprocess.Popen(
-            cmd,
-            cwd=REPO,
-            env=_ns_environment(),
-            stdin=subprocess.PIPE if pipe else subprocess.DEVNULL,
-            stdout=subprocess.PIPE if pipe else self._log,
-            stderr=self._log,
-            start_new_session=True,
-            text=pipe,
-        )
-
-    def running(self) -> bool:
-        return self.popen.poll() is None
-
-    def stop(self, timeout: float = 5.0) -> int | None:
-        """SIGINT (``ip netns exec`` execs the interpreter: the pid is python's), then SIGKILL."""
-        if self.running():
-            self.popen.send_signal(signal.SIGINT)
-            try:
-                self.popen.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.popen.kill()
-                self.popen.wait(5)
-        self._log.close()
-        return self.popen.returncode
-
-    def output(self) -> str:
-        if not self._log.closed:
-            self._log.flush()
-        return self.log.read_text(errors="replace")
+        cmd = [sys.executable, "-m", module, *args]
+        super().__init__(net, host, name, cmd, _ns_environment(), log_dir, pipe=pipe, cwd=REPO)
 
 
 class Observer(HostProcess):
-    """The observer process: one JSON request per line, one JSON answer per line."""
+    """The observer process: one JSON request per line, one JSON answer per line (ask)."""
 
     def __init__(self, net: Network, cell: str, units: list[str], log_dir: Path) -> None:
         super().__init__(net, "obs", "observer", "test.ros.test_multihost", "observe", cell,
                          *units, log_dir=log_dir, pipe=True)  # fmt: skip
-        self._selector = selectors.DefaultSelector()
-        assert self.popen.stdout is not None
-        self._selector.register(self.popen.stdout, selectors.EVENT_READ)
-
-    def ask(self, op: str, timeout: float = 20.0, **fields: Any) -> Any:
-        assert self.popen.stdin is not None and self.popen.stdout is not None
-        self.popen.stdin.write(json.dumps({"op": op, **fields}) + "\n")
-        self.popen.stdin.flush()
-        if not self._selector.select(timeout):
-            raise TimeoutError(f"observer did not answer {op} within {timeout:g} s")
-        line = self.popen.stdout.readline()
-        if not line:
-            raise RuntimeError(f"observer exited:\n{self.output()[-3000:]}")
-        answer = json.loads(line)
-        if isinstance(answer, dict) and "error" in answer:
-            raise RuntimeError(f"observer failed on {op}: {answer['error']}")
-        return answer
 
     def poll(self, ask: Callable[[], Any], timeout: float, what: str) -> Any:
         """Ask again (every 50 ms) until the answer is truthy."""
@@ -239,14 +117,6 @@ class Observer(HostProcess):
             return cell if cell is not None and predicate(cell) else None
 
         return self.poll(ask, timeout, f"cell status with {what}")
-
-    def stop(self, timeout: float = 5.0) -> int | None:
-        if self.running() and self.popen.stdin is not None:
-            with contextlib.suppress(OSError):
-                self.popen.stdin.close()  # the observer ends at end of input
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                self.popen.wait(timeout)
-        return super().stop(timeout)
 
 
 # ====================================================================================================
