@@ -11,6 +11,10 @@ so the remote lock is judged too, and its sentence names that source). A command
 would accept but the unit does not list (the unit knows more than it publishes) gets a plain
 sentence saying so.
 
+The cell's commands (:func:`cell_command_reasons`) are judged from the coordinator's CellStatus:
+the commands it lists as valid now (``commands_valid``: its units' rules, all or nothing) and
+whether one of its sequences runs (``busy``: then only the commands that interrupt a sequence).
+
 Everything here reads what a unit published, which may be anything: an unknown state or mode is
 answered with a sentence, never an exception.
 """
@@ -174,3 +178,32 @@ def reasons(config: UnitConfig, status: Mapping[str, Any] | None,
         "commands": command_reasons(config, status, alarms, source),
         "modes": mode_reasons(config, status, source),
     }
+
+
+#: The cell commands the coordinator takes while one of its sequences runs: each interrupts it
+#: (ABORT goes to every unit beside it, STOP cancels it and then runs). Any other command is
+#: refused until the sequence has ended (the coordinator answers "busy").
+INTERRUPTS_A_SEQUENCE: tuple[Cmd, ...] = (Cmd.STOP, Cmd.ABORT)
+
+
+def cell_command_reasons(cell_status: Mapping[str, Any] | None) -> dict[str, str]:
+    """``{command name: sentence}`` for every cell command the coordinator would not take now,
+    judged from its status (a dict of CellStatus): a sequence running, or not in the commands it
+    lists as valid. Empty without a status (the page says that itself)."""
+    if cell_status is None:
+        return {}
+    listed = cell_status.get("commands_valid", ())
+    valid = [c for c in listed if isinstance(c, int) and not isinstance(c, bool)]
+    busy = bool(cell_status.get("busy"))
+    step = str(cell_status.get("sequence_step") or "…")
+    only = " and ".join(c.name for c in INTERRUPTS_A_SEQUENCE)
+    running = f"a cell sequence is running ({step}); only {only} interrupt it"
+    out: dict[str, str] = {}
+    for cmd in COMMANDS:
+        if busy and cmd not in INTERRUPTS_A_SEQUENCE:
+            out[cmd.name] = f"{cmd.name} refused: {running}"
+        elif cmd not in valid:
+            out[cmd.name] = (
+                f"{cmd.name} is not valid for the cell now (valid now: {names_of(valid) or 'none'})"
+            )
+    return out

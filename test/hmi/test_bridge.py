@@ -17,10 +17,11 @@ from typing import Any
 
 import httpx
 import pytest
-from packml_interfaces.msg import Result
+from packml_interfaces.msg import CellStatus, Result
 from packml_interfaces.srv import SetAlarm, SetRemoteCommands
 
-from packml_ros2.core import load_cell
+from packml_ros2 import qos
+from packml_ros2.core import Cmd, load_cell
 from packml_ros2.core.config import parse_cell
 from packml_ros2.core.schema import ConfigError
 from packml_ros2.hmi import hmi_settings
@@ -399,6 +400,37 @@ def test_why_a_command_is_disabled_is_what_the_running_unit_answers(make_cell) -
 
 
 # -- access control -------------------------------------------------------------------------------------
+def test_the_cell_commands_say_why_in_the_coordinators_words(make_cell) -> None:
+    """Issue 28: which cell commands the page greys comes with the cell status (its ``why``,
+    judged from the coordinator's CellStatus: the commands it lists as valid, a sequence running),
+    not from rules of the page's own. A coordinator's status published here, on its topic."""
+    cell = make_cell()
+    publisher = cell.ros.node.create_publisher(
+        CellStatus, f"/{cell.cell}/coordinator/status", qos.CELL_STATUS
+    )
+    valid = [int(c) for c in (Cmd.START, Cmd.STOP, Cmd.ABORT)]
+    running = CellStatus(cell=cell.cell, busy=True, sequence_step="START: waiting for filler",
+                         commands_valid=valid, commands_valid_names=["START", "STOP", "ABORT"])  # fmt: skip
+    publisher.publish(running)
+    ev = cell.wait_event(lambda e: e["topic"] == "cell" and e["data"]["busy"], "a busy cell")
+    reasons = ev["data"]["why"]
+    assert sorted(reasons) == sorted(c.name for c in Cmd if c and c not in (Cmd.STOP, Cmd.ABORT))
+    assert reasons["START"] == (
+        "START refused: a cell sequence is running (START: waiting for filler); "
+        "only STOP and ABORT interrupt it"
+    )
+    assert ev["data"]["commands_valid_names"] == ["START", "STOP", "ABORT"]
+    done = CellStatus(cell=cell.cell, busy=False, commands_valid=valid,
+                      commands_valid_names=["START", "STOP", "ABORT"])  # fmt: skip
+    start = len(cell.events.messages)
+    publisher.publish(done)
+    ev = cell.wait_event(lambda e: e["topic"] == "cell" and not e["data"]["busy"], "idle", start)
+    reasons = ev["data"]["why"]
+    assert "START" not in reasons and "STOP" not in reasons and "ABORT" not in reasons
+    assert reasons["RESET"] == "RESET is not valid for the cell now (valid now: START, STOP, ABORT)"
+    assert cell.bridge.snapshot()["cell_status"]["why"] == reasons  # what a page opened now gets
+
+
 def test_a_token_guards_every_action_and_nothing_reaches_the_unit_without_it(make_cell) -> None:
     cell = make_cell(token=TOKEN)
     assert cell.bridge.snapshot()["config"]["token_required"] is True

@@ -15,6 +15,7 @@ import pytest
 
 from packml_ros2 import convert
 from packml_ros2.core import Cmd, Reason, State, Unit
+from packml_ros2.core.line.sequence import Outcome
 from packml_ros2.hmi import why
 from packml_ros2.hmi.access import Principal, command_source
 from packml_ros2.hmi.bridge import alarm_list_dict, status_dict
@@ -182,7 +183,7 @@ def test_a_status_the_configuration_does_not_know_is_answered_not_raised(
 
 def test_the_shared_reasons_are_each_users_own_once_the_page_names_its_user() -> None:
     """Issue 15: every browser gets the same reasons, judged for the viewer (hmi:<user> with
-    logins); the page puts its user's name for the viewer's (app.js ownReasons). Sound because the
+    logins); the page puts its user's name for the viewer's (app/access.js ownReasons). Sound because the
     rule book judges every hmi: user alike: for each user, in each situation (locked, an alarm,
     a mode change, running), the viewer's reasons so named are exactly that user's, and the
     levels are the page's own (CFG.unit_action_level against its user's level)."""
@@ -197,7 +198,7 @@ def test_the_shared_reasons_are_each_users_own_once_the_page_names_its_user() ->
     assert viewer == "hmi:<user>"
 
     def named(reasons: dict[str, Any], user: str) -> dict[str, Any]:
-        own = lambda t: t.replace(viewer, f"hmi:{user}")  # noqa: E731 (what app.js does)
+        own = lambda t: t.replace(viewer, f"hmi:{user}")  # noqa: E731 (what app/access.js does)
         return {"commands": {c: {**v, "text": own(v["text"])} for c, v in reasons["commands"].items()},
                 "modes": {m: own(t) for m, t in reasons["modes"].items()}}  # fmt: skip
 
@@ -223,3 +224,78 @@ def test_the_shared_reasons_are_each_users_own_once_the_page_names_its_user() ->
             assert named(shared, user) == own, (user, unit.state)
             names_seen += str(own).count(f"hmi:{user}")
     assert names_seen > 0  # the locked unit's sentences name the user
+
+
+# -- the cell's commands ---------------------------------------------------------------------------------
+def _line_at(seconds: float, *commands: tuple[float, Cmd]) -> Any:
+    """The coordinator's line core (test/core/line_sim.py: real engines, simulated EMs, exact
+    times) after ``commands`` (at, cell command), at ``seconds``."""
+    from test.core.line_sim import SimEm, SimLine
+    from test.core.test_line_scenarios import D, cell_doc
+
+    sim = SimLine(cell_doc(), [SimEm("filler", "infeed", dict(D), 1.0),
+                               SimEm("packer", "loader", dict(D), 2.0)])  # fmt: skip
+    for at, cmd in commands:
+        sim.at(at, lambda c=cmd: sim.cell_command(c))
+    sim.run_until(seconds)
+    return sim
+
+
+def _seen_by_the_hmi(sim: Any) -> dict[str, str]:
+    """The cell's reasons from its status as the coordinator publishes it (CellStatus: busy,
+    sequence_step, commands_valid: packml_ros2.coordinator_node)."""
+    v = sim.line.view()
+    status = {"busy": v.busy, "sequence_step": v.sequence_step,
+              "commands_valid": list(v.commands_valid)}  # fmt: skip
+    return why.cell_command_reasons(status)
+
+
+@pytest.mark.parametrize(
+    ("situation", "at", "commands"),
+    [
+        ("stopped", 0.5, ()),
+        ("resetting (a sequence runs)", 1.5, ((1.0, Cmd.RESET),)),
+        ("idle", 3.5, ((1.0, Cmd.RESET),)),
+        ("starting (a sequence runs)", 4.5, ((1.0, Cmd.RESET), (4.0, Cmd.START))),
+        ("executing", 8.0, ((1.0, Cmd.RESET), (4.0, Cmd.START))),
+    ],
+)
+def test_the_cell_commands_the_hmi_greys_are_the_ones_the_coordinator_refuses(
+    situation: str, at: float, commands: tuple[tuple[float, Cmd], ...]
+) -> None:
+    """Issue 28: the page no longer decides the cell's commands itself ("only STOP and ABORT"
+    while a sequence ran was written in app.js): the bridge judges them from the coordinator's
+    status. For each command, in each situation, a fresh line is asked: a command not named is
+    begun (STOP while a sequence runs after the sequence is cancelled, as the coordinator node
+    does: coordinator_node.cell_command), one named for the sequence is refused. (One named as not
+    valid for the cell, e.g. STOP with every unit stopped, is greyed as the cell's status lists
+    it; the coordinator would begin it and find nothing to do.)"""
+    reasons = _seen_by_the_hmi(_line_at(at, *commands))
+    busy = _line_at(at, *commands).line.view().busy
+    assert busy is ("sequence" in situation), situation
+    for cmd in (c for c in Cmd if c):
+        sim = _line_at(at, *commands)
+        if cmd is Cmd.STOP and busy:
+            sim.line.runs.cancel_all("STOP")
+            sim._poll_runs()  # the cancelled sequence ends
+        begun = sim.line.begin_command(cmd, "hmi:anna")
+        refused = isinstance(begun, Outcome) and not begun.accepted
+        if cmd.name not in reasons:
+            assert not refused, (situation, cmd.name, begun)
+        elif busy:
+            assert refused and "busy" in begun.message, (situation, cmd.name, begun)
+            assert reasons[cmd.name].startswith(f"{cmd.name} refused: a cell sequence is running")
+            assert "only STOP and ABORT interrupt it" in reasons[cmd.name]
+    if busy:
+        allowed = sorted(c.name for c in Cmd if c and c.name not in reasons)
+        assert allowed == ["ABORT", "STOP"], allowed
+
+
+def test_the_cell_reasons_of_a_status_that_says_little_or_nonsense() -> None:
+    assert why.cell_command_reasons(None) == {}
+    nothing = why.cell_command_reasons({})
+    assert set(nothing) == {c.name for c in Cmd if c}
+    assert all("valid now: none" in text for text in nothing.values())
+    odd = why.cell_command_reasons({"commands_valid": [True, "2", 999, int(Cmd.START)], "busy": 1,
+                                    "sequence_step": None})  # fmt: skip
+    assert "START" in odd and "(…)" in odd["START"] and "ABORT" in odd and "STOP" in odd
