@@ -25,7 +25,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from ..core.config import UnitConfig
-from ..core.numbers import Cmd, State, command_name, names_of
+from ..core.numbers import Cmd, Mode, State, command_name, names_of, state_name
 from ..core.reasons import Reason
 from ..core.rules import COMMANDS, Rules, locked_refusal, remote_locked, rules_of
 
@@ -168,15 +168,41 @@ def mode_reasons(config: UnitConfig, status: Mapping[str, Any], source: str) -> 
     return out
 
 
+def em_reasons(config: UnitConfig, status: Mapping[str, Any], source: str) -> dict[str, str]:
+    """``{EM name: sentence}`` for every EM in the status the unit would not switch from ``source``
+    now (to inactive if it is active, else to active): the remote lock, then PRODUCTION (the
+    unit's check, :meth:`packml_ros2.core.em_inputs.EquipmentInputs.set_em_active`, in its
+    words; test/hmi/test_why.py asks the unit itself)."""
+    remote_enabled = StatusSituation(config, status, None).remote_enabled
+    out: dict[str, str] = {}
+    for em in status.get("equipment_modules", ()):
+        name = str(em.get("name", ""))
+        word = "inactive" if em.get("active") else "active"
+        locked = locked_refusal(f"switching EM {name}", source, remote_enabled, config.name)
+        if locked is not None:
+            out[name] = locked.message
+        elif status.get("mode") == Mode.PRODUCTION:
+            out[name] = (
+                f"EM {name} can be switched {word} only outside PRODUCTION (now PRODUCTION, "
+                f"{_state_text(status.get('state'))}); change to MAINTENANCE first"
+            )
+    return out
+
+
+def _state_text(state: Any) -> str:
+    return state_name(state) if isinstance(state, int) else f"state {str(state)[:20]}"
+
+
 def reasons(config: UnitConfig, status: Mapping[str, Any] | None,
             alarms: Mapping[str, Any] | None, source: str) -> dict[str, Any]:  # fmt: skip
-    """``{commands: ..., modes: ...}`` (:func:`command_reasons` for ``source``,
-    :func:`mode_reasons` from ``source``); empty without a status."""
+    """``{commands: ..., modes: ..., ems: ...}`` (:func:`command_reasons` for ``source``,
+    :func:`mode_reasons` and :func:`em_reasons` from ``source``); empty without a status."""
     if status is None:
-        return {"commands": {}, "modes": {}}
+        return {"commands": {}, "modes": {}, "ems": {}}
     return {
         "commands": command_reasons(config, status, alarms, source),
         "modes": mode_reasons(config, status, source),
+        "ems": em_reasons(config, status, source),
     }
 
 

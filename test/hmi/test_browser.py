@@ -766,8 +766,13 @@ def test_user_levels_decide_who_may_do_what(env: Env) -> None:
 
     # ben, maintenance: a mode change (recorded as hmi:ben); MAINTENANCE greys the Suspend states
     log_in(page, "ben")
+    # switching an EM: in PRODUCTION the unit would refuse, and the button says so in its words
+    em_switch = page.locator("#u-ems button").first
+    reason = why(em_switch)
+    assert "can be switched inactive only outside PRODUCTION (now PRODUCTION, STOPPED)" in reason
     page.click("#u-modes button[data-mode='2']")
     expect(page.locator("#banner-mode")).to_have_text("MAINTENANCE (2)", timeout=10_000)
+    expect(em_switch).to_have_attribute("aria-disabled", "false")
     disabled = {s.name for s in load_cell(env.cell_file).units["robot_cell"].modes[2].disabled}
     expect(page.locator("#diagram .st.disabled")).to_have_count(len(disabled))
     for state in disabled:

@@ -162,6 +162,39 @@ def test_mode_buttons_follow_the_units_mode_rules() -> None:
         assert modes[str(number)] == answer.message
 
 
+def check_ems(unit: Unit) -> dict[str, str]:
+    """Every EM the HMI shows as not switchable now is refused by the unit with that sentence
+    (switched the way its button would: inactive if active); every other one is switched (then
+    switched back). Returns what the HMI shows."""
+    status, _ = seen_by_the_hmi(unit)
+    shown = why.em_reasons(unit.config, status, ANNA)
+    for em in status["equipment_modules"]:
+        name, active = em["name"], em["active"]
+        answer = unit.set_em_active(name, not active, ANNA)
+        if name in shown:
+            assert not answer.accepted and answer.message == shown[name], (name, shown, answer)
+        else:
+            assert answer.accepted, (name, answer)
+            assert unit.set_em_active(name, active, ANNA).accepted
+    return shown
+
+
+def test_em_switches_follow_the_units_rules() -> None:
+    """Issue 28: the page said itself that EMs are switched outside PRODUCTION only (app.js); the
+    bridge sends why, in the unit's words (the ``ems`` of a unit's reasons)."""
+    unit, _ = start()
+    assert "only outside PRODUCTION (now PRODUCTION, STOPPED)" in check_ems(unit)["em1"]
+    assert unit.set_mode(2, ANNA).accepted  # MAINTENANCE, once em1 has reported
+    sc(unit)
+    assert unit.mode == 2 and check_ems(unit) == {}
+    locked, _ = start({**UNIT_DOC, "remote_commands_enabled": False})
+    assert "remote commands are disabled" in check_ems(locked)["em1"]
+    assert unit.set_mode(1, ANNA).accepted
+    sc(unit)
+    to_execute(unit)
+    assert "(now PRODUCTION, EXECUTE)" in check_ems(unit)["em1"]
+
+
 @pytest.mark.parametrize(
     "status",
     [
@@ -200,7 +233,8 @@ def test_the_shared_reasons_are_each_users_own_once_the_page_names_its_user() ->
     def named(reasons: dict[str, Any], user: str) -> dict[str, Any]:
         own = lambda t: t.replace(viewer, f"hmi:{user}")  # noqa: E731 (what app/access.js does)
         return {"commands": {c: {**v, "text": own(v["text"])} for c, v in reasons["commands"].items()},
-                "modes": {m: own(t) for m, t in reasons["modes"].items()}}  # fmt: skip
+                "modes": {m: own(t) for m, t in reasons["modes"].items()},
+                "ems": {e: own(t) for e, t in reasons["ems"].items()}}  # fmt: skip
 
     situations = []
     locked, _ = start({**UNIT_DOC, "remote_commands_enabled": False})

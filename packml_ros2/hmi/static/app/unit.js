@@ -74,7 +74,7 @@ function renderUnitStatus(name, x) {
   const lost = isLost(name);
   const live = !lost && conn.ok;
   const valid = new Set(s?.commands_valid_names || []);
-  const reasons = ownReasons(x.why || { commands: {}, modes: {} });
+  const reasons = ownReasons(x.why || { commands: {}, modes: {}, ems: {} });
   D.update($("#diagram"), u, s, live, group);
   const mode = s ? u.modes.find((m) => m.number === s.mode) : null;
   $("#u-model-sub").textContent = `TR88-${u.model}${s ? ` · ${s.mode_name} · ${mode ? mode.disabled_states.length : 0} disabled` : ""}`;
@@ -135,8 +135,7 @@ function renderUnitStatus(name, x) {
   setButton($("#speed-btn"), speedWhy);
   $("#u-speed").textContent = s ? `actual ${fixed(s.cur_mach_speed, 1)}${u.mach_design_speed ? ` · design ${u.mach_design_speed}` : ""}` : "";
 
-  // EMs
-  const inProduction = s?.mode === 1;
+  // EMs: each one the unit would not switch now says why (the unit's words, from the server)
   $("#u-em-sub").textContent = s ? `state complete for ${s.state_name}` : "";
   const emBase = blocked(name, "set_em_active");
   const rows = (s?.equipment_modules || []).map((e) => {
@@ -144,7 +143,7 @@ function renderUnitStatus(name, x) {
     const flags = [e.blocked ? `<span class="tag warn">blocked</span>` : "", e.starved ? `<span class="tag warn">starved</span>` : ""].join(" ");
     const label = e.active ? "Switch off" : "Switch on";
     const online = lost ? `<span class="lamp"></span> unknown` : `<span class="lamp ${e.online ? "on-ok" : e.active ? "on-fault" : ""}"></span> ${e.online ? "online" : "offline"}`;
-    const why = emBase || (inProduction ? `${label} ${e.name}: EMs are switched outside PRODUCTION only` : "");
+    const why = emBase || reasons.ems?.[e.name] || "";
     return `<tr data-em="${esc(e.name)}"><td><b>${esc(e.name)}</b>${e.configured ? "" : ` <span class="tag info">registered</span>`}</td>
       <td>${e.active ? `<span class="tag ok">active</span>` : `<span class="tag">inactive</span>`}</td>
       <td>${online}</td>
