@@ -26,9 +26,7 @@ import json
 import os
 import re
 import signal
-import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from functools import partial
@@ -47,6 +45,7 @@ from packml_ros2.core.numbers import ACTING, State
 from packml_ros2.core.rules import rules_of
 from packml_ros2.core.secrets import hash_password
 from packml_ros2.testing.harness import Collector, RosHarness
+from packml_ros2.testing.launched import Launched
 from test.hmi.readable import contrast_failures, fit_failures
 
 pytestmark = [pytest.mark.browser, pytest.mark.ros, pytest.mark.slow]
@@ -125,71 +124,10 @@ def token_hmi_file(cell_file: Path) -> Path:
     return path
 
 
-class Launched:
-    """`packml launch <cell> --hmi` (or ``argv``) in the background; its output read as it comes
-    (a thread copies it to ``log`` and wakes whoever waits for a line)."""
-
-    def __init__(self, cell_file: Path, log: Path, argv: list[str] | None = None) -> None:
-        self.log = log
-        self._out = log.open("wb")
-        self._text: list[str] = []
-        self._ended = False
-        self._changed = threading.Condition()
-        self.proc = subprocess.Popen(
-            argv
-            or [sys.executable, "-m", "packml_ros2.cli.main", "launch", str(cell_file), "--hmi"],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            env=dict(os.environ, PYTHONUNBUFFERED="1"),
-        )
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in iter(self.proc.stdout.readline, b""):
-            self._out.write(line)
-            self._out.flush()
-            with self._changed:
-                self._text.append(line.decode(errors="replace"))
-                self._changed.notify_all()
-        with self._changed:  # the end of the output: the process has exited
-            self._ended = True
-            self._changed.notify_all()
-
-    def output(self) -> str:
-        with self._changed:
-            return "".join(self._text)
-
-    def wait_for(self, pattern: str, timeout: float = 60.0) -> re.Match[str]:
-        """The first match of ``pattern`` in the output, waiting for the line that has it."""
-        found: list[re.Match[str]] = []
-
-        def seen() -> bool:
-            match = re.search(pattern, "".join(self._text))
-            if match:
-                found.append(match)
-            return bool(match) or self._ended
-
-        with self._changed:
-            ok = self._changed.wait_for(seen, timeout)
-        if found:
-            return found[0]
-        if ok:
-            self.proc.wait(5)
-            raise AssertionError(f"packml launch exited {self.proc.returncode}:\n{self.output()}")
-        raise AssertionError(f"{pattern!r} not within {timeout} s:\n{self.output()}")
-
-    def stop(self) -> int:
-        self.proc.send_signal(signal.SIGINT)
-        try:
-            return self.proc.wait(20)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            return self.proc.wait()
-        finally:
-            self._reader.join(5)
-            self._out.close()
+def launched_cell(cell_file: Path, log: Path, argv: list[str] | None = None) -> Launched:
+    """`packml launch <cell> --hmi` (or ``argv``) in the background, its output waited on."""
+    cli = [sys.executable, "-m", "packml_ros2.cli.main"]
+    return Launched(argv or [*cli, "launch", str(cell_file), "--hmi"], log)
 
 
 class Env:
@@ -276,7 +214,7 @@ def env(tmp_path_factory: pytest.TempPathFactory, ros_domain: int) -> Iterator[E
     shots = Path(os.environ.get("PACKML_SCREENSHOTS_DIR") or tmp_path_factory.mktemp("screenshots"))
     shots.mkdir(parents=True, exist_ok=True)
     cell_file, cell = demo_like_cell(tmp)
-    launched = Launched(cell_file, tmp / "launch.log")
+    launched = launched_cell(cell_file, tmp / "launch.log")
     ros = RosHarness(ros_domain)
     playwright = sync_api.sync_playwright().start()
     url = ""
@@ -831,7 +769,7 @@ def test_abort_asks_first_and_the_answer_box_forgets_old_answers(env: Env) -> No
 
 def test_read_only_without_the_token(env: Env) -> None:
     # the same cell served by a second HMI with one shared access token instead of users
-    other = Launched(env.cell_file, env.cell_file.parent / "hmi-token.log",
+    other = launched_cell(env.cell_file, env.cell_file.parent / "hmi-token.log",
                      [sys.executable, "-m", "packml_ros2.cli.main", "hmi",
                       str(token_hmi_file(env.cell_file))])  # fmt: skip
     try:
