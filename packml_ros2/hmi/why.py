@@ -27,7 +27,11 @@ from typing import Any
 from ..core.config import UnitConfig
 from ..core.numbers import Cmd, Mode, State, command_name, names_of, state_name
 from ..core.reasons import Reason
-from ..core.rules import COMMANDS, Rules, locked_refusal, remote_locked, rules_of
+from ..core.rules import COMMANDS, GUARDS, Rules, locked_refusal, remote_locked, rules_of
+
+#: The reasons of the rule book's guards (a situation: the lock, a mode change, a missing EM, an
+#: alarm, an interlock), not of its state model: the page lists these apart ("not now").
+GUARD_REASONS = frozenset(g.reason for g in GUARDS)
 
 
 class StatusSituation:
@@ -102,13 +106,15 @@ def _known(rules: Rules, status: Mapping[str, Any]) -> tuple[State, int] | str:
 
 
 def command_reasons(config: UnitConfig, status: Mapping[str, Any],
-                    alarms: Mapping[str, Any] | None, source: str) -> dict[str, dict[str, str]]:  # fmt: skip
-    """``{command name: {reason, text}}`` for every command the unit does not list as valid now:
-    its reason code and the sentence the unit answers a command from ``source`` with."""
+                    alarms: Mapping[str, Any] | None, source: str) -> dict[str, dict[str, Any]]:  # fmt: skip
+    """``{command name: {reason, text, guard}}`` for every command the unit would not take from
+    ``source`` now (not listed as valid, or locked): its reason code, the sentence the unit
+    answers it with, and whether a guard refuses it (:data:`GUARD_REASONS`) rather than the state
+    model."""
     rules = rules_of(config)
     valid: Sequence[int] = [c for c in status.get("commands_valid", ()) if isinstance(c, int)]
     known = _known(rules, status)
-    out: dict[str, dict[str, str]] = {}
+    out: dict[str, dict[str, Any]] = {}
     situation = StatusSituation(config, status, alarms)
     # the unit lists what its rules allow now, whoever asks: the lock refuses those too
     locked = remote_locked(source, situation.remote_enabled)
@@ -116,7 +122,11 @@ def command_reasons(config: UnitConfig, status: Mapping[str, Any],
         if cmd in valid and not locked:
             continue
         if isinstance(known, str):
-            out[cmd.name] = {"reason": Reason.COMMAND_NOT_ALLOWED.name, "text": known}
+            out[cmd.name] = {
+                "reason": Reason.COMMAND_NOT_ALLOWED.name,
+                "text": known,
+                "guard": False,
+            }
             continue
         state, mode = known
         mode_name = rules.modes[mode].name
@@ -126,10 +136,18 @@ def command_reasons(config: UnitConfig, status: Mapping[str, Any],
             text = (
                 f"{cmd.name} is not valid now in {where} (valid now: {names_of(valid) or 'none'})"
             )
-            out[cmd.name] = {"reason": Reason.COMMAND_NOT_ALLOWED.name, "text": text}
+            out[cmd.name] = {
+                "reason": Reason.COMMAND_NOT_ALLOWED.name,
+                "text": text,
+                "guard": False,
+            }
             continue
         text = rules.refusal_text(verdict, cmd, source, where, config.name, mode_name, valid)
-        out[cmd.name] = {"reason": verdict.reason.name, "text": text}
+        out[cmd.name] = {
+            "reason": verdict.reason.name,
+            "text": text,
+            "guard": verdict.reason in GUARD_REASONS,
+        }
     return out
 
 

@@ -377,6 +377,7 @@ def test_why_a_command_is_disabled_is_what_the_running_unit_answers(make_cell) -
     assert stopped["commands"]["START"] == {
         "reason": "COMMAND_NOT_ALLOWED",
         "text": "START not allowed in STOPPED in PRODUCTION mode (valid now: RESET, ABORT)",
+        "guard": False,
     }
     assert set(stopped["modes"]) == {"1"}  # STOPPED allows every mode change
     sent_anyway(stopped)
@@ -395,6 +396,7 @@ def test_why_a_command_is_disabled_is_what_the_running_unit_answers(make_cell) -
     assert raised.accepted, raised.message_out
     alarmed = shown_in("STOPPED", lambda w: "RESET" in w["commands"])
     assert alarmed["commands"]["RESET"]["reason"] == "ALARM_ACTIVE"
+    assert alarmed["commands"]["RESET"]["guard"] is True  # listed apart on the page
     assert 'alarm 201/0 "Nozzle clogged"' in alarmed["commands"]["RESET"]["text"]
     sent_anyway(alarmed)
     cell.client.call(

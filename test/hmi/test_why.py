@@ -58,7 +58,7 @@ def to_execute(unit: Unit) -> None:
     assert unit.state is State.EXECUTE
 
 
-def check_commands(unit: Unit, interlock: bool = False) -> dict[str, dict[str, str]]:
+def check_commands(unit: Unit, interlock: bool = False) -> dict[str, dict[str, Any]]:
     """Every command the HMI shows unavailable is refused by the unit with that reason (and
     sentence); every other one is valid. Returns what the HMI shows."""
     status, alarms = seen_by_the_hmi(unit)
@@ -68,6 +68,9 @@ def check_commands(unit: Unit, interlock: bool = False) -> dict[str, dict[str, s
         answer = unit.command(Cmd[name], ANNA)
         assert not answer.accepted, (name, answer)
         assert reason["reason"] == answer.reason.name, (name, reason, answer)
+        # a guard's (listed apart on the page), or the state model's own refusal
+        model = answer.reason in (Reason.COMMAND_NOT_ALLOWED, Reason.STATE_DISABLED)
+        assert reason["guard"] is not model, (name, reason, answer)
         if not (interlock and answer.reason is Reason.INTERLOCK_ACTIVE):
             assert reason["text"] == answer.message, (name, reason, answer)
     return shown
@@ -79,6 +82,7 @@ def test_not_allowed_by_the_state_model() -> None:
     assert shown["START"] == {
         "reason": "COMMAND_NOT_ALLOWED",
         "text": "START not allowed in STOPPED in PRODUCTION mode (valid now: RESET, ABORT)",
+        "guard": False,
     }
     to_execute(unit)
     check_commands(unit)

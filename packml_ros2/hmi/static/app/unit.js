@@ -98,15 +98,17 @@ function renderUnitStatus(name, x) {
   const refusedByGuard = [];
   for (const b of $$("#u-cmds button")) {
     const c = b.dataset.cmd;
-    // a command the unit lists as valid is still refused to this page by the remote lock
-    const usable = valid.has(c) && reasons.commands[c]?.reason !== "REMOTE_DISABLED";
-    const own = usable ? "" : reasons.commands[c]?.text || `${c} is not valid now`;
+    // the server names every command the unit would not take from this page (one it lists as
+    // valid too, under the remote lock); until its reasons follow a new status, valid decides
+    const reason = reasons.commands[c];
+    const usable = valid.has(c) && !reason;
+    const own = usable ? "" : reason?.text || `${c} is not valid now`;
     b.className = `btn cmd${usable && live ? ` valid ${CMD_CLASS[c]}` : ""}${pending.has(`${name}/command/${JSON.stringify({ command: c })}`) ? " pending" : ""}`;
     setButton(b, base || own);
-    const reason = reasons.commands[c]?.reason;
-    if (!base && reason && reason !== "COMMAND_NOT_ALLOWED" && reason !== "STATE_DISABLED") refusedByGuard.push(`${c}: ${reasons.commands[c].text}`);
+    if (!base && reason?.guard) refusedByGuard.push(`${c}: ${reason.text}`);
   }
-  // the reasons that are not the state model's (an alarm, a missing EM, an interlock, a mode change)
+  // the reasons of the rule book's guards, not its state model's (the lock, an alarm, a missing
+  // EM, an interlock, a mode change)
   view($("#u-why")).html = refusedByGuard.length ? `<span class="tag warn">not now</span> ${esc(refusedByGuard[0])}${refusedByGuard.length > 1 ? ` <span class="muted">(+${refusedByGuard.length - 1} more)</span>` : ""}` : "";
   $("#u-ro").textContent = base && !s ? "" : base;
 
