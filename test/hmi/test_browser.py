@@ -433,6 +433,11 @@ def test_reset_and_start_by_buttons_the_diagram_and_banner_follow_every_status(e
     ]
     assert {"RESETTING", "IDLE", "STARTING", "EXECUTE"} <= set(states), states
 
+    # where Execute goes when the run is finished: the unit's rules say (its edges), not the page
+    expect(page.locator("#u-progress")).to_have_text(
+        "EXECUTE: producing · leaves by a command, or to COMPLETING when the run is finished "
+        "(state complete)"
+    )
     # the diagram: the acting state in progress, transitions valid now, no disabled state in PRODUCTION
     assert "acting" in page.get_attribute("#st-EXECUTE", "class")
     assert page.locator("#diagram .st.disabled").count() == 0

@@ -21,7 +21,6 @@ NAMES = {c.name for c in Cmd if c} | {s.name for s in State if s} | {m.name for 
 #: where a name in quotes is the page's own look or words, not a rule: (module, name)
 WORDS = {
     ("app/actions.js", "ABORT"),  # which actions are asked twice (they cannot be undone)
-    ("app/unit.js", "EXECUTE"),  # the progress line's sentence in Execute
 }
 LOOKS = {"app/dom.js", "diagram.js"}  # colours and button order; the diagram's grid
 

@@ -86,8 +86,11 @@ function renderUnitStatus(name, x) {
   if (!conn.ok) view(prog).html = `<b>${esc(serverLost())}</b>: the last received state is shown`;
   else if (lost) view(prog).html = `<b>${esc(lostSince(x.presence))}</b>: last known state ${esc(s?.state_name || "–")}; commands are disabled until the unit is back`;
   else if (!s) prog.textContent = x.presence?.present === null ? "Waiting for the unit…" : "No status from this unit (is it running?)";
-  else if (s.state_name === "EXECUTE") {
-    view(prog).html = `<b>EXECUTE</b>: producing · leaves by a command, or to COMPLETING when the run is finished (state complete)`;
+  else if (s.acting && s.state_requested === s.state) {
+    // an acting state that rests in itself (Execute): it ends by State Complete, the unit's
+    // rules say where to (this mode's edges from the server), or by a command
+    const done = mode?.edges.find(([from, cmd]) => from === s.state_name && !cmd);
+    view(prog).html = `<b>${esc(s.state_name)}</b>: producing · leaves by a command${done ? `, or to ${esc(done[2])} when the run is finished (state complete)` : ""}`;
   } else if (s.acting) {
     const waiting = s.equipment_modules.filter((e) => e.active && !e.state_complete).map((e) => e.name);
     view(prog).html = `<b>${esc(s.state_name)}</b> in progress → ${esc(s.state_requested_name)}${waiting.length ? ` · waiting for state complete from ${esc(waiting.join(", "))}` : ""}`;
