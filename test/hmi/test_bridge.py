@@ -416,8 +416,13 @@ def test_the_cell_commands_say_why_in_the_coordinators_words(make_cell) -> None:
         CellStatus, f"/{cell.cell}/coordinator/status", qos.CELL_STATUS
     )
     valid = [int(c) for c in (Cmd.START, Cmd.STOP, Cmd.ABORT)]
-    running = CellStatus(cell=cell.cell, busy=True, sequence_step="START: waiting for filler",
-                         commands_valid=valid, commands_valid_names=["START", "STOP", "ABORT"])  # fmt: skip
+    running = CellStatus(
+        cell=cell.cell,
+        busy=True,
+        sequence_step="START: waiting for filler",
+        commands_valid=valid,
+        commands_valid_names=["START", "STOP", "ABORT"],
+    )
     publisher.publish(running)
     ev = cell.wait_event(lambda e: e["topic"] == "cell" and e["data"]["busy"], "a busy cell")
     reasons = ev["data"]["why"]
@@ -427,8 +432,12 @@ def test_the_cell_commands_say_why_in_the_coordinators_words(make_cell) -> None:
         "only STOP and ABORT interrupt it"
     )
     assert ev["data"]["commands_valid_names"] == ["START", "STOP", "ABORT"]
-    done = CellStatus(cell=cell.cell, busy=False, commands_valid=valid,
-                      commands_valid_names=["START", "STOP", "ABORT"])  # fmt: skip
+    done = CellStatus(
+        cell=cell.cell,
+        busy=False,
+        commands_valid=valid,
+        commands_valid_names=["START", "STOP", "ABORT"],
+    )
     start = len(cell.events.messages)
     publisher.publish(done)
     ev = cell.wait_event(lambda e: e["topic"] == "cell" and not e["data"]["busy"], "idle", start)

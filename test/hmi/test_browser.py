@@ -269,8 +269,10 @@ def hmi_sees_every_unit(url: str, timeout: float = 20.0) -> None:
     with httpx.stream("GET", f"{url}api/events", timeout=timeout) as response:
         for kind, data in stream_events(response):
             if kind == "snapshot":
-                units = {name: {"status": u["status"], "online": u["online"]}
-                         for name, u in data["units"].items()}  # fmt: skip
+                units = {
+                    name: {"status": u["status"], "online": u["online"]}
+                    for name, u in data["units"].items()
+                }
                 cell = {"cell": data["cell_status"], "coordinator": data["coordinator"]}
             elif kind == "update" and data["topic"] == "status":
                 units[data["unit"]]["status"] = data["data"]

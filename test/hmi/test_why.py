@@ -220,10 +220,10 @@ def test_a_status_the_configuration_does_not_know_is_answered_not_raised(
 
 def test_the_shared_reasons_are_each_users_own_once_the_page_names_its_user() -> None:
     """Issue 15: every browser gets the same reasons, judged for the viewer (hmi:<user> with
-    logins); the page puts its user's name for the viewer's (app/access.js ownReasons). Sound because the
-    rule book judges every hmi: user alike: for each user, in each situation (locked, an alarm,
-    a mode change, running), the viewer's reasons so named are exactly that user's, and the
-    levels are the page's own (CFG.unit_action_level against its user's level)."""
+    logins); the page puts its user's name for the viewer's (app/access.js ownReasons). Sound
+    because the rule book judges every hmi: user alike: for each user, in each situation (locked,
+    an alarm, a mode change, running), the viewer's reasons so named are exactly that user's, and
+    the levels are the page's own (CFG.unit_action_level against its user's level)."""
     from packml_ros2.core import parse_cell
     from packml_ros2.hmi.access import Access
     from packml_ros2.hmi.bridge import config_dict
@@ -264,15 +264,17 @@ def test_the_shared_reasons_are_each_users_own_once_the_page_names_its_user() ->
     assert names_seen > 0  # the locked unit's sentences name the user
 
 
-# -- the cell's commands ---------------------------------------------------------------------------------
+# -- the cell's commands -----------------------------------------------------------------------
 def _line_at(seconds: float, *commands: tuple[float, Cmd]) -> Any:
     """The coordinator's line core (test/core/line_sim.py: real engines, simulated EMs, exact
     times) after ``commands`` (at, cell command), at ``seconds``."""
     from test.core.line_sim import SimEm, SimLine
     from test.core.test_line_scenarios import D, cell_doc
 
-    sim = SimLine(cell_doc(), [SimEm("filler", "infeed", dict(D), 1.0),
-                               SimEm("packer", "loader", dict(D), 2.0)])  # fmt: skip
+    sim = SimLine(
+        cell_doc(),
+        [SimEm("filler", "infeed", dict(D), 1.0), SimEm("packer", "loader", dict(D), 2.0)],
+    )
     for at, cmd in commands:
         sim.at(at, lambda c=cmd: sim.cell_command(c))
     sim.run_until(seconds)
@@ -283,8 +285,11 @@ def _seen_by_the_hmi(sim: Any) -> dict[str, str]:
     """The cell's reasons from its status as the coordinator publishes it (CellStatus: busy,
     sequence_step, commands_valid: packml_ros2.coordinator_node)."""
     v = sim.line.view()
-    status = {"busy": v.busy, "sequence_step": v.sequence_step,
-              "commands_valid": list(v.commands_valid)}  # fmt: skip
+    status = {
+        "busy": v.busy,
+        "sequence_step": v.sequence_step,
+        "commands_valid": list(v.commands_valid),
+    }
     return why.cell_command_reasons(status)
 
 
@@ -334,6 +339,7 @@ def test_the_cell_reasons_of_a_status_that_says_little_or_nonsense() -> None:
     nothing = why.cell_command_reasons({})
     assert set(nothing) == {c.name for c in Cmd if c}
     assert all("valid now: none" in text for text in nothing.values())
-    odd = why.cell_command_reasons({"commands_valid": [True, "2", 999, int(Cmd.START)], "busy": 1,
-                                    "sequence_step": None})  # fmt: skip
+    odd = why.cell_command_reasons(
+        {"commands_valid": [True, "2", 999, int(Cmd.START)], "busy": 1, "sequence_step": None}
+    )
     assert "START" in odd and "(…)" in odd["START"] and "ABORT" in odd and "STOP" in odd
