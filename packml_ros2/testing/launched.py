@@ -18,6 +18,7 @@ class Launched:
     (and :meth:`output`) as it comes."""
 
     def __init__(self, argv: list[str], log: Path, env: Mapping[str, str] | None = None) -> None:
+        self.argv = list(argv)
         self.log = log
         self._out = log.open("wb")
         self._text: list[str] = []
@@ -65,9 +66,8 @@ class Launched:
             return found[0]
         if ended:
             self.proc.wait(5)
-            raise AssertionError(
-                f"{self.proc.args} exited {self.proc.returncode}:\n{self.output()}"
-            )
+            command = " ".join(self.argv)
+            raise AssertionError(f"{command} exited {self.proc.returncode}:\n{self.output()}")
         raise AssertionError(f"{pattern!r} not within {timeout} s:\n{self.output()}")
 
     def stop(self, timeout: float = 20.0) -> int:
