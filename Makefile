@@ -44,6 +44,7 @@ bench: setup
 	$(BIN)/python bench/replay.py
 	$(BIN)/python bench/cli.py
 	$(BIN)/python bench/scale.py
+	$(BIN)/python bench/hmi.py
 
 clean:
 	rm -rf $(VENV) .cache msg_defs/build build *.egg-info .pytest_cache .mypy_cache .ruff_cache

@@ -9,7 +9,8 @@ kept for the page to grey out, and actions on it refused at once.
 
 The page draws each unit's state diagram from the unit's compiled rules (:func:`config_dict`:
 the model's edges, each mode's edges and disabled states), and shows why a command or mode change
-is not available now (:mod:`.why`, recomputed on every status and alarm list: event ``why``).
+is not available now (:mod:`.why`, recomputed on every status and alarm list: event ``why``),
+and why a cell command is not (the cell status' ``why``, from the coordinator's CellStatus).
 
 Actions go to the units' (and the coordinator's) services with source
 :func:`.access.command_source` (``hmi:<user>``); each returns the service's answer as a dict
@@ -250,6 +251,8 @@ def cell_status_dict(c: Any) -> dict[str, Any]:
         "sequence_step": c.sequence_step,
         "lost_units": list(c.lost_units),
         "detail": c.detail,
+        "commands_valid": list(c.commands_valid),
+        "commands_valid_names": list(c.commands_valid_names),
         "units": [
             {
                 "name": u.name,
@@ -526,6 +529,7 @@ class Bridge:
         with self._lock:
             if topic == "cell_status":
                 data = cell_status_dict(msg)
+                data["why"] = why.cell_command_reasons(data)  # the page greys what it names
                 self._cell_status = data
                 self._emit({"topic": "cell", "unit": None, "data": data, "received": received})
                 coordinator = self._coordinator_presence

@@ -11,6 +11,10 @@ so the remote lock is judged too, and its sentence names that source). A command
 would accept but the unit does not list (the unit knows more than it publishes) gets a plain
 sentence saying so.
 
+The cell's commands (:func:`cell_command_reasons`) are judged from the coordinator's CellStatus:
+the commands it lists as valid now (``commands_valid``: its units' rules, all or nothing) and
+whether one of its sequences runs (``busy``: then only the commands that interrupt a sequence).
+
 Everything here reads what a unit published, which may be anything: an unknown state or mode is
 answered with a sentence, never an exception.
 """
@@ -21,9 +25,13 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from ..core.config import UnitConfig
-from ..core.numbers import Cmd, State, command_name, names_of
+from ..core.numbers import Cmd, Mode, State, command_name, names_of, state_name
 from ..core.reasons import Reason
-from ..core.rules import COMMANDS, Rules, locked_refusal, remote_locked, rules_of
+from ..core.rules import COMMANDS, GUARDS, Rules, locked_refusal, remote_locked, rules_of
+
+#: The reasons of the rule book's guards (a situation: the lock, a mode change, a missing EM, an
+#: alarm, an interlock), not of its state model: the page lists these apart ("not now").
+GUARD_REASONS = frozenset(g.reason for g in GUARDS)
 
 
 class StatusSituation:
@@ -98,13 +106,15 @@ def _known(rules: Rules, status: Mapping[str, Any]) -> tuple[State, int] | str:
 
 
 def command_reasons(config: UnitConfig, status: Mapping[str, Any],
-                    alarms: Mapping[str, Any] | None, source: str) -> dict[str, dict[str, str]]:  # fmt: skip
-    """``{command name: {reason, text}}`` for every command the unit does not list as valid now:
-    its reason code and the sentence the unit answers a command from ``source`` with."""
+                    alarms: Mapping[str, Any] | None, source: str) -> dict[str, dict[str, Any]]:  # fmt: skip
+    """``{command name: {reason, text, guard}}`` for every command the unit would not take from
+    ``source`` now (not listed as valid, or locked): its reason code, the sentence the unit
+    answers it with, and whether a guard refuses it (:data:`GUARD_REASONS`) rather than the state
+    model."""
     rules = rules_of(config)
     valid: Sequence[int] = [c for c in status.get("commands_valid", ()) if isinstance(c, int)]
     known = _known(rules, status)
-    out: dict[str, dict[str, str]] = {}
+    out: dict[str, dict[str, Any]] = {}
     situation = StatusSituation(config, status, alarms)
     # the unit lists what its rules allow now, whoever asks: the lock refuses those too
     locked = remote_locked(source, situation.remote_enabled)
@@ -112,7 +122,11 @@ def command_reasons(config: UnitConfig, status: Mapping[str, Any],
         if cmd in valid and not locked:
             continue
         if isinstance(known, str):
-            out[cmd.name] = {"reason": Reason.COMMAND_NOT_ALLOWED.name, "text": known}
+            out[cmd.name] = {
+                "reason": Reason.COMMAND_NOT_ALLOWED.name,
+                "text": known,
+                "guard": False,
+            }
             continue
         state, mode = known
         mode_name = rules.modes[mode].name
@@ -122,10 +136,18 @@ def command_reasons(config: UnitConfig, status: Mapping[str, Any],
             text = (
                 f"{cmd.name} is not valid now in {where} (valid now: {names_of(valid) or 'none'})"
             )
-            out[cmd.name] = {"reason": Reason.COMMAND_NOT_ALLOWED.name, "text": text}
+            out[cmd.name] = {
+                "reason": Reason.COMMAND_NOT_ALLOWED.name,
+                "text": text,
+                "guard": False,
+            }
             continue
         text = rules.refusal_text(verdict, cmd, source, where, config.name, mode_name, valid)
-        out[cmd.name] = {"reason": verdict.reason.name, "text": text}
+        out[cmd.name] = {
+            "reason": verdict.reason.name,
+            "text": text,
+            "guard": verdict.reason in GUARD_REASONS,
+        }
     return out
 
 
@@ -164,13 +186,68 @@ def mode_reasons(config: UnitConfig, status: Mapping[str, Any], source: str) -> 
     return out
 
 
+def em_reasons(config: UnitConfig, status: Mapping[str, Any], source: str) -> dict[str, str]:
+    """``{EM name: sentence}`` for every EM in the status the unit would not switch from ``source``
+    now (to inactive if it is active, else to active): the remote lock, then PRODUCTION (the
+    unit's check, :meth:`packml_ros2.core.em_inputs.EquipmentInputs.set_em_active`, in its
+    words; test/hmi/test_why.py asks the unit itself)."""
+    remote_enabled = StatusSituation(config, status, None).remote_enabled
+    out: dict[str, str] = {}
+    for em in status.get("equipment_modules", ()):
+        name = str(em.get("name", ""))
+        word = "inactive" if em.get("active") else "active"
+        locked = locked_refusal(f"switching EM {name}", source, remote_enabled, config.name)
+        if locked is not None:
+            out[name] = locked.message
+        elif status.get("mode") == Mode.PRODUCTION:
+            out[name] = (
+                f"EM {name} can be switched {word} only outside PRODUCTION (now PRODUCTION, "
+                f"{_state_text(status.get('state'))}); change to MAINTENANCE first"
+            )
+    return out
+
+
+def _state_text(state: Any) -> str:
+    return state_name(state) if isinstance(state, int) else f"state {str(state)[:20]}"
+
+
 def reasons(config: UnitConfig, status: Mapping[str, Any] | None,
             alarms: Mapping[str, Any] | None, source: str) -> dict[str, Any]:  # fmt: skip
-    """``{commands: ..., modes: ...}`` (:func:`command_reasons` for ``source``,
-    :func:`mode_reasons` from ``source``); empty without a status."""
+    """``{commands: ..., modes: ..., ems: ...}`` (:func:`command_reasons` for ``source``,
+    :func:`mode_reasons` and :func:`em_reasons` from ``source``); empty without a status."""
     if status is None:
-        return {"commands": {}, "modes": {}}
+        return {"commands": {}, "modes": {}, "ems": {}}
     return {
         "commands": command_reasons(config, status, alarms, source),
         "modes": mode_reasons(config, status, source),
+        "ems": em_reasons(config, status, source),
     }
+
+
+#: The cell commands the coordinator takes while one of its sequences runs: each interrupts it
+#: (ABORT goes to every unit beside it, STOP cancels it and then runs). Any other command is
+#: refused until the sequence has ended (the coordinator answers "busy").
+INTERRUPTS_A_SEQUENCE: tuple[Cmd, ...] = (Cmd.STOP, Cmd.ABORT)
+
+
+def cell_command_reasons(cell_status: Mapping[str, Any] | None) -> dict[str, str]:
+    """``{command name: sentence}`` for every cell command the coordinator would not take now,
+    judged from its status (a dict of CellStatus): a sequence running, or not in the commands it
+    lists as valid. Empty without a status (the page says that itself)."""
+    if cell_status is None:
+        return {}
+    listed = cell_status.get("commands_valid", ())
+    valid = [c for c in listed if isinstance(c, int) and not isinstance(c, bool)]
+    busy = bool(cell_status.get("busy"))
+    step = str(cell_status.get("sequence_step") or "…")
+    only = " and ".join(c.name for c in INTERRUPTS_A_SEQUENCE)
+    running = f"a cell sequence is running ({step}); only {only} interrupt it"
+    out: dict[str, str] = {}
+    for cmd in COMMANDS:
+        if busy and cmd not in INTERRUPTS_A_SEQUENCE:
+            out[cmd.name] = f"{cmd.name} refused: {running}"
+        elif cmd not in valid:
+            out[cmd.name] = (
+                f"{cmd.name} is not valid for the cell now (valid now: {names_of(valid) or 'none'})"
+            )
+    return out

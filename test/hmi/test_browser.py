@@ -13,10 +13,10 @@ shown STOPPED while a unit executes; the answer box not keeping an old answer.
 Screenshots of the main screens go to $PACKML_SCREENSHOTS_DIR (`make screenshots` writes them to
 docs/screenshots/), else to a temporary directory.
 
-Latency: the test subscribes to the unit's status itself and notes when each status arrives; the
-page notes when it has applied each status to the DOM (``window.__hmi.renders``, wall clock of
-the same machine). Every status of the Reset/Start sequence, or a newer one, must be on screen
-within 200 ms."""
+Every status of the Reset/Start sequence the test itself receives, or a newer one, must be
+applied to the page (``window.__hmi.renders``, by the unit's stamps). No test here asserts a
+duration measured on the wall clock (how fast is for benchmarks), and every wait is on a condition:
+a line of the launcher's output, an event of the HMI's stream, a state of the page."""
 
 from __future__ import annotations
 
@@ -26,7 +26,6 @@ import json
 import os
 import re
 import signal
-import subprocess
 import sys
 import time
 from collections.abc import Iterator
@@ -46,6 +45,7 @@ from packml_ros2.core.numbers import ACTING, State
 from packml_ros2.core.rules import rules_of
 from packml_ros2.core.secrets import hash_password
 from packml_ros2.testing.harness import Collector, RosHarness
+from packml_ros2.testing.launched import Launched
 from test.hmi.readable import contrast_failures, fit_failures
 
 pytestmark = [pytest.mark.browser, pytest.mark.ros, pytest.mark.slow]
@@ -64,7 +64,6 @@ USERS = {
     "carla": ("engineer", "carla-pass-333"),
 }
 SPEEDUP = 0.25  # the demo's simulated durations, shortened
-LATENCY_LIMIT_MS = 200.0
 LEASE = 3.0  # coordinator.unit_lease of the demo cell (its default)
 BIG = {"width": 1600, "height": 1000}
 PANEL = {"width": 1024, "height": 768}
@@ -125,45 +124,10 @@ def token_hmi_file(cell_file: Path) -> Path:
     return path
 
 
-class Launched:
-    """`packml launch <cell> --hmi` (or ``argv``) in the background; output collected in a file."""
-
-    def __init__(self, cell_file: Path, log: Path, argv: list[str] | None = None) -> None:
-        self.log = log
-        self._out = log.open("wb")
-        self.proc = subprocess.Popen(
-            argv
-            or [sys.executable, "-m", "packml_ros2.cli.main", "launch", str(cell_file), "--hmi"],
-            stdout=self._out,
-            stderr=subprocess.STDOUT,
-            env=dict(os.environ, PYTHONUNBUFFERED="1"),
-        )
-
-    def output(self) -> str:
-        return self.log.read_text(errors="replace")
-
-    def wait_for(self, pattern: str, timeout: float = 60.0) -> re.Match[str]:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            found = re.search(pattern, self.output())
-            if found:
-                return found
-            if self.proc.poll() is not None:
-                raise AssertionError(
-                    f"packml launch exited {self.proc.returncode}:\n{self.output()}"
-                )
-            time.sleep(0.05)
-        raise AssertionError(f"{pattern!r} not within {timeout} s:\n{self.output()}")
-
-    def stop(self) -> int:
-        self.proc.send_signal(signal.SIGINT)
-        try:
-            return self.proc.wait(20)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            return self.proc.wait()
-        finally:
-            self._out.close()
+def launched_cell(cell_file: Path, log: Path, argv: list[str] | None = None) -> Launched:
+    """`packml launch <cell> --hmi` (or ``argv``) in the background, its output waited on."""
+    cli = [sys.executable, "-m", "packml_ros2.cli.main"]
+    return Launched(argv or [*cli, "launch", str(cell_file), "--hmi"], log)
 
 
 class Env:
@@ -181,7 +145,7 @@ class Env:
         self.status: dict[str, Collector[Status]] = {
             unit: ros.subscribe(Status, f"/{cell}/{unit}/status", qos.STATUS) for unit in UNITS
         }
-        self.receipts: list[tuple[str, int, float, float]] = []  # unit, sequence, stamp ms, got ms
+        self.receipts: list[tuple[str, int, float]] = []  # unit, sequence, stamp ms
         for unit, collector in self.status.items():
             ros.node.create_subscription(
                 Status, f"/{cell}/{unit}/status", self._receipt(unit), qos.STATUS
@@ -190,9 +154,8 @@ class Env:
 
     def _receipt(self, unit: str) -> Any:
         def note(msg: Status) -> None:
-            got = time.time() * 1000.0
             stamp = msg.stamp.sec * 1000.0 + msg.stamp.nanosec / 1e6
-            self.receipts.append((unit, msg.sequence, stamp, got))
+            self.receipts.append((unit, msg.sequence, stamp))
 
         return note
 
@@ -251,7 +214,7 @@ def env(tmp_path_factory: pytest.TempPathFactory, ros_domain: int) -> Iterator[E
     shots = Path(os.environ.get("PACKML_SCREENSHOTS_DIR") or tmp_path_factory.mktemp("screenshots"))
     shots.mkdir(parents=True, exist_ok=True)
     cell_file, cell = demo_like_cell(tmp)
-    launched = Launched(cell_file, tmp / "launch.log")
+    launched = launched_cell(cell_file, tmp / "launch.log")
     ros = RosHarness(ros_domain)
     playwright = sync_api.sync_playwright().start()
     url = ""
@@ -283,32 +246,57 @@ def env(tmp_path_factory: pytest.TempPathFactory, ros_domain: int) -> Iterator[E
                 httpx.get(url, timeout=2)
 
 
+def stream_events(response: Any) -> Iterator[tuple[str, dict[str, Any]]]:
+    """(event name, data) of a server-sent-events response, as they arrive (pings included)."""
+    kind, data = "", ""
+    for line in response.iter_lines():
+        if line.startswith("event:"):
+            kind = line.split(":", 1)[1].strip()
+        elif line.startswith("data:"):
+            data += line.split(":", 1)[1].strip()
+        elif not line and kind:
+            yield kind, json.loads(data) if data else {}
+            kind, data = "", ""
+
+
 def hmi_sees_every_unit(url: str, timeout: float = 20.0) -> None:
     """Wait until the HMI server has every unit's status and the coordinator's, each present (its
-    bridge discovers the nodes on its own)."""
+    bridge discovers the nodes on its own): its event stream, the snapshot then each change (the
+    server pings every 5 s, so the deadline is looked at even when nothing changes)."""
     deadline = time.monotonic() + timeout
-    while True:
-        snap = httpx.get(f"{url}api/snapshot", timeout=5).json()
-        missing = [
-            name for name, u in snap["units"].items() if u["status"] is None or not u["online"]
-        ]
-        if snap["cell_status"] is None or not (snap["coordinator"] or {}).get("present"):
-            missing.append("coordinator")
-        if not missing:
-            return
-        assert time.monotonic() < deadline, f"the HMI has no status of {missing}"
-        time.sleep(0.05)
+    units: dict[str, dict[str, Any]] = {}
+    cell: dict[str, Any] = {}
+    with httpx.stream("GET", f"{url}api/events", timeout=timeout) as response:
+        for kind, data in stream_events(response):
+            if kind == "snapshot":
+                units = {
+                    name: {"status": u["status"], "online": u["online"]}
+                    for name, u in data["units"].items()
+                }
+                cell = {"cell": data["cell_status"], "coordinator": data["coordinator"]}
+            elif kind == "update" and data["topic"] == "status":
+                units[data["unit"]]["status"] = data["data"]
+            elif kind == "update" and data["topic"] == "online":
+                units[data["unit"]]["online"] = data["data"]["present"] is True
+            elif kind == "update" and data["topic"] in ("cell", "coordinator"):
+                cell[data["topic"]] = data["data"]
+            missing = [n for n, u in units.items() if u["status"] is None or not u["online"]]
+            if cell.get("cell") is None or not (cell.get("coordinator") or {}).get("present"):
+                missing.append("coordinator")
+            if units and not missing:
+                return
+            assert time.monotonic() < deadline, f"the HMI has no status of {missing}"
 
 
-def background(row: Any) -> str:
-    """The row's background colour (the list is redrawn on changes: read it from a live row)."""
-    deadline = time.monotonic() + 5
-    while True:
-        colour = row.evaluate(
-            "r => r.isConnected ? getComputedStyle(r.cells[2]).backgroundColor : ''"
-        )
-        if colour or time.monotonic() > deadline:
-            return colour
+def background(page: Any, row: str) -> str:
+    """The background colour of the alarm row ``row`` (a selector) once it is on the page (the
+    list is redrawn on changes: read in the page, from the row there at that moment)."""
+    colour = page.wait_for_function(
+        "sel => { const r = document.querySelector(sel); "
+        "return r && getComputedStyle(r.cells[2]).backgroundColor; }",
+        arg=row,
+    )
+    return str(colour.json_value())
 
 
 def no_problems(page: Any, allow: str = "") -> None:
@@ -375,7 +363,10 @@ def in_view(page: Any, selector: str, size: dict[str, int]) -> None:
 def edges_shown(page: Any) -> set[tuple[str, str | None, str]]:
     return {
         tuple(e)
-        for e in page.evaluate("PackmlDiagram.edgesShown(document.getElementById('diagram'))")
+        for e in page.evaluate(
+            "async () => (await import('/static/diagram.js'))"
+            ".edgesShown(document.getElementById('diagram'))"
+        )
     }  # type: ignore[misc]
 
 
@@ -405,7 +396,7 @@ def possible_now(env: Env, unit: str, state: str) -> set[tuple[str, str | None, 
 
 
 # -- the tests -------------------------------------------------------------------------------------------
-def test_reset_and_start_by_buttons_the_diagram_and_banner_follow_within_200_ms(env: Env) -> None:
+def test_reset_and_start_by_buttons_the_diagram_and_banner_follow_every_status(env: Env) -> None:
     page = env.page(hash_="unit/robot_cell")
     assert page.locator("#diagram .st").count() == 17  # every PackML state is drawn
     expect(page.locator("#st-STOPPED")).to_have_class(CURRENT)
@@ -431,36 +422,24 @@ def test_reset_and_start_by_buttons_the_diagram_and_banner_follow_within_200_ms(
     expect(page.locator("#u-cmds button[data-cmd=START]")).to_be_disabled()
     env.status["robot_cell"].wait_for(lambda m: m.state_current_name == "EXECUTE", 10)
 
-    # status (received by this test) -> DOM updated by the page, for every status on the way. Status
+    # every status on the way (received by this test) is applied to the page, or a newer one. Status
     # keeps only its newest message (latched, depth 1): one superseded a few ms later may never
-    # reach the page, and need not. What the operator must see within the limit is that status
-    # or a newer one.
+    # reach the page, and need not. (How fast: a benchmark's question, not a test's.)
     renders = page.evaluate("window.__hmi.renders")
     seen = [r for r in env.receipts[first:] if r[0] == "robot_cell"]
-    latencies, parts = [], []
-    for unit, seq, stamp, got in seen:
-        match = [r for r in renders if r["unit"] == unit and r["stamp"] > stamp - 0.01]
-        assert match, f"status {seq} ({stamp}) nor a newer one rendered: {renders[-12:]}"
-        shown = min(match, key=lambda r: r["rendered"])
-        latencies.append(shown["rendered"] - got)
-        parts.append(
-            (
-                round(got - stamp, 1),
-                round(shown["received"] - got, 1),
-                round(shown["arrived"] - shown["received"], 1),
-                round(shown["rendered"] - shown["arrived"], 1),
-            )
-        )
+    for unit, seq, stamp in seen:
+        newer = [r for r in renders if r["unit"] == unit and r["stamp"] > stamp - 0.01]
+        assert newer, f"status {seq} ({stamp}) nor a newer one rendered: {renders[-12:]}"
     states = [
         r["state"] for r in renders if r["unit"] == "robot_cell" and r["stamp"] > seen[0][2] - 0.01
     ]
-    print("\n(publish->test, test->bridge, bridge->page, page->DOM) ms:", parts)
     assert {"RESETTING", "IDLE", "STARTING", "EXECUTE"} <= set(states), states
-    worst = max(latencies)
-    print(f"\nstatus -> DOM latency over {len(latencies)} statuses: "
-          f"max {worst:.1f} ms, mean {sum(latencies) / len(latencies):.1f} ms")  # fmt: skip
-    assert worst < LATENCY_LIMIT_MS, f"{worst:.1f} ms: {latencies}"
 
+    # where Execute goes when the run is finished: the unit's rules say (its edges), not the page
+    expect(page.locator("#u-progress")).to_have_text(
+        "EXECUTE: producing · leaves by a command, or to COMPLETING when the run is finished "
+        "(state complete)"
+    )
     # the diagram: the acting state in progress, transitions valid now, no disabled state in PRODUCTION
     assert "acting" in page.get_attribute("#st-EXECUTE", "class")
     assert page.locator("#diagram .st.disabled").count() == 0
@@ -631,24 +610,25 @@ def test_alarms_warnings_and_disabled_commands_say_why(env: Env) -> None:
     panel.close()
 
     page.click("#nav a[data-screen=alarms]")
-    row = page.locator("[data-alarm-unit=robot_cell] tr[data-alarm='201/0']")
+    row_at = "[data-alarm-unit=robot_cell] tr[data-alarm='201/0']"
+    row = page.locator(row_at)
     expect(row).to_have_attribute("data-operator-state", "0")  # active, unacknowledged: red
     expect(row).to_contain_text("Gripper vacuum lost")
     expect(page.locator("[data-alarm-unit=robot_cell]")).to_contain_text("Vision lighting degraded")
     expect(banner).to_contain_text("robot_cell: ALARM 201/0")  # every screen has the banner
-    red = background(row)
+    red = background(page, row_at)
     env.shot(page, "hmi-alarms")
 
     env.call_unit("robot_cell", SetAlarm, "set_alarm", id=201, active=False, category=-1,
                   source="operator:test")  # fmt: skip
     expect(row).to_have_attribute("data-operator-state", "1")  # inactive, unacknowledged: amber
-    amber = background(row)
+    amber = background(page, row_at)
     # cleared but not acknowledged: the banner says so (it said "No active alarm")
     expect(banner).to_have_class(re.compile(r"\bunack\b"))
     expect(banner).to_contain_text("not acknowledged")
     row.locator("button", has_text="Ack").click()
     expect(row).to_have_attribute("data-operator-state", "2")  # acknowledged
-    acked = background(row)
+    acked = background(page, row_at)
     assert len({red, amber, acked}) == 3, (red, amber, acked)
     expect(row.locator("button", has_text="Ack")).to_be_disabled()
     expect(row).not_to_contain_text("–")  # acknowledged at a time now shown
@@ -683,6 +663,13 @@ def test_the_cell_is_not_shown_stopped_while_a_unit_executes(
     expect(page.locator("#cell-parts")).to_contain_text("STOPPED: robot_cell")
     expect(page.locator("#cell-parts")).to_contain_text("EXECUTE: case_packer")
     expect(page.locator("#ov-cell")).not_to_contain_text("STOPPED 2")
+    # the cell's commands are greyed as the server says (the cell status' why, from the
+    # coordinator's status), not by rules of the page's own: RESET is not valid for the cell (all
+    # or nothing: case_packer executes), STOP is (some unit takes it)
+    reasons = httpx.get(f"{env.url}api/snapshot", timeout=5).json()["cell_status"]["why"]
+    assert "RESET" in reasons and "STOP" not in reasons and "ABORT" not in reasons, reasons
+    for b in page.locator("#cell-cmds button").all():
+        expect(b).to_have_attribute("data-why", reasons.get(b.inner_text(), ""))
     if size is BIG:
         env.shot(page, "hmi-overview-mixed", full_page=False)
     no_problems(page)
@@ -724,8 +711,13 @@ def test_user_levels_decide_who_may_do_what(env: Env) -> None:
 
     # ben, maintenance: a mode change (recorded as hmi:ben); MAINTENANCE greys the Suspend states
     log_in(page, "ben")
+    # switching an EM: in PRODUCTION the unit would refuse, and the button says so in its words
+    em_switch = page.locator("#u-ems button").first
+    reason = why(em_switch)
+    assert "can be switched inactive only outside PRODUCTION (now PRODUCTION, STOPPED)" in reason
     page.click("#u-modes button[data-mode='2']")
     expect(page.locator("#banner-mode")).to_have_text("MAINTENANCE (2)", timeout=10_000)
+    expect(em_switch).to_have_attribute("aria-disabled", "false")
     disabled = {s.name for s in load_cell(env.cell_file).units["robot_cell"].modes[2].disabled}
     expect(page.locator("#diagram .st.disabled")).to_have_count(len(disabled))
     for state in disabled:
@@ -784,7 +776,7 @@ def test_abort_asks_first_and_the_answer_box_forgets_old_answers(env: Env) -> No
 
 def test_read_only_without_the_token(env: Env) -> None:
     # the same cell served by a second HMI with one shared access token instead of users
-    other = Launched(env.cell_file, env.cell_file.parent / "hmi-token.log",
+    other = launched_cell(env.cell_file, env.cell_file.parent / "hmi-token.log",
                      [sys.executable, "-m", "packml_ros2.cli.main", "hmi",
                       str(token_hmi_file(env.cell_file))])  # fmt: skip
     try:
@@ -906,18 +898,16 @@ def test_a_dead_cell_is_shown_dead_on_every_screen_within_its_lease(env: Env) ->
         expect(page.locator("#nav a.lost")).to_have_count(0)
     expect(pages["overview"].locator("#coordinator-state")).to_have_text("Coordinator running")
     # the whole cell stops answering (a frozen process: like a cable pulled or a host hung)
-    frozen = time.monotonic()
     os.kill(env.launched.proc.pid, signal.SIGSTOP)
     try:
         unit = pages["unit"]
         expect(unit.locator("#banner-alarm")).to_have_class(
             re.compile(r"\blost\b"), timeout=(LEASE + 3) * 1000
         )
-        took = time.monotonic() - frozen
-        print(
-            f"\nthe page showed the lost unit {took:.2f} s after the cell froze (lease {LEASE:g} s)"
+        # lost by its lease (DDS liveliness, the unit's own), not by a timer of the page's
+        expect(unit.locator("#banner-alarm")).to_contain_text(
+            f"no sign of life for {LEASE:g} s (unit_lease)"
         )
-        assert took < LEASE + 1.5, took
         expect(unit.locator("#banner-alarm")).to_contain_text("COMMUNICATION LOST since")
         expect(unit.locator("#u-lost")).to_be_visible()
         expect(unit.locator("#screen-unit")).to_have_class(re.compile(r"\bstale\b"))

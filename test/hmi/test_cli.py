@@ -8,10 +8,8 @@ from __future__ import annotations
 
 import os
 import re
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +21,7 @@ from packml_ros2.core import load_cell
 from packml_ros2.core.secrets import check_password
 from packml_ros2.hmi.access import LEVELS, Access, Principal, Refusal
 from packml_ros2.hmi.settings import hmi_settings
+from packml_ros2.testing.launched import Launched
 from test.workspace.tools import README, console_commands, shell, shown_in
 
 pytestmark = pytest.mark.ros
@@ -39,40 +38,28 @@ def cell_file(tmp_path: Path, hmi: dict[str, object]) -> Path:
 
 def test_packml_hmi_serves_locally_and_stops_on_ctrl_c(tmp_path: Path) -> None:
     path = cell_file(tmp_path, {"port": 0, "title": "Filling line"})
-    log = tmp_path / "hmi.log"
-    with log.open("wb") as out:
-        proc = subprocess.Popen(
-            [*PACKML, "hmi", str(path)],
-            stdout=out,
-            stderr=subprocess.STDOUT,
-            env=dict(os.environ, PYTHONUNBUFFERED="1", PACKML_HMI_TOKEN="from-the-env"),
-        )
-        try:
-            deadline = time.monotonic() + 30
-            while not (found := re.search(r"(http://127\.0\.0\.1:\d+/)", log.read_text())):
-                assert proc.poll() is None, log.read_text()
-                assert time.monotonic() < deadline, log.read_text()
-                time.sleep(0.05)
-            url = found.group(1)
-            assert "an access token is required" in log.read_text()
-            config = httpx.get(f"{url}api/config", timeout=10).json()
-            assert config["title"] == "Filling line" and config["token_required"] is True
-            page = httpx.get(url, timeout=10)
-            assert page.status_code == 200 and "/static/app.js" in page.text
-            assert "http" not in re.sub(r"http://www\.w3\.org/2000/svg", "", page.text)  # no CDN
-            refused = httpx.post(f"{url}api/units/filler/command", json={"command": 1}, timeout=10)
-            assert refused.status_code == 403
-            # the event stream is open while Ctrl-C arrives: the server still stops at once
-            with httpx.stream("GET", f"{url}api/events", timeout=10) as events:
-                assert next(events.iter_lines()).startswith("retry:")
-                started = time.monotonic()
-                proc.send_signal(signal.SIGINT)
-                assert proc.wait(15) == 0, log.read_text()
-            assert time.monotonic() - started < 5
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-    assert "Traceback" not in log.read_text(), log.read_text()
+    hmi = Launched(
+        [*PACKML, "hmi", str(path)], tmp_path / "hmi.log", {"PACKML_HMI_TOKEN": "from-the-env"}
+    )
+    try:
+        url = hmi.wait_for(r"(http://127\.0\.0\.1:\d+/)", 30).group(1)
+        assert "an access token is required" in hmi.output()
+        config = httpx.get(f"{url}api/config", timeout=10).json()
+        assert config["title"] == "Filling line" and config["token_required"] is True
+        page = httpx.get(url, timeout=10)
+        assert page.status_code == 200 and "/static/app.js" in page.text
+        assert "http" not in re.sub(r"http://www\.w3\.org/2000/svg", "", page.text)  # no CDN
+        refused = httpx.post(f"{url}api/units/filler/command", json={"command": 1}, timeout=10)
+        assert refused.status_code == 403
+        # the event stream is open while Ctrl-C arrives: the server still stops, and at once (it
+        # ends the open streams itself: uvicorn would wait for them timeout_graceful_shutdown)
+        with httpx.stream("GET", f"{url}api/events", timeout=10) as events:
+            assert next(events.iter_lines()).startswith("retry:")
+            assert hmi.stop(timeout=5) == 0, hmi.output()
+    finally:
+        if hmi.proc.poll() is None:
+            hmi.proc.kill()
+    assert "Traceback" not in hmi.output(), hmi.output()
 
 
 def test_a_bad_hmi_block_is_refused_with_its_key_path(tmp_path: Path) -> None:

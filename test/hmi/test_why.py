@@ -15,6 +15,7 @@ import pytest
 
 from packml_ros2 import convert
 from packml_ros2.core import Cmd, Reason, State, Unit
+from packml_ros2.core.line.sequence import Outcome
 from packml_ros2.hmi import why
 from packml_ros2.hmi.access import Principal, command_source
 from packml_ros2.hmi.bridge import alarm_list_dict, status_dict
@@ -57,7 +58,7 @@ def to_execute(unit: Unit) -> None:
     assert unit.state is State.EXECUTE
 
 
-def check_commands(unit: Unit, interlock: bool = False) -> dict[str, dict[str, str]]:
+def check_commands(unit: Unit, interlock: bool = False) -> dict[str, dict[str, Any]]:
     """Every command the HMI shows unavailable is refused by the unit with that reason (and
     sentence); every other one is valid. Returns what the HMI shows."""
     status, alarms = seen_by_the_hmi(unit)
@@ -67,6 +68,9 @@ def check_commands(unit: Unit, interlock: bool = False) -> dict[str, dict[str, s
         answer = unit.command(Cmd[name], ANNA)
         assert not answer.accepted, (name, answer)
         assert reason["reason"] == answer.reason.name, (name, reason, answer)
+        # a guard's (listed apart on the page), or the state model's own refusal
+        model = answer.reason in (Reason.COMMAND_NOT_ALLOWED, Reason.STATE_DISABLED)
+        assert reason["guard"] is not model, (name, reason, answer)
         if not (interlock and answer.reason is Reason.INTERLOCK_ACTIVE):
             assert reason["text"] == answer.message, (name, reason, answer)
     return shown
@@ -78,6 +82,7 @@ def test_not_allowed_by_the_state_model() -> None:
     assert shown["START"] == {
         "reason": "COMMAND_NOT_ALLOWED",
         "text": "START not allowed in STOPPED in PRODUCTION mode (valid now: RESET, ABORT)",
+        "guard": False,
     }
     to_execute(unit)
     check_commands(unit)
@@ -161,6 +166,39 @@ def test_mode_buttons_follow_the_units_mode_rules() -> None:
         assert modes[str(number)] == answer.message
 
 
+def check_ems(unit: Unit) -> dict[str, str]:
+    """Every EM the HMI shows as not switchable now is refused by the unit with that sentence
+    (switched the way its button would: inactive if active); every other one is switched (then
+    switched back). Returns what the HMI shows."""
+    status, _ = seen_by_the_hmi(unit)
+    shown = why.em_reasons(unit.config, status, ANNA)
+    for em in status["equipment_modules"]:
+        name, active = em["name"], em["active"]
+        answer = unit.set_em_active(name, not active, ANNA)
+        if name in shown:
+            assert not answer.accepted and answer.message == shown[name], (name, shown, answer)
+        else:
+            assert answer.accepted, (name, answer)
+            assert unit.set_em_active(name, active, ANNA).accepted
+    return shown
+
+
+def test_em_switches_follow_the_units_rules() -> None:
+    """Issue 28: the page said itself that EMs are switched outside PRODUCTION only (app.js); the
+    bridge sends why, in the unit's words (the ``ems`` of a unit's reasons)."""
+    unit, _ = start()
+    assert "only outside PRODUCTION (now PRODUCTION, STOPPED)" in check_ems(unit)["em1"]
+    assert unit.set_mode(2, ANNA).accepted  # MAINTENANCE, once em1 has reported
+    sc(unit)
+    assert unit.mode == 2 and check_ems(unit) == {}
+    locked, _ = start({**UNIT_DOC, "remote_commands_enabled": False})
+    assert "remote commands are disabled" in check_ems(locked)["em1"]
+    assert unit.set_mode(1, ANNA).accepted
+    sc(unit)
+    to_execute(unit)
+    assert "(now PRODUCTION, EXECUTE)" in check_ems(unit)["em1"]
+
+
 @pytest.mark.parametrize(
     "status",
     [
@@ -182,10 +220,10 @@ def test_a_status_the_configuration_does_not_know_is_answered_not_raised(
 
 def test_the_shared_reasons_are_each_users_own_once_the_page_names_its_user() -> None:
     """Issue 15: every browser gets the same reasons, judged for the viewer (hmi:<user> with
-    logins); the page puts its user's name for the viewer's (app.js ownReasons). Sound because the
-    rule book judges every hmi: user alike: for each user, in each situation (locked, an alarm,
-    a mode change, running), the viewer's reasons so named are exactly that user's, and the
-    levels are the page's own (CFG.unit_action_level against its user's level)."""
+    logins); the page puts its user's name for the viewer's (app/access.js ownReasons). Sound
+    because the rule book judges every hmi: user alike: for each user, in each situation (locked,
+    an alarm, a mode change, running), the viewer's reasons so named are exactly that user's, and
+    the levels are the page's own (CFG.unit_action_level against its user's level)."""
     from packml_ros2.core import parse_cell
     from packml_ros2.hmi.access import Access
     from packml_ros2.hmi.bridge import config_dict
@@ -197,9 +235,10 @@ def test_the_shared_reasons_are_each_users_own_once_the_page_names_its_user() ->
     assert viewer == "hmi:<user>"
 
     def named(reasons: dict[str, Any], user: str) -> dict[str, Any]:
-        own = lambda t: t.replace(viewer, f"hmi:{user}")  # noqa: E731 (what app.js does)
+        own = lambda t: t.replace(viewer, f"hmi:{user}")  # noqa: E731 (what app/access.js does)
         return {"commands": {c: {**v, "text": own(v["text"])} for c, v in reasons["commands"].items()},
-                "modes": {m: own(t) for m, t in reasons["modes"].items()}}  # fmt: skip
+                "modes": {m: own(t) for m, t in reasons["modes"].items()},
+                "ems": {e: own(t) for e, t in reasons["ems"].items()}}  # fmt: skip
 
     situations = []
     locked, _ = start({**UNIT_DOC, "remote_commands_enabled": False})
@@ -223,3 +262,84 @@ def test_the_shared_reasons_are_each_users_own_once_the_page_names_its_user() ->
             assert named(shared, user) == own, (user, unit.state)
             names_seen += str(own).count(f"hmi:{user}")
     assert names_seen > 0  # the locked unit's sentences name the user
+
+
+# -- the cell's commands -----------------------------------------------------------------------
+def _line_at(seconds: float, *commands: tuple[float, Cmd]) -> Any:
+    """The coordinator's line core (test/core/line_sim.py: real engines, simulated EMs, exact
+    times) after ``commands`` (at, cell command), at ``seconds``."""
+    from test.core.line_sim import SimEm, SimLine
+    from test.core.test_line_scenarios import D, cell_doc
+
+    sim = SimLine(
+        cell_doc(),
+        [SimEm("filler", "infeed", dict(D), 1.0), SimEm("packer", "loader", dict(D), 2.0)],
+    )
+    for at, cmd in commands:
+        sim.at(at, lambda c=cmd: sim.cell_command(c))
+    sim.run_until(seconds)
+    return sim
+
+
+def _seen_by_the_hmi(sim: Any) -> dict[str, str]:
+    """The cell's reasons from its status as the coordinator publishes it (CellStatus: busy,
+    sequence_step, commands_valid: packml_ros2.coordinator_node)."""
+    v = sim.line.view()
+    status = {
+        "busy": v.busy,
+        "sequence_step": v.sequence_step,
+        "commands_valid": list(v.commands_valid),
+    }
+    return why.cell_command_reasons(status)
+
+
+@pytest.mark.parametrize(
+    ("situation", "at", "commands"),
+    [
+        ("stopped", 0.5, ()),
+        ("resetting (a sequence runs)", 1.5, ((1.0, Cmd.RESET),)),
+        ("idle", 3.5, ((1.0, Cmd.RESET),)),
+        ("starting (a sequence runs)", 4.5, ((1.0, Cmd.RESET), (4.0, Cmd.START))),
+        ("executing", 8.0, ((1.0, Cmd.RESET), (4.0, Cmd.START))),
+    ],
+)
+def test_the_cell_commands_the_hmi_greys_are_the_ones_the_coordinator_refuses(
+    situation: str, at: float, commands: tuple[tuple[float, Cmd], ...]
+) -> None:
+    """Issue 28: the page no longer decides the cell's commands itself ("only STOP and ABORT"
+    while a sequence ran was written in app.js): the bridge judges them from the coordinator's
+    status. For each command, in each situation, a fresh line is asked: a command not named is
+    begun (STOP while a sequence runs after the sequence is cancelled, as the coordinator node
+    does: coordinator_node.cell_command), one named for the sequence is refused. (One named as not
+    valid for the cell, e.g. STOP with every unit stopped, is greyed as the cell's status lists
+    it; the coordinator would begin it and find nothing to do.)"""
+    reasons = _seen_by_the_hmi(_line_at(at, *commands))
+    busy = _line_at(at, *commands).line.view().busy
+    assert busy is ("sequence" in situation), situation
+    for cmd in (c for c in Cmd if c):
+        sim = _line_at(at, *commands)
+        if cmd is Cmd.STOP and busy:
+            sim.line.runs.cancel_all("STOP")
+            sim._poll_runs()  # the cancelled sequence ends
+        begun = sim.line.begin_command(cmd, "hmi:anna")
+        refused = isinstance(begun, Outcome) and not begun.accepted
+        if cmd.name not in reasons:
+            assert not refused, (situation, cmd.name, begun)
+        elif busy:
+            assert refused and "busy" in begun.message, (situation, cmd.name, begun)
+            assert reasons[cmd.name].startswith(f"{cmd.name} refused: a cell sequence is running")
+            assert "only STOP and ABORT interrupt it" in reasons[cmd.name]
+    if busy:
+        allowed = sorted(c.name for c in Cmd if c and c.name not in reasons)
+        assert allowed == ["ABORT", "STOP"], allowed
+
+
+def test_the_cell_reasons_of_a_status_that_says_little_or_nonsense() -> None:
+    assert why.cell_command_reasons(None) == {}
+    nothing = why.cell_command_reasons({})
+    assert set(nothing) == {c.name for c in Cmd if c}
+    assert all("valid now: none" in text for text in nothing.values())
+    odd = why.cell_command_reasons(
+        {"commands_valid": [True, "2", 999, int(Cmd.START)], "busy": 1, "sequence_step": None}
+    )
+    assert "START" in odd and "(…)" in odd["START"] and "ABORT" in odd and "STOP" in odd

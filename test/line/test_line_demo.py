@@ -27,7 +27,8 @@ from packml_interfaces.msg import LineEpisode, Status
 
 from packml_ros2 import qos
 from packml_ros2.testing.harness import RosHarness
-from test.hmi.test_browser import CHROMIUM_ARGS, Launched, sync_api
+from packml_ros2.testing.launched import Launched
+from test.hmi.test_browser import CHROMIUM_ARGS, sync_api
 
 pytestmark = [pytest.mark.browser, pytest.mark.ros, pytest.mark.slow]
 
@@ -71,16 +72,9 @@ def demo_cell(tmp: Path, opcua_port: int) -> Path:
     return path
 
 
-class LaunchedWithOpcua(Launched):
-    """``packml launch <cell> --hmi --opcua`` in the background."""
-
-    def __init__(self, cell_file: Path, log: Path) -> None:
-        self.log = log
-        self._out = log.open("wb")
-        self.proc = subprocess.Popen(
-            [*PACKML, "launch", str(cell_file), "--hmi", "--opcua"],
-            stdout=self._out, stderr=subprocess.STDOUT, env=dict(os.environ, PYTHONUNBUFFERED="1"),
-        )  # fmt: skip
+def launched_with_opcua(cell_file: Path, log: Path) -> Launched:
+    """``packml launch <cell> --hmi --opcua`` in the background, its output waited on."""
+    return Launched([*PACKML, "launch", str(cell_file), "--hmi", "--opcua"], log)
 
 
 def run_sh(command: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
@@ -100,7 +94,7 @@ def test_jam_then_full_packer_on_the_demo_cell(tmp_path: Path, ros_domain: int) 
 
     port = free_port()
     cell_file = demo_cell(tmp_path, port)
-    launched = LaunchedWithOpcua(cell_file, tmp_path / "launch.log")
+    launched = launched_with_opcua(cell_file, tmp_path / "launch.log")
     ros = RosHarness(ros_domain)
     recorder: subprocess.Popen[bytes] | None = None
     client = NodeClient(tmp_path / "node_client.log", tmp_path / "pki")

@@ -1,28 +1,19 @@
 // The line performance page: Pareto of downtime by root cause, the loss waterfall of a shift,
 // the OEE trend (Chart.js, served from /static/vendor) and the episodes; from /api/line every 5 s.
-"use strict";
+// An ES module like the other screens' (app/): their escaping and 24-hour times, from app/dom.js.
+import { esc, fmtTime as clock } from "./app/dom.js";
 
 const $ = (sel) => document.querySelector(sel);
 const REFRESH_MS = 5000;
 const charts = {};
 let shiftChoice = "current";
 
-function esc(text) {
-  return String(text ?? "").replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[c]);
-}
 function pct(x) { return x === null || x === undefined ? "–" : `${(100 * x).toFixed(1)}%`; }
 function dur(s) {
   const sign = s < 0 ? "-" : "";
   s = Math.abs(s);
   const h = Math.floor(s / 3600), m = Math.floor((s % 3600) / 60), sec = s % 60;
   return `${sign}${h}:${String(m).padStart(2, "0")}:${sec.toFixed(1).padStart(4, "0")}`;
-}
-// times as on the other screens: 24-hour, the date only when it is not today
-function clock(t) {
-  if (!t) return "–";
-  const d = new Date(t * 1000);
-  const time = d.toLocaleTimeString([], { hour12: false });
-  return d.toDateString() === new Date().toDateString() ? time : `${d.toLocaleDateString()} ${time}`;
 }
 
 // the header of the other screens: the cell's title, Overview, a tab per unit, Alarms, Line
