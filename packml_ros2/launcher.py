@@ -26,7 +26,7 @@ from packml_interfaces.srv import Command
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
-from . import qos, run
+from . import dds_profile, qos, run
 from .core import CellConfig, ConfigError, load_cell
 from .em_launch import EmRun, groups, host_arguments, program_env, resolve
 from .sim_em import SimConfig, parse_sim
@@ -61,6 +61,7 @@ def plan(file: str | os.PathLike[str], simulate: bool = False) -> Plan:
     cell = load_cell(path)
     p = Plan(path, cell, path.read_text(encoding="utf-8"), simulate=simulate)
     p.ems, problems = resolve(cell, path, simulate)
+    problems += dds_profile.missing(cell)  # dds.interfaces: this host has one at least
     for uname, unit in cell.units.items():
         if unit.plc is not None:
             problems += _plc_problems(cell, uname)
@@ -231,7 +232,16 @@ def build_nodes(p: Plan, **node_kwargs: Any) -> list[Node]:
     return nodes
 
 
+def _interfaces(p: Plan, note: Callable[[str], None]) -> None:
+    """The cell's ``dds.interfaces``: a Fast DDS profile for this process and its children."""
+    profile = dds_profile.apply(p.cell)
+    if profile is not None:
+        note(f"DDS on {', '.join(i for i in p.cell.dds_interfaces if dds_profile.on_this_host(i))}"
+             f", 127.0.0.1 and shared memory only (dds.interfaces: {profile})")  # fmt: skip
+
+
 def launch_in_process(p: Plan, threads: int = 0, ready: Callable[[str], None] = print) -> int:
+    _interfaces(p, ready)
     run.default_environment()
     rclpy.init(signal_handler_options=rclpy.signals.SignalHandlerOptions.ALL)
     run.catch_stop_signals()
@@ -354,6 +364,7 @@ def start_programs(p: Plan) -> list[tuple[str, subprocess.Popen[bytes]]]:
 def launch_processes(
     p: Plan, ready: Callable[[str], None] = print, log_dir: Path | None = None
 ) -> int:
+    _interfaces(p, ready)
     run.default_environment()
     children: list[tuple[str, subprocess.Popen[bytes]]] = []
     stopping = threading.Event()

@@ -48,9 +48,10 @@ from packml_interfaces.srv import (
 )
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.event_handler import PublisherEventCallbacks, QoSPublisherMatchedInfo
+from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.subscription import MessageInfo
+from rclpy.subscription import MessageInfo, Subscription
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
@@ -84,6 +85,8 @@ INPUT_LOG_DELAY = 0.05
 #: s: a wake-up for a lease is armed this much after it expires (``Liveliness.expired`` is strict)
 LEASE_SLACK = 0.001
 DIAGNOSTICS_PERIOD = 1.0
+#: messages of a subscription a wake-up takes before it judges the leases (_take_waiting)
+MAX_TAKEN = 256
 #: s: an EM that leaves (shuts down in order) is lost this long after its goodbye, unless the
 #: unit shuts down meanwhile: a cell stopped with Ctrl-C, every process at once, records no fault.
 EM_LEAVE_GRACE = 1.0
@@ -465,6 +468,10 @@ class UnitNode(GuardedNode):
         self._wake.cancel()
         if run.shutting_down():
             return  # this process is stopping: EMs going silent now are no news
+        # what has arrived but waits behind this wake-up in the executor's queue (a loaded
+        # unit) counts before any lease is judged: a heartbeat received in time renews it
+        self._take_waiting(self._beats, self._on_heartbeat)
+        self._take_waiting(self._reports, self._on_report)
         now = self._now()
         self._apply_leaves(now)
         for name, lease in self.liveliness.expired(now):
@@ -478,6 +485,21 @@ class UnitNode(GuardedNode):
         self.driver.catch_up(now)
         self._flush_inputs()
         self._arm(now)
+
+    def _take_waiting(
+        self, subscription: Subscription[EmReport], handle: Callable[[EmReport, Any], None]
+    ) -> None:
+        """Handle the messages DDS holds for ``subscription`` now, at most :data:`MAX_TAKEN`
+        (the executor finds them taken and calls nothing for them)."""
+        for _ in range(MAX_TAKEN):
+            try:
+                with subscription.handle:
+                    taken = subscription.handle.take_message(subscription.msg_type, False)
+            except InvalidHandle:
+                return
+            if taken is None:
+                return
+            handle(*taken)
 
     def _arm(self, now: float) -> None:
         """Arm the wake-up timer for the next thing due (nothing: no timer runs)."""

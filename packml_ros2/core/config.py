@@ -7,7 +7,9 @@ with the file, the key path and what is wrong. ``config/reference_cell.yaml`` sh
 
 from __future__ import annotations
 
+import ipaddress
 import os
+import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -214,6 +216,9 @@ class CellConfig:
     line: LineConfig = field(default_factory=LineConfig)
     #: ``discovery:``: the cell's domain and Discovery Server (core/discovery.py)
     discovery: DiscoveryConfig = field(default_factory=DiscoveryConfig)
+    #: ``dds.interfaces``: the network interfaces (names or IPv4 addresses) DDS may use; empty:
+    #: as the environment says (packml_ros2.dds_profile applies them)
+    dds_interfaces: tuple[str, ...] = ()
 
 
 # -- parsing ---------------------------------------------------------------------------------------------
@@ -635,7 +640,37 @@ def _coordinator(n: Node, units: Mapping[str, UnitConfig]) -> CoordinatorConfig:
 
 
 #: The top-level keys of a cell file (config/reference_cell.yaml shows each).
-CELL_KEYS = ("cell", "defaults", "units", "coordinator", "line", "hmi", "opcua", "discovery")
+CELL_KEYS = (
+    "cell", "defaults", "units", "coordinator", "line", "hmi", "opcua", "discovery", "dds",
+)  # fmt: skip
+MAX_DDS_INTERFACES = 16
+_INTERFACE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.:@-]{0,14}")  # Linux: 15 characters
+
+
+def _dds_interface(n: Node) -> str:
+    """An interface DDS may use: its name (``eth1``) or an IPv4 address of this host."""
+    s = sc.text(n).strip()
+    try:
+        ip = ipaddress.ip_address(s)
+    except ValueError:
+        if not _INTERFACE_NAME.fullmatch(s):
+            raise invalid(f"{sc.shown(s)} is neither an interface name (at most 15 letters, "
+                          "digits, _ . : @ -) nor an IPv4 address") from None  # fmt: skip
+        return s
+    if ip.version != 4 or ip.is_multicast or ip.is_unspecified:
+        raise invalid(f"{s} is not an address of an interface: give an interface name or a "
+                      "unicast IPv4 address (DDS runs on UDPv4)")  # fmt: skip
+    return str(ip)
+
+
+def _dds(n: Node) -> tuple[str, ...]:
+    n.check_keys({"interfaces"})
+    found = tuple(e.parse(_dds_interface, "") for e in n.list_at("interfaces"))
+    if len(found) > MAX_DDS_INTERFACES:
+        n.child("interfaces", None).error(f"at most {MAX_DDS_INTERFACES} interfaces")
+    if "interfaces" in n.mapping() and not found:
+        n.child("interfaces", None).error("name at least one interface, or leave the key out")
+    return tuple(dict.fromkeys(i for i in found if i))
 
 
 def parse_cell(data: Any, file: str = "<memory>", base_dir: Path | None = None) -> CellConfig:
@@ -667,6 +702,7 @@ def parse_cell(data: Any, file: str = "<memory>", base_dir: Path | None = None) 
         lambda x: _coordinator(x, units),
         CoordinatorConfig(start_order=tuple(units), stop_order=tuple(reversed(list(units)))),
     )
+    dds: tuple[str, ...] = root.get("dds", _dds, ())
     stores = [u.persistence_path for u in units.values() if u.persistence_path]
     line = parse_line(root.child("line", root.mapping().get("line")), cell, list(units),
                       coord.interlocks, base_dir or Path.cwd(),
@@ -678,7 +714,8 @@ def parse_cell(data: Any, file: str = "<memory>", base_dir: Path | None = None) 
     extras = {k: dict(root.child(k, root.mapping().get(k)).mapping()) for k in ("hmi", "opcua")}
     if root.problems:
         raise ConfigError(file, root.problems)
-    return CellConfig(cell, units, coord, file, **extras, line=line, discovery=discovery)
+    return CellConfig(cell, units, coord, file, **extras, line=line, discovery=discovery,
+                      dds_interfaces=dds)  # fmt: skip
 
 
 def load_cell(path: str | os.PathLike[str]) -> CellConfig:

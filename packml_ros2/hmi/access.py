@@ -23,13 +23,16 @@ Reading needs nothing. An action above the caller's level is refused (HTTP 403,
 **Sources.** Every action reaches the unit with :func:`command_source` as its source
 (``hmi:<user>``): the one place that names who acted.
 
-**Guessing** (:class:`Throttle`): after :data:`FREE_FAILURES` wrong tokens, passwords or unknown
-sessions in a row from one client address, every further attempt from it is refused (HTTP 429,
-``THROTTLED``) for a back-off that doubles with each failure up to :data:`MAX_BACKOFF` s; a
-success clears the count. Failures are logged with the client's address and count, never the
-guess (a wrong password names the user only when the user exists), one line per doubling. The
-table of clients is bounded (:data:`MAX_CLIENTS`, oldest forgotten), and so are the sessions
-(:data:`MAX_SESSIONS`).
+**Guessing** (:class:`~packml_ros2.core.throttle.Throttle`, shared with the OPC UA server): wrong
+tokens, passwords, user names and unknown sessions are counted per client address, and wrong
+passwords also per account. After :data:`FREE_FAILURES` in a row from one address, every further
+attempt from it is refused (HTTP 429, ``THROTTLED``) for a back-off that doubles up to a minute;
+an account guessed from several addresses is slowed (its logins checked one after the other,
+seconds apart), never locked: its user, from their own address, still logs in. A success clears
+the counts. Failures are logged with the client's address and count, never the guess (a wrong
+password names the user only when the user exists). The tables are bounded, and so are the
+sessions (:data:`MAX_SESSIONS`). A password is checked in a worker thread, never in the event
+loop.
 """
 
 from __future__ import annotations
@@ -46,11 +49,8 @@ from typing import Any
 
 from ..core.reasons import Reason
 from ..core.secrets import check_password, hash_password
+from ..core.throttle import UNKNOWN, Blocked, Throttle, attempt
 
-FREE_FAILURES = 5
-MAX_BACKOFF = 60.0
-FORGET_AFTER = 3600.0  # s without a failure: a client's count starts again
-MAX_CLIENTS = 4096
 MAX_SESSIONS = 256
 LOGOUT_AFTER = 900.0  # s without an action before a login ends (hmi.logout_after)
 LOG = logging.getLogger("packml_ros2.hmi")
@@ -158,71 +158,10 @@ def level_refusal(who: Principal, unit: str | None, action: str) -> Refusal | No
 
 
 # -- throttling ------------------------------------------------------------------------------------
-class Throttle:
-    """Per-client back-off after wrong credentials (see the module)."""
-
-    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
-        self.clock = clock
-        self._clients: OrderedDict[str, list[float]] = OrderedDict()  # [failures, until, last]
-        self._lock = threading.Lock()  # (logins are checked in worker threads)
-
-    def blocked(self, client: str) -> Refusal | None:
-        with self._lock:
-            entry = self._entry(client)
-            if entry is None or entry[1] <= self.clock():
-                return None
-            wait = entry[1] - self.clock()
-        return Refusal(
-            429,
-            Reason.UNAUTHORIZED,
-            "THROTTLED",
-            f"too many wrong credentials from {client}: try again in {wait:.0f} s",
-            retry_after=wait,
-        )
-
-    def failed(self, client: str, what: str = "access token") -> None:
-        with self._lock:
-            now = self.clock()
-            entry = self._entry(client) or [0.0, 0.0, now]
-            entry[0] += 1
-            entry[2] = now
-            count = int(entry[0])
-            backoff = 0.0
-            if count >= FREE_FAILURES:
-                backoff = min(2.0 ** (count - FREE_FAILURES), MAX_BACKOFF)
-                entry[1] = now + backoff
-            self._clients[client] = entry
-            self._clients.move_to_end(client)
-            while len(self._clients) > MAX_CLIENTS:
-                self._clients.popitem(last=False)
-        if count == 1 or count & (count - 1) == 0 or count == FREE_FAILURES:  # 1, 2, 4, 5, 8...
-            LOG.warning(
-                "HMI: wrong %s from %s (%d in a row)%s",
-                what,
-                client,
-                count,
-                f"; its next attempts are refused for {backoff:g} s" if backoff else "",
-            )
-
-    def succeeded(self, client: str) -> None:
-        with self._lock:
-            self._clients.pop(client, None)
-
-    def failures(self, client: str) -> int:
-        with self._lock:
-            entry = self._entry(client)
-            return int(entry[0]) if entry else 0
-
-    def _entry(self, client: str) -> list[float] | None:
-        entry = self._clients.get(client)
-        if (
-            entry is not None
-            and self.clock() - entry[2] > FORGET_AFTER
-            and entry[1] <= self.clock()
-        ):
-            del self._clients[client]
-            return None
-        return entry
+def throttled(blocked: Blocked) -> Refusal:
+    """The HTTP refusal of an attempt the throttle blocks (429, with Retry-After)."""
+    return Refusal(429, Reason.UNAUTHORIZED, "THROTTLED", blocked.message,
+                   retry_after=blocked.retry_after)  # fmt: skip
 
 
 # -- sessions --------------------------------------------------------------------------------------
@@ -284,7 +223,7 @@ class Access:
         self.users: dict[str, User] = dict(users or {})
         if self.users and self._token is not None:
             raise ValueError("an HMI has user logins or an access token, not both")
-        self.throttle = throttle or Throttle()
+        self.throttle = throttle or Throttle("HMI", log=LOG)
         self.sessions = Sessions(logout_after)
         self._dummy: str | None = None  # checked for unknown users: as slow as a known one
 
@@ -328,9 +267,9 @@ class Access:
         """:meth:`verify` for a request from ``client`` (its address), throttled."""
         if not self.required:
             return Principal("anyone")
-        blocked = self.throttle.blocked(client)
-        if blocked is not None:
-            return blocked
+        blocked = self.throttle.admit(client)
+        if isinstance(blocked, Blocked):
+            return throttled(blocked)
         result = self.verify(credential)
         if isinstance(result, Principal):
             self.throttle.succeeded(client)
@@ -338,32 +277,40 @@ class Access:
             self.throttle.failed(client, "access token" if result is WRONG_TOKEN else "session")
         return result
 
-    def login(self, name: Any, password: Any, client: str) -> tuple[str, Principal] | Refusal:
-        """Check ``password`` of user ``name`` (slow on purpose: call it from a worker thread);
-        (session credential, who) or a refusal. Throttled like wrong tokens."""
+    def blocked(self, client: str) -> Refusal | None:
+        """The refusal of any attempt from ``client`` while its address is blocked."""
+        blocked = self.throttle.admit(client)
+        return throttled(blocked) if isinstance(blocked, Blocked) else None
+
+    async def login(self, name: Any, password: Any, client: str) -> tuple[str, Principal] | Refusal:
+        """Check ``password`` of user ``name`` from ``client`` (its address) under the throttle,
+        in a worker thread (a hash is slow on purpose); (session credential, who) or a refusal."""
         if not self.users:
             return Refusal(
                 400, Reason.INVALID_ARGUMENT, "NO_USERS",
                 "this HMI has no user logins (hmi.users)" + (
                     ": it asks for the access token" if self._token is not None else ""),
             )  # fmt: skip
-        blocked = self.throttle.blocked(client)
-        if blocked is not None:
-            return blocked
         if not isinstance(name, str) or not isinstance(password, str) or len(password) > 1024:
-            return Refusal(400, Reason.INVALID_ARGUMENT, "BAD_ARGUMENT",
-                           "give 'user' and 'password' as strings")  # fmt: skip
+            blocked = self.blocked(client)
+            return blocked or Refusal(400, Reason.INVALID_ARGUMENT, "BAD_ARGUMENT",
+                                      "give 'user' and 'password' as strings")  # fmt: skip
         user = self.users.get(name)
         if user is None:
             if self._dummy is None:
                 self._dummy = hash_password("no such user")
-            check_password(password, self._dummy)
-            self.throttle.failed(client, "user name")
+            dummy = self._dummy  # (as slow as a known user: the answer tells nothing)
+            result = await attempt(self.throttle, client, UNKNOWN,
+                                   lambda: check_password(password, dummy) and False, "user name")  # fmt: skip
+        else:
+            stored = user.password
+            result = await attempt(self.throttle, client, user.name,
+                                   lambda: check_password(password, stored),
+                                   f"password for {user.name}")  # fmt: skip
+        if isinstance(result, Blocked):
+            return throttled(result)
+        if not result or user is None:
             return WRONG_LOGIN
-        if not check_password(password, user.password):
-            self.throttle.failed(client, f"password for {user.name}")
-            return WRONG_LOGIN
-        self.throttle.succeeded(client)
         who = Principal(user.name, user.level)
         LOG.info("HMI: %s logged in (%s) from %s", who.name, who.level, client)
         return self.sessions.open(who), who

@@ -24,8 +24,8 @@ forbids it):
 Access control (:mod:`.access`): with users or a token configured every action needs
 ``Authorization: Bearer <session or token>``; without it, with a wrong one or below the level the
 action needs, the answer is 403 with the reason in ``message`` and nothing reaches the unit;
-wrong tokens, passwords and unknown sessions are throttled per client (429). Reading (page,
-snapshot, events) needs nothing: the page is read-only then.
+wrong tokens, passwords and unknown sessions are throttled per address and account (429).
+Reading (page, snapshot, events) needs nothing: the page is read-only then.
 
 Requests (:mod:`.guard`): the Host header is checked on every request, a POST from another site is
 refused, an action's body is read only after its token is checked, and only if it is JSON and at
@@ -335,15 +335,13 @@ def create_app(bridge: Bridge, allowed_hosts: Iterable[str] = ()) -> FastAPI:
     @app.post("/api/login")
     async def login(request: Request) -> Json:
         client = _client(request)
-        blocked = access.throttle.blocked(client)
-        refusal = blocked or json_content(request)
+        refusal = access.blocked(client) or json_content(request)
         body = await read_body(request, 4096) if refusal is None else refusal
         args = parse_object(body) if isinstance(body, bytes) else body
         if isinstance(args, Refusal):
             return refuse(args)
-        # (checking a password hash takes a while on purpose: not in the event loop)
-        result = await asyncio.to_thread(access.login, args.get("user"), args.get("password"),
-                                         client)  # fmt: skip
+        # (the password is checked in a worker thread: a hash takes a while on purpose)
+        result = await access.login(args.get("user"), args.get("password"), client)
         if isinstance(result, Refusal):
             return refuse(result)
         session, who = result

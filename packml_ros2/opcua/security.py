@@ -3,7 +3,9 @@
 - :class:`Users`: asyncua user manager. A session is a *user* with a configured user name and
   password, or with a configured certificate (X509 identity token, or the client's application
   instance certificate of a signed channel); otherwise *anonymous*, if anonymous sessions are
-  allowed at all. A wrong password is refused (no fall-back to anonymous).
+  allowed at all. A wrong password is refused (no fall-back to anonymous); wrong passwords and
+  unknown user names are throttled per address and per account as the HMI's
+  (:mod:`packml_ros2.core.throttle`), and a password is checked off the event loop.
 - :class:`Rules`: the permission ruleset: everybody may browse, read, subscribe and send a
   Write request; nobody may manage nodes (no Admin role is ever given out). Writes are answered
   per node (:func:`guard_writes`, OPC UA Part 4 5.10.4): a read-only variable or attribute
@@ -37,13 +39,18 @@ from asyncua.server import uaprocessor
 from asyncua.ua.ua_binary import nodeid_from_binary, struct_from_binary, struct_to_binary
 
 from ..core.rules import source_of
-from .config import ANONYMOUS, OpcUaConfig, check_password
+from ..core.throttle import UNKNOWN, Blocked, Throttle, attempt, shown
+from .config import ANONYMOUS, OpcUaConfig, check_password, hash_password
 
 _logger = logging.getLogger(__name__)
 
 #: The user of the session whose request is being processed.
 CURRENT_USER: contextvars.ContextVar[User | None] = contextvars.ContextVar(
     "packml_opcua_user", default=None
+)
+#: (user name, verdict) of the ActivateSession request being processed (Users.judge).
+_LOGIN: contextvars.ContextVar[tuple[str, bool | Blocked] | None] = contextvars.ContextVar(
+    "packml_opcua_login", default=None
 )
 #: RequestHeader.ReturnDiagnostics of the Call request being processed.
 _RETURN_DIAGNOSTICS: contextvars.ContextVar[int] = contextvars.ContextVar(
@@ -57,14 +64,51 @@ _REFUSALS: contextvars.ContextVar[dict[int, tuple[str, str]] | None] = contextva
 # RequestHeader.ReturnDiagnostics, operation level (OPC UA Part 4, 7.33)
 DIAG_SYMBOLIC_ID, DIAG_LOCALIZED_TEXT, DIAG_ADDITIONAL_INFO = 0x20, 0x40, 0x80
 _CALL_REQUEST = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
+_ACTIVATE_REQUEST = ua.NodeId(ua.ObjectIds.ActivateSessionRequest_Encoding_DefaultBinary)
 
 
 class Users:
-    """asyncua user manager from the ``opcua:`` block."""
+    """asyncua user manager from the ``opcua:`` block. A user name and password are judged
+    before asyncua asks (:meth:`judge`, from the ``install`` hook): under the login throttle
+    shared with the HMI (:mod:`packml_ros2.core.throttle`: per address and per account), the
+    password checked in a worker thread, never in the event loop that serves every client;
+    :meth:`get_user` then answers with that verdict."""
 
     def __init__(self, config: OpcUaConfig, certificates: Mapping[str, bytes]) -> None:
         self.config = config
         self._certificates = {der: name for name, der in certificates.items()}
+        self.throttle = Throttle("OPC UA", log=_logger)
+        self._dummy: str | None = None  # checked for unknown users: as slow as a known one
+
+    async def judge(self, processor: Any, body: Buffer) -> tuple[str, bool | Blocked] | None:
+        """The verdict on the user name and password of an ActivateSession request (``body``
+        after its type id), or None when it carries none."""
+        header = struct_from_binary(ua.RequestHeader, body)
+        params = struct_from_binary(ua.ActivateSessionParameters, body)
+        token = params.UserIdentityToken
+        if not isinstance(token, ua.UserNameIdentityToken) or not token.UserName:
+            return None
+        iserver = processor.iserver
+        session = processor.session or iserver.lookup_external_session(header.AuthenticationToken)
+        if session is None:
+            return None
+        name, password = iserver.decrypt_user_token(session, token)
+        peer = processor.name
+        address = str(peer[0]) if isinstance(peer, tuple) and peer else "unknown"
+        stored = self.config.users.get(name)
+        if stored is None:
+            if self._dummy is None:
+                self._dummy = hash_password("no such user")
+            dummy = self._dummy  # (the answer takes as long as a known user's: it tells nothing)
+            verdict = await attempt(self.throttle, address, UNKNOWN,
+                                    lambda: check_password(password, dummy) and False, "user name")  # fmt: skip
+        else:
+            verdict = await attempt(self.throttle, address, name,
+                                    lambda: check_password(password, stored),
+                                    f"password for user {shown(name)!r}")  # fmt: skip
+        if isinstance(verdict, Blocked):
+            _logger.warning("OPC UA: refused a login: %s", verdict.message)
+        return name, verdict
 
     @classmethod
     async def load(cls, config: OpcUaConfig) -> Users:
@@ -81,12 +125,10 @@ class Users:
         certificate: bytes | None = None,
     ) -> User | None:
         if username:
-            stored = self.config.users.get(username)
-            if stored is not None and check_password(password, stored):
+            # judged before (judge: throttled, off the event loop; failures logged there)
+            verdict = _LOGIN.get()
+            if verdict is not None and verdict[0] == username and verdict[1] is True:
                 return User(role=UserRole.User, name=username)
-            # (a configured name only: an unknown one is whatever a client sent, 1 MB of it)
-            _logger.warning("OPC UA: refused %s", f"user {username!r}: wrong password"
-                            if stored is not None else "an unknown user name")  # fmt: skip
             return None
         if certificate:
             name = self._certificates.get(bytes(certificate))
@@ -268,17 +310,23 @@ def install() -> None:
         user_token = CURRENT_USER.set(getattr(session, "user", None))
         diag_token = _RETURN_DIAGNOSTICS.set(0)
         refusal_token = _REFUSALS.set({})
+        login_token = _LOGIN.set(None)
         try:
             try:
                 peek = body.copy()
-                if nodeid_from_binary(peek) == _CALL_REQUEST:
+                typeid = nodeid_from_binary(peek)
+                if typeid == _CALL_REQUEST:
                     _RETURN_DIAGNOSTICS.set(
                         struct_from_binary(ua.RequestHeader, peek).ReturnDiagnostics
                     )
-            except Exception:  # the original reports malformed requests
+                users = getattr(self.iserver, "user_manager", None)
+                if typeid == _ACTIVATE_REQUEST and isinstance(users, Users):
+                    _LOGIN.set(await users.judge(self, peek))
+            except Exception:  # the original reports malformed requests (a login: refused)
                 pass
             return await process_message(self, seqhdr, body)
         finally:
+            _LOGIN.reset(login_token)
             _REFUSALS.reset(refusal_token)
             _RETURN_DIAGNOSTICS.reset(diag_token)
             CURRENT_USER.reset(user_token)

@@ -6,6 +6,7 @@ terminal."""
 
 from __future__ import annotations
 
+import asyncio
 import os
 import re
 import subprocess
@@ -132,7 +133,7 @@ def test_the_readmes_logins_as_an_integrator_types_them(
     settings = hmi_settings(load_cell(tmp_path / "line3.yaml"))
     access = Access(None, users=settings.users, logout_after=settings.logout_after)
     for name, level in (("anna", "operator"), ("ben", "maintenance"), ("carla", "engineer")):
-        ok = access.login(name, passwords[name], "127.0.0.1")
+        ok = asyncio.run(access.login(name, passwords[name], "127.0.0.1"))
         assert not isinstance(ok, Refusal), (name, ok)
         assert ok[1] == Principal(name, level)
     assert settings.logout_after == hmi["logout_after"]

@@ -301,7 +301,7 @@ def test_event_streams_are_bounded(make_cell: Any, monkeypatch: pytest.MonkeyPat
 def test_token_guesses_are_throttled_per_client_and_logged_without_the_guess(
     make_cell: Any, caplog: pytest.LogCaptureFixture
 ) -> None:
-    from packml_ros2.hmi.access import FREE_FAILURES
+    from packml_ros2.core.throttle import FREE_FAILURES
 
     cell = make_cell(token=TOKEN)
     now = [1000.0]

@@ -8,6 +8,7 @@ then over HTTP against a real unit."""
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import time
 from pathlib import Path
@@ -19,10 +20,10 @@ import yaml
 from packml_ros2.core.config import parse_cell
 from packml_ros2.core.schema import ConfigError
 from packml_ros2.core.secrets import hash_password
+from packml_ros2.core.throttle import FREE_FAILURES
 from packml_ros2.hmi import hmi_settings
 from packml_ros2.hmi.access import (
     CELL_ACTION_LEVEL,
-    FREE_FAILURES,
     LEVELS,
     UNIT_ACTION_LEVEL,
     Access,
@@ -41,6 +42,11 @@ from test.hostile.http import raw
 JSON = {"Content-Type": "application/json"}
 PASSWORDS = {"anna": "anna-pass-1", "ben": "ben-pass-22", "carla": "carla-pass-333"}
 LEVEL_OF = {"anna": "operator", "ben": "maintenance", "carla": "engineer"}
+
+
+def log_in(access: Access, name: Any, password: Any, client: str) -> Any:
+    """``access.login`` as the server awaits it."""
+    return asyncio.run(access.login(name, password, client))
 
 
 def users() -> dict[str, User]:
@@ -106,20 +112,24 @@ def test_logins_check_hashed_passwords_and_wrong_ones_are_throttled(caplog: Any)
     access.throttle.clock = lambda: now[0]
     assert access.kind == "users" and access.required
     assert isinstance(access.verify(None), Refusal) and access.verify(None).code == "LOGIN_REQUIRED"
-    ok = access.login("anna", PASSWORDS["anna"], "10.0.0.1")
+    ok = log_in(access, "anna", PASSWORDS["anna"], "10.0.0.1")
     assert not isinstance(ok, Refusal)
     session, who = ok
     assert who == Principal("anna", "operator") and access.verify(session) == who
     assert access.verify("made-up").code == "SESSION_ENDED"  # type: ignore[union-attr]
     caplog.set_level(logging.WARNING, "packml_ros2.hmi")
     for guess in ("anna-pass-2", "x" * 20, "", "anna-pass-11"):
-        assert access.login("anna", guess, "10.0.0.9") == access.login("nobody", guess, "10.0.0.8")
-    assert access.login("anna", PASSWORDS["ben"], "10.0.0.9").code == "LOGIN_WRONG"  # type: ignore[union-attr]
-    blocked = access.login("anna", PASSWORDS["anna"], "10.0.0.9")  # the 6th failure before: blocked
+        assert log_in(access, "anna", guess, "10.0.0.9") == log_in(
+            access, "nobody", guess, "10.0.0.8"
+        )
+    assert log_in(access, "anna", PASSWORDS["ben"], "10.0.0.9").code == "LOGIN_WRONG"  # type: ignore[union-attr]
+    blocked = log_in(
+        access, "anna", PASSWORDS["anna"], "10.0.0.9"
+    )  # the 6th failure before: blocked
     assert isinstance(blocked, Refusal) and blocked.code == "THROTTLED" and blocked.status == 429
     assert access.throttle.failures("10.0.0.9") == FREE_FAILURES
     assert not isinstance(
-        access.login("anna", PASSWORDS["anna"], "10.0.0.1"), Refusal
+        log_in(access, "anna", PASSWORDS["anna"], "10.0.0.1"), Refusal
     )  # others not
     text = caplog.text
     assert (
@@ -127,7 +137,7 @@ def test_logins_check_hashed_passwords_and_wrong_ones_are_throttled(caplog: Any)
     )
     assert "nobody" not in text and "anna-pass" not in text and "x" * 20 not in text
     assert "anna-pass" not in repr(access) and "pbkdf2" not in repr(access)
-    bad = access.login(["anna"], None, "10.0.0.7")
+    bad = log_in(access, ["anna"], None, "10.0.0.7")
     assert isinstance(bad, Refusal) and bad.code == "BAD_ARGUMENT"
 
 
@@ -136,7 +146,7 @@ def test_users_and_a_shared_token_do_not_mix() -> None:
         Access("a-token-123", users=users())
     token = Access("a-token-123")
     assert token.kind == "token" and token.verify("a-token-123") == Principal("token", "engineer")
-    assert token.login("anna", "x", "1.2.3.4").code == "NO_USERS"  # type: ignore[union-attr]
+    assert log_in(token, "anna", "x", "1.2.3.4").code == "NO_USERS"  # type: ignore[union-attr]
     assert Access(None).kind == "none" and Access(None).authorize(None, "h") == Principal("anyone")
 
 
@@ -301,3 +311,40 @@ def test_a_login_is_json_from_this_site_only(cell: Any) -> None:
         assert "session" not in wrong.json()
         big = http.post("/api/login", content=b'{"user": "' + b"a" * 10_000 + b'"}', headers=JSON)
         assert big.status_code == 413
+
+
+@pytest.mark.ros
+def test_guesses_from_rotating_addresses_are_slowed_and_the_user_still_logs_in(
+    cell: Any, monkeypatch: Any
+) -> None:
+    """Issue 25 item 9: 40 wrong passwords for one user from 40 rotating 127.x addresses were
+    none throttled, and 5 wrong ones locked the user out of their address. Now the account is
+    slowed (its attempts checked one after the other; the ones queued too far ahead refused with
+    429), and its user, from their own address, logs in."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import httpx
+
+    from packml_ros2.core import throttle
+
+    monkeypatch.setattr(throttle, "FIRST_ACCOUNT_INTERVAL", 0.2)
+    monkeypatch.setattr(throttle, "MAX_ACCOUNT_INTERVAL", 0.2)
+    monkeypatch.setattr(throttle, "MAX_ACCOUNT_WAIT", 1.0)  # (a test's scale of 4 s and 30 s)
+    with serving(cell.bridge) as http:
+        url = str(http.base_url)
+
+        def guess(i: int) -> int:
+            source = httpx.HTTPTransport(local_address=f"127.0.3.{i + 1}")
+            with httpx.Client(base_url=url, transport=source, timeout=30) as client:
+                body = {"user": "anna", "password": f"guess-{i}"}
+                return client.post("/api/login", json=body).status_code
+
+        for i in range(throttle.ACCOUNT_FREE_FAILURES):  # five wrong: free
+            assert guess(i) == 403
+        with ThreadPoolExecutor(max_workers=35) as pool:
+            answers = list(pool.map(guess, range(5, 40)))
+        assert answers.count(429) >= 20 and set(answers) == {403, 429}, answers
+        assert cell.bridge.access.throttle.account_failures("anna") == 40 - answers.count(429)
+        assert all(cell.bridge.access.throttle.failures(f"127.0.3.{i + 1}") <= 1 for i in range(40))
+        login(http, "anna")  # 127.0.0.1: slowed at most, not refused
+        assert cell.bridge.access.throttle.account_failures("anna") == 0

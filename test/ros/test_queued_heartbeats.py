@@ -1,0 +1,50 @@
+"""Issue 25 item 14: a heartbeat queued before the lease wake-up counts.
+
+Under 12 000 fuzzed requests a unit declared an EM lost once: its executor ran the lease wake-up
+before the EM's heartbeats that had arrived in time and waited in its queue. Here the unit's own
+executor is held (as a loaded one is) while the EM, in the test's executor, beats on; once the
+unit has processed no heartbeat for longer than its lease, its wake-up runs first. The EM stays
+online (before: "no report for 1 s", the EM lost)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from rclpy.executors import SingleThreadedExecutor
+
+from packml_ros2.equipment_module import EquipmentModule
+from packml_ros2.unit_node import UnitNode
+from test.ros.cells import unit_config_of, write_cell
+
+pytestmark = pytest.mark.ros
+LEASE = 1.0
+
+
+def test_a_heartbeat_waiting_in_the_queue_renews_the_lease(ros: Any, tmp_path: Path) -> None:
+    cell_file, cell = write_cell(tmp_path, {"u": {"equipment_modules": {"robot": {}}, "em_lease": LEASE}})  # fmt: skip
+    unit = UnitNode(unit_config_of(cell_file, "u"), context=ros.context)
+    executor = SingleThreadedExecutor(context=ros.context)
+    executor.add_node(unit)
+    try:
+        ros.add(EquipmentModule("robot", "u", cell, lease=LEASE, context=ros.context))
+        deadline = time.monotonic() + 20
+        while "robot" not in unit.liveliness.alive:  # the EM joins: the unit spins meanwhile
+            assert time.monotonic() < deadline, "the EM never came online"
+            executor.spin_once(timeout_sec=0.05)
+        # the unit's executor held: heartbeats arrive and wait; its clock passes the lease
+        seen = unit.liveliness.last_seen["robot"]
+        while unit._now() - seen <= LEASE + 0.2:
+            assert time.monotonic() < deadline + 10, "the unit's clock did not move"
+            time.sleep(0.01)  # (waiting for the unit's clock: the condition above)
+        assert unit.liveliness.last_seen["robot"] == seen  # nothing was processed meanwhile
+        unit._on_wake()  # the wake-up runs first, as in the loaded executor
+        assert "robot" in unit.liveliness.alive
+        assert unit.liveliness.last_seen["robot"] > seen + LEASE
+        assert unit.unit.equipment.modules["robot"].online
+    finally:
+        executor.remove_node(unit)
+        executor.shutdown(timeout_sec=1)
+        unit.destroy_node()
