@@ -185,6 +185,8 @@ SERVICES: tuple[Service, ...] = (
 )  # fmt: skip
 
 TOPIC: Mapping[str, Topic] = {t.name: t for t in TOPICS}
+#: The unit's topics its EMs follow (besides publishing its inputs): the unit's state.
+EM_FOLLOWS: tuple[str, ...] = ("status",)
 SERVICE: Mapping[str, Service] = {s.name: s for s in SERVICES}
 
 

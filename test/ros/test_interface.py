@@ -175,3 +175,42 @@ def test_a_plc_bridge_serves_the_declared_services_and_refuses_what_opc_30050_la
     resp = ros.call(AckAlarms, f"/{cell}/wrapper/ack_alarms", AckAlarms.Request(all=True))
     assert not resp.accepted and resp.result == Result.NOT_SUPPORTED
     assert interface.SERVICE["ack_alarms"].plc_lacks in resp.message
+
+
+@pytest.mark.ros
+def test_a_node_that_lacks_a_handler_for_a_declared_service_does_not_start(ros: Any) -> None:
+    """A service added to the declaration and forgotten in a node fails at its start, named."""
+    from rclpy.node import Node
+
+    node = Node("lacking", namespace="/interface_test", context=ros.context)
+    try:
+        handlers = {s.name: (lambda req, resp: resp) for s in interface.SERVICES}
+        del handlers["set_interlock"]
+        with pytest.raises(ValueError, match="lacking has no handler for service set_interlock"):
+            interface.create_services(node, handlers, lambda cmd, req, resp: resp)
+    finally:
+        node.destroy_node()
+
+
+def test_the_policy_gives_an_em_that_is_not_built_here_what_the_interface_gives_an_em(
+    tmp_path: Path,
+) -> None:
+    """``packml policy``: an EM run elsewhere (``external``) gets an enclave from the unit's
+    interface, the same as an EM whose node the generator built and asked (before: none, so
+    under SROS2 its reports were denied)."""
+    from packml_ros2 import launcher, policy
+
+    ems = {"local": {"sim": {}}, "elsewhere": {"external": True}}
+    path, cell = write_cell(tmp_path, {"filler": {"equipment_modules": ems, "persistence": None}})
+    enclaves = {e.enclave: e for e in policy.endpoints(launcher.plan(path))}
+    base = f"/{cell}/filler"
+    built, declared = enclaves[f"{base}/local"], enclaves.get(f"{base}/elsewhere")
+    assert declared is not None, sorted(enclaves)
+    assert (declared.ns, declared.node) == (base, "elsewhere")
+    assert (
+        declared.publish
+        == built.publish
+        == {f"{base}/em_reports", f"{base}/em_heartbeats", "/rosout", "/parameter_events"}
+    )
+    assert declared.subscribe == built.subscribe
+    assert not declared.reply and not declared.request
