@@ -1,8 +1,8 @@
 """The PackML unit node: the engine (:class:`packml_ros2.core.Unit`) on ROS 2.
 
 Its services and topics (relative to the node, e.g. ``/demo_cell/robot_cell/command``) are the
-ones :mod:`packml_ros2.ros.interface` declares (``unit_node --help`` lists them); EMs report on
-``em_reports`` and ``em_heartbeats``.
+ones :mod:`packml_ros2.ros.interface` declares (``unit_node --help`` lists them after this text);
+EMs report on ``em_reports`` and ``em_heartbeats``.
 
 Run: ``unit_node <cell.yaml> [unit] [--ros-args -p remote_commands_enabled:=true ...]``
 """

@@ -5,8 +5,10 @@ Every program that serves, publishes, calls, follows or records a unit reads thi
 instead of spelling the names again: the unit node (:mod:`packml_ros2.unit_node`) and the PLC
 bridge (:mod:`packml_ros2.plc.node`) create their endpoints from it, the proxies of the CLI, the
 coordinator, the HMI and the OPC UA server (:mod:`packml_ros2.client`) call and follow it, the
-recorder (:mod:`packml_ros2.bag.topics`) records it, and a test checks the README's lists against
-it. The policy generator (:mod:`packml_ros2.policy`) reads the endpoints the nodes created from it.
+recorder (:mod:`packml_ros2.bag.topics`) records it, EMs (:mod:`packml_ros2.equipment_module`,
+the simulator) report to it and follow it, the launcher waits on it, and a test checks the
+README's lists against it. The policy generator (:mod:`packml_ros2.policy`) reads the endpoints
+the nodes created from it, and gives an EM it did not build what this declaration gives an EM.
 
 Names are relative to the unit's node (``status`` is ``/<cell>/<unit>/status``) unless they start
 with ``/`` (``/diagnostics``).
@@ -168,17 +170,17 @@ SERVICES: tuple[Service, ...] = (
             "resetting times"),
     Service("reset_counters", ResetCounters, "reset the counters", "resetting counters"),
     Service("ack_alarms", AckAlarms, "acknowledge one or all alarms", "acknowledging alarms"),
-    Service("reset_alarms", ResetAlarms, "clear inactive acknowledged alarms",
+    Service("reset_alarms", ResetAlarms, "clear latched alarms that are no longer active",
             "resetting alarms"),
     Service("query_alarms", QueryAlarms, "the alarm list or history, filtered and sorted"),
-    Service("set_alarm", SetAlarm, "raise or clear a configured alarm",
+    Service("set_alarm", SetAlarm, "raise or clear an alarm or warning",
             "raising or clearing alarms"),
     Service("set_mach_speed", SetMachSpeed, "the machine speed set point"),
     Service("set_unit_parameters", SetUnitParameters, "PackTags parameters"),
     Service("set_product", SetProduct, "PackTags products"),
-    Service("set_em_active", SetEmActive, "switch an EM off or on",
+    Service("set_em_active", SetEmActive, "switch an EM active or inactive (ModuleActive)",
             "switching equipment modules"),
-    Service("set_interlock", SetInterlock, "an external interlock (suspends the unit)"),
+    Service("set_interlock", SetInterlock, "a line interlock from outside (suspends the unit)"),
     Service("set_remote_commands", SetRemoteCommands,
             "the remote lock (remote_commands_enabled), from a local source only"),
     *SHORTCUTS,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import re
 import socket
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -214,3 +215,16 @@ def test_the_policy_gives_an_em_that_is_not_built_here_what_the_interface_gives_
     )
     assert declared.subscribe == built.subscribe
     assert not declared.reply and not declared.request
+
+
+def test_unit_node_help_lists_every_declared_service_and_topic() -> None:
+    """``unit_node --help`` (the README points to it) prints the declaration."""
+    import shutil
+    import subprocess
+
+    exe = shutil.which("unit_node") or str(Path(sys.executable).with_name("unit_node"))
+    out = subprocess.run([exe, "--help"], capture_output=True, text=True, timeout=60, check=True)
+    listed = {line.split()[0] for line in out.stdout.splitlines() if line.startswith("  ")}
+    assert listed == {s.name for s in interface.SERVICES} | {t.name for t in interface.TOPICS}
+    for s in interface.SERVICES:
+        assert f"{s.type_name} " in out.stdout, s.name
