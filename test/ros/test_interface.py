@@ -228,3 +228,11 @@ def test_unit_node_help_lists_every_declared_service_and_topic() -> None:
     assert listed == {s.name for s in interface.SERVICES} | {t.name for t in interface.TOPICS}
     for s in interface.SERVICES:
         assert f"{s.type_name} " in out.stdout, s.name
+
+
+def test_every_hmi_unit_action_is_a_declared_service_with_a_level() -> None:
+    """The HMI bridge calls a unit's services by the action's name (through the proxies)."""
+    from packml_ros2.hmi import access, bridge
+
+    assert set(bridge.UNIT_ACTIONS) <= set(interface.SERVICE)
+    assert set(bridge.UNIT_ACTIONS) == set(access.UNIT_ACTION_LEVEL)
