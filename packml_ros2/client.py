@@ -17,43 +17,16 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from packml_interfaces.msg import Admin, AlarmList, CellStatus, Status, TransitionEvent
-from packml_interfaces.srv import (
-    AckAlarms,
-    Command,
-    QueryAlarms,
-    ResetAlarms,
-    ResetCounters,
-    ResetTimes,
-    SetAlarm,
-    SetEmActive,
-    SetInterlock,
-    SetMachSpeed,
-    SetMode,
-    SetProduct,
-    SetUnitParameters,
-)
+from packml_interfaces.srv import Command, SetMode
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
 
 from . import qos
 from .core.numbers import Cmd, parse_command
+from .ros import interface
 
-#: The unit services a proxy can call: name -> type.
-SERVICES: dict[str, Any] = {
-    "command": Command,
-    "set_mode": SetMode,
-    "reset_times": ResetTimes,
-    "reset_counters": ResetCounters,
-    "ack_alarms": AckAlarms,
-    "reset_alarms": ResetAlarms,
-    "query_alarms": QueryAlarms,
-    "set_alarm": SetAlarm,
-    "set_mach_speed": SetMachSpeed,
-    "set_unit_parameters": SetUnitParameters,
-    "set_product": SetProduct,
-    "set_em_active": SetEmActive,
-    "set_interlock": SetInterlock,
-}
+#: The unit services a proxy can call (:data:`.ros.interface.SERVICES`): name -> type.
+SERVICES: dict[str, Any] = {s.name: s.type for s in interface.SERVICES}
 
 
 class Unavailable(RuntimeError):
@@ -127,19 +100,20 @@ class UnitProxy:
         self._topic_group = MutuallyExclusiveCallbackGroup()
         self._cond = threading.Condition()
         self._clients: dict[str, Any] = {}
-        self._topics: dict[str, tuple[Any, Callable[[Any], None], Any]] = {
-            "status": (Status, self._on_status, qos.STATUS),
-            "admin": (Admin, self._on("admin"), qos.ADMIN),
-            "alarms": (AlarmList, self._on("alarms"), qos.ALARMS),
-            "transitions": (TransitionEvent, self._on_transition, qos.TRANSITIONS),
+        #: how each followed topic is taken in (its type and QoS: :mod:`.ros.interface`)
+        self._callbacks: dict[str, Callable[[Any], None]] = {
+            "status": self._on_status,
+            "admin": self._on("admin"),
+            "alarms": self._on("alarms"),
+            "transitions": self._on_transition,
         }
         self._subs = {topic: self._subscribe(topic) for topic in self.topics}
 
     def _subscribe(self, topic: str) -> Any:
-        msg_type, callback, profile = self._topics[topic]
+        declared = interface.TOPIC[topic]
         return self.node.create_subscription(
-            msg_type, f"{self.path}/{topic}", callback, profile, callback_group=self._topic_group,
-            event_callbacks=qos.quiet_events(),
+            declared.type, declared.path(self.path), self._callbacks[topic], declared.qos,
+            callback_group=self._topic_group, event_callbacks=qos.quiet_events(),
         )  # fmt: skip
 
     def resubscribe(self, *topics: str) -> None:

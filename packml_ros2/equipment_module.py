@@ -51,13 +51,14 @@ from builtin_interfaces.msg import Time
 from packml_interfaces.msg import EmReport, Status
 from rclpy.serialization import deserialize_message
 
-from . import qos, run
+from . import run
 from .boundary import GuardedNode
 from .cdr_fields import Unreadable, field_reader
 from .core.em_hooks import HOOKS, HookRunner, StateContext, StatusView
 from .core.numbers import Cmd, State, state_name
 from .core.reports import Writers
 from .presence import with_info
+from .ros import interface
 
 __all__ = ["HOOKS", "EquipmentModule", "StateContext", "StatusView", "status_view"]
 
@@ -114,8 +115,10 @@ class EquipmentModule(GuardedNode):
         self._status_msg: tuple[bytes, Status] | None = None  # decoded on demand (unit_status)
         self.refused_statuses = 0  # messages on the status topic that were no status
         self._reported: tuple[int, int, float] | None = None  # last SC: (state, sequence, when)
-        self._pub = self.create_publisher(EmReport, "em_reports", qos.EM_REPORTS)
-        self._beats = self.create_publisher(EmReport, "em_heartbeats", qos.EM_HEARTBEATS)
+        # the unit's inputs (packml_ros2.ros.interface), relative to this node's namespace: its unit
+        reports, beats = interface.TOPIC["em_reports"], interface.TOPIC["em_heartbeats"]
+        self._pub = self.create_publisher(reports.type, reports.name, reports.qos)
+        self._beats = self.create_publisher(beats.type, beats.name, beats.qos)
         self._follow_unit(unit_lost_state)
         self.create_timer(lease / 4.0, self._heartbeat)
         self.create_timer(lease / BEATS_PER_LEASE, self._beat)
@@ -255,8 +258,9 @@ class EquipmentModule(GuardedNode):
         self._unit_writer = Writers()
         self._candidate: tuple[bytes, bytes] | None = None  # (writer, raw) last refused
         self.unit_lost = False  # the unit's status writer is gone: in the safe state
+        status = interface.TOPIC["status"]
         self._status_sub = self.create_subscription(
-            Status, "status", with_info(self._on_status_from), qos.STATUS, raw=True
+            status.type, status.name, with_info(self._on_status_from), status.qos, raw=True
         )
 
     def _on_status_from(self, raw: bytes, info: Any) -> None:

@@ -26,9 +26,10 @@ from packml_interfaces.srv import Command
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
-from . import dds_profile, qos, run
+from . import dds_profile, run
 from .core import CellConfig, ConfigError, load_cell
 from .em_launch import EmRun, groups, host_arguments, program_env, resolve
+from .ros import interface
 from .sim_em import SimConfig, parse_sim
 
 READY_TIMEOUT = 60.0
@@ -115,9 +116,13 @@ def wait_ready(
         services.append(f"/{cell}/coordinator/command")
     clients = {name: node.create_client(Command, name) for name in services}
     latest: dict[str, Status] = {}
+    status = interface.TOPIC["status"]
     subscriptions = [
         node.create_subscription(
-            Status, f"/{cell}/{u}/status", lambda m, u=u: latest.__setitem__(u, m), qos.STATUS
+            status.type,
+            status.path(f"/{cell}/{u}"),
+            lambda m, u=u: latest.__setitem__(u, m),
+            status.qos,
         )
         for u in {r.unit for r in p.ems}
     ]

@@ -12,7 +12,10 @@ nodes are built from the cell file on a private ROS context with discovery off (
 is opened, nothing is sent) and asked for their endpoints, so no name is written twice. Enclaves:
 
 - ``/<cell>/<unit>``: a unit (or its PLC bridge): replies to its services, publishes its topics;
-- ``/<cell>/<unit>/<em>``: an EM: publishes the unit's ``em_reports``, reads its ``status``;
+- ``/<cell>/<unit>/<em>``: an EM: publishes the unit's ``em_reports`` and ``em_heartbeats``, reads
+  its ``status``; an EM that runs as a program of its own or is started elsewhere (not built
+  here) gets what the unit's interface gives an EM (:mod:`.ros.interface`: its inputs and
+  ``EM_FOLLOWS``) — anything else its program uses is added to its enclave by hand;
 - ``/<cell>/coordinator``: its own services and topics; reads the units, calls their services;
 - ``/<cell>/hmi``, ``/<cell>/opcua``, ``/<cell>/operator`` (the ``packml`` verbs, ``ros2``,
   recorders): read every topic of the cell and call every service of it.
@@ -32,6 +35,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .launcher import Plan, build_nodes
+from .ros import interface
 
 #: Topics every ROS node uses (logging, parameter events).
 COMMON_PUBLISH = ("/rosout", "/parameter_events")
@@ -68,6 +72,20 @@ def _of(node: Any, enclave: str) -> Endpoints:
         | set(COMMON_SUBSCRIBE),
         reply=names(node.get_service_names_and_types_by_node(name, ns)),
     )  # fmt: skip
+
+
+def _em(unit: str, em: str) -> Endpoints:
+    """The enclave of EM ``em`` of the unit ``unit`` (``/cell/unit``) from the unit's interface:
+    for an EM that is not built here (a program of its own, or started elsewhere)."""
+    inputs = interface.topics(interface.Role.INPUT)
+    follows = [interface.TOPIC[name] for name in interface.EM_FOLLOWS]
+    return Endpoints(
+        f"{unit}/{em}",
+        unit,
+        em,
+        publish={t.path(unit) for t in inputs} | set(COMMON_PUBLISH),
+        subscribe={t.path(unit) for t in follows} | set(COMMON_SUBSCRIBE),
+    )
 
 
 def _without_plc(plan: Plan) -> Plan:
@@ -114,6 +132,10 @@ def endpoints(plan: Plan) -> list[Endpoints]:
         finally:
             for node in nodes:
                 getattr(node, "close", node.destroy_node)()
+    built = {e.enclave for e in out}
+    out += [
+        _em(f"{base}/{r.unit}", r.em) for r in plan.ems if f"{base}/{r.unit}/{r.em}" not in built
+    ]
     units = [e for e in out if e.ns == base and e.node in cell.units]
     cell_topics = set().union(*(e.publish for e in out)) - set(COMMON_PUBLISH) - {"/diagnostics"}
     cell_services = set().union(*(e.reply for e in out))

@@ -16,15 +16,18 @@ from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from . import responses
 from .core.reasons import Reason
 from .core.rules import lock_change_refusal
+from .ros import interface
 
 NAME = "remote_commands_enabled"
 
 
 class RemoteLock:
     """``on_change(enabled)`` is called when the lock was switched (from the service)."""
+
+    #: the service (:mod:`.ros.interface`) that switches it
+    SERVICE = "set_remote_commands"
 
     def __init__(self, node: Node, unit: str, initial: bool, on_change: Callable[[bool], None],
                  **service_kwargs: Any) -> None:  # fmt: skip
@@ -41,9 +44,7 @@ class RemoteLock:
             ),
         )
         node.add_on_set_parameters_callback(self._validate)
-        responses.create_service(
-            node, SetRemoteCommands, "~/set_remote_commands", self._serve, **service_kwargs
-        )
+        interface.create_service(node, self.SERVICE, self._serve, **service_kwargs)
 
     @property
     def enabled(self) -> bool:

@@ -30,12 +30,13 @@ from typing import Any
 from packml_interfaces.msg import Status
 from std_srvs.srv import SetBool
 
-from . import qos, responses
+from . import responses
 from .core import schema as sc
 from .core.config import CellConfig, load_cell
 from .core.numbers import ACTING, State, parse_state
 from .core.schema import ConfigError, Node
 from .equipment_module import EquipmentModule, StateContext, StatusView
+from .ros import interface
 
 SIM_KEYS = {"durations", "cycle_time", "counter", "counter_index", "defect_rate", "defect_counter_index",
             "consumed_per_cycle", "cycles_per_run", "lease", "faults", "seed", "fed_by", "buffer"}  # fmt: skip
@@ -140,7 +141,13 @@ class SimulatedEm(EquipmentModule):
         self.upstream_runs = False
         self._drain_timer = None
         if sim.fed_by:
-            self.create_subscription(Status, f"/{cell}/{sim.fed_by}/status", self._on_upstream, qos.STATUS)  # fmt: skip
+            upstream = interface.TOPIC["status"]  # the status of the unit that feeds this one
+            self.create_subscription(
+                upstream.type,
+                upstream.path(f"/{cell}/{sim.fed_by}"),
+                self._on_upstream,
+                upstream.qos,
+            )
             self._drain_timer = self.create_timer(BUFFER_TICK, self._drain)
             self._drain_timer.cancel()  # runs only while the buffer drains (_watch_buffer)
         for fault in sim.faults.values():

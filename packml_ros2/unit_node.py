@@ -1,12 +1,8 @@
 """The PackML unit node: the engine (:class:`packml_ros2.core.Unit`) on ROS 2.
 
-Services (relative to the node, e.g. ``/demo_cell/robot_cell/command``): ``command``, ``set_mode``,
-the Trigger shortcuts ``reset`` ... ``complete``, ``reset_times``, ``reset_counters``,
-``ack_alarms``, ``reset_alarms``, ``query_alarms``, ``set_alarm``, ``set_mach_speed``,
-``set_unit_parameters``, ``set_product``, ``set_em_active``, ``set_interlock``,
-``set_remote_commands`` (the remote lock: from a local source only).
-Topics: ``status``, ``transitions``, ``admin``, ``alarms``, ``input_log``, ``/diagnostics``;
-EMs report on ``em_reports``.
+Its services and topics (relative to the node, e.g. ``/demo_cell/robot_cell/command``) are the
+ones :mod:`packml_ros2.ros.interface` declares (``unit_node --help`` lists them after this text);
+EMs report on ``em_reports`` and ``em_heartbeats``.
 
 Run: ``unit_node <cell.yaml> [unit] [--ros-args -p remote_commands_enabled:=true ...]``
 """
@@ -21,16 +17,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any, TypeVar
 
-from diagnostic_msgs.msg import DiagnosticArray
-from packml_interfaces.msg import (
-    Admin,
-    AlarmList,
-    EmReport,
-    Status,
-    TransitionEvent,
-    UnitInput,
-    UnitSnapshot,
-)
+from packml_interfaces.msg import EmReport, UnitInput
 from packml_interfaces.srv import (
     AckAlarms,
     Command,
@@ -55,7 +42,7 @@ from rclpy.subscription import MessageInfo, Subscription
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from . import convert, qos, responses, run
+from . import convert, run
 from .boundary import GuardedNode
 from .core import (
     CellConfig,
@@ -78,6 +65,7 @@ from .core.secrets import redacted_yaml
 from .driver import FrozenClock, UnitDriver
 from .presence import with_info
 from .remote_lock import RemoteLock
+from .ros import interface
 
 T = TypeVar("T")
 #: s: the input log goes out at most this long after an input (in batches, after the outputs)
@@ -128,38 +116,33 @@ class UnitNode(GuardedNode):
 
         # liveliness: every face sees the unit gone within its lease (packml_ros2.presence)
         lease = unit_lease if unit_lease is not None else CoordinatorConfig.unit_lease
-        self.pub_status = self.create_publisher(Status, "~/status", qos.status_publisher(lease))
-        self.pub_transitions = self.create_publisher(
-            TransitionEvent, "~/transitions", qos.TRANSITIONS
-        )
-        self.pub_admin = self.create_publisher(Admin, "~/admin", qos.ADMIN)
-        self.pub_alarms = self.create_publisher(AlarmList, "~/alarms", qos.ALARMS)
-        self.pub_inputs = self.create_publisher(UnitInput, "~/input_log", qos.INPUT_LOG)
-        self.pub_diagnostics = self.create_publisher(
-            DiagnosticArray, "/diagnostics", qos.DIAGNOSTICS
-        )
-        self.pub_config = self.create_publisher(String, "~/config", qos.LATCHED)
-        self._outputs = {
-            "status": self.pub_status,
-            "transitions": self.pub_transitions,
-            "admin": self.pub_admin,
-            "alarms": self.pub_alarms,
-        }
+        publish = partial(interface.create_publisher, self)
+        self.pub_status = publish("status", lease=lease)
+        self.pub_transitions = publish("transitions")
+        self.pub_admin = publish("admin")
+        self.pub_alarms = publish("alarms")
+        self.pub_inputs = publish("input_log")
+        self.pub_diagnostics = publish("/diagnostics")
+        self.pub_config = publish("config")
+        self._outputs = {t.name: getattr(self, f"pub_{t.name}")
+                         for t in interface.topics(interface.Role.OUTPUT)}  # fmt: skip
         #: messages published per output topic: a snapshot says where a replay from it aligns
         self._published = dict.fromkeys(self._outputs, 0)
         # a recorder that joins gets the engine state: a replay starts from it (bag/replay.py)
-        self.pub_snapshot = self.create_publisher(
-            UnitSnapshot, "~/snapshot", qos.SNAPSHOT,
+        self.pub_snapshot = publish(
+            "snapshot",
             event_callbacks=PublisherEventCallbacks(matched=self._on_snapshot_matched),
         ) if self._record else None  # fmt: skip
+        reports = interface.TOPIC["em_reports"]
         self._reports = self.create_subscription(
-            EmReport, "~/em_reports", with_info(self._on_report), qos.EM_REPORTS
+            reports.type, reports.path(), with_info(self._on_report), reports.qos
         )
         #: heartbeats on their own best-effort channel (qos.EM_HEARTBEATS), from the writer
         #: bound for each EM there (a forger cannot keep a dead EM alive)
         self.beat_writers = Writers()
+        beats = interface.TOPIC["em_heartbeats"]
         self._beats = self.create_subscription(
-            EmReport, "~/em_heartbeats", with_info(self._on_heartbeat), qos.EM_HEARTBEATS
+            beats.type, beats.path(), with_info(self._on_heartbeat), beats.qos
         )
         self._create_services()
         # No polling: one timer, armed for the engine's next deadline, the next lease that can
@@ -228,25 +211,23 @@ class UnitNode(GuardedNode):
 
     # -- services --------------------------------------------------------------------------------------
     def _create_services(self) -> None:
-        services: list[tuple[Any, str, Callable[[Any, Any], Any]]] = [
-            (Command, "command", self._srv_command),
-            (SetMode, "set_mode", self._srv_set_mode),
-            (ResetTimes, "reset_times", self._srv_reset_times),
-            (ResetCounters, "reset_counters", self._srv_reset_counters),
-            (AckAlarms, "ack_alarms", self._srv_ack_alarms),
-            (ResetAlarms, "reset_alarms", self._srv_reset_alarms),
-            (QueryAlarms, "query_alarms", self._srv_query_alarms),
-            (SetAlarm, "set_alarm", self._srv_set_alarm),
-            (SetMachSpeed, "set_mach_speed", self._srv_set_mach_speed),
-            (SetUnitParameters, "set_unit_parameters", self._srv_set_parameters),
-            (SetProduct, "set_product", self._srv_set_product),
-            (SetEmActive, "set_em_active", self._srv_set_em_active),
-            (SetInterlock, "set_interlock", self._srv_set_interlock),
-        ]
-        for verb, cmd in responses.TRIGGER_SHORTCUTS:
-            services.append((Trigger, verb, partial(self._srv_trigger, cmd)))
-        for srv_type, name, handler in services:
-            responses.create_service(self, srv_type, f"~/{name}", handler)
+        """Every service :mod:`.ros.interface` declares (``set_remote_commands``: the remote lock)."""
+        handlers: dict[str, Callable[[Any, Any], Any]] = {
+            "command": self._srv_command,
+            "set_mode": self._srv_set_mode,
+            "reset_times": self._srv_reset_times,
+            "reset_counters": self._srv_reset_counters,
+            "ack_alarms": self._srv_ack_alarms,
+            "reset_alarms": self._srv_reset_alarms,
+            "query_alarms": self._srv_query_alarms,
+            "set_alarm": self._srv_set_alarm,
+            "set_mach_speed": self._srv_set_mach_speed,
+            "set_unit_parameters": self._srv_set_parameters,
+            "set_product": self._srv_set_product,
+            "set_em_active": self._srv_set_em_active,
+            "set_interlock": self._srv_set_interlock,
+        }
+        interface.create_services(self, handlers, self._srv_trigger, skip=[RemoteLock.SERVICE])
 
     def _answer(self, resp: Any, answer: Any, message_field: str = "message") -> Any:
         resp.accepted = answer.accepted
@@ -664,6 +645,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = run.init(argv)
     if not args or args[0] in ("-h", "--help"):
         print(__doc__)
+        print(interface.describe())
         return 0 if args else 2
     try:
         cell = load_cell(args[0])

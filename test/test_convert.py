@@ -112,3 +112,30 @@ def test_a_transition_as_queued_converts_as_its_typed_record() -> None:
             convert.transition("filler", t)
         )
         assert unit.status_at(r) == unit.status_at(t)
+
+
+def test_every_field_of_the_status_view_reaches_the_status_message() -> None:
+    """``convert.status`` is generated from the message's fields (issue 28): a field of the view
+    changed alone changes the message, so none is dropped on the way (the unit's and a PLC
+    bridge's status alike go through it)."""
+    import dataclasses
+
+    from packml_ros2.core.config import Descriptor, Product
+    from packml_ros2.core.packtags import RemoteInterfaceView, StatusView
+
+    view = _views().status()
+    base = convert.status(view)
+    empty = {"parameter": (Descriptor(1, "speed", "ppm", 2.0),),
+             "product": (Product(7, (), ()),),
+             "remote_interface": (RemoteInterfaceView(1, 2, 3),)}  # fmt: skip
+    for f in dataclasses.fields(StatusView):
+        value = getattr(view, f.name)
+        if isinstance(value, bool):
+            other: object = not value
+        elif isinstance(value, int | float):
+            other = value + 1
+        elif isinstance(value, str):
+            other = value + "x"
+        else:
+            other = value[:-1] if value else empty[f.name]
+        assert convert.status(dataclasses.replace(view, **{f.name: other})) != base, f.name

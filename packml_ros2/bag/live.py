@@ -38,10 +38,11 @@ from typing import Any
 
 from rclpy.serialization import deserialize_message, serialize_message
 
-from .. import convert, qos
+from .. import convert
 from ..client import Unavailable, call_blocking
 from ..core import inputlog
 from ..core.numbers import state_name
+from ..ros import interface
 from .recording import Input, UnitRecording, load
 from .replay import checked_inputs, stamp_of
 from .topics import UNIT_TOPICS, msg_class
@@ -201,15 +202,11 @@ class _LiveUnit:
         self.cond = threading.Condition()
         self.transitions: list[Any] = []
         self.status: Any = None
-        tcls = msg_class(UNIT_TOPICS["transitions"])
-        scls = msg_class(UNIT_TOPICS["status"])
-        node.create_subscription(
-            tcls, f"{self.prefix}/transitions", self._on_transition, qos.TRANSITIONS
-        )
-        node.create_subscription(scls, f"{self.prefix}/status", self._on_status, qos.STATUS)
-        self.reports = node.create_publisher(
-            msg_class(UNIT_TOPICS["em_reports"]), f"{self.prefix}/em_reports", qos.EM_REPORTS
-        )
+        for name, callback in (("transitions", self._on_transition), ("status", self._on_status)):
+            t = interface.TOPIC[name]
+            node.create_subscription(t.type, t.path(self.prefix), callback, t.qos)
+        reports = interface.TOPIC["em_reports"]
+        self.reports = node.create_publisher(reports.type, reports.path(self.prefix), reports.qos)
         self.services = SERVICES
         self.clients: dict[str, Any] = {}
 

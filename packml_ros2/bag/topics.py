@@ -13,8 +13,10 @@ from typing import Any
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from .. import qos
+from ..ros import interface
 
-#: The unit's outputs, compared by replay (in the order a report looks at them).
+#: The unit's outputs (:data:`.interface.Role.OUTPUT`), compared by replay (in the order a report
+#: looks at them).
 OUTPUT_TOPICS = ("transitions", "status", "alarms", "admin")
 #: Outputs a unit publishes at its start and keeps latched (depth 1): a recorder matched on them
 #: has their newest message.
@@ -23,28 +25,14 @@ LATCHED_OUTPUTS = ("status", "admin", "alarms")
 #: the configuration the unit was started with, and the engine state when the recorder joined
 #: (replay starts from it when the input log does not reach back to the unit's start).
 INPUT_TOPICS = ("input_log", "em_reports", "config", "snapshot")
-#: Topic (relative to ``/<cell>/<unit>``) -> ROS type name.
-UNIT_TOPICS: dict[str, str] = {
-    "input_log": "packml_interfaces/msg/UnitInput",
-    "config": "std_msgs/msg/String",
-    "status": "packml_interfaces/msg/Status",
-    "transitions": "packml_interfaces/msg/TransitionEvent",
-    "admin": "packml_interfaces/msg/Admin",
-    "alarms": "packml_interfaces/msg/AlarmList",
-    "em_reports": "packml_interfaces/msg/EmReport",
-    "snapshot": "packml_interfaces/msg/UnitSnapshot",
-}
+#: The unit's topics a recording holds (:mod:`..ros.interface`, ``recorded``): topic (relative to
+#: ``/<cell>/<unit>``) -> ROS type name.
+UNIT_TOPICS: dict[str, str] = {t.name: t.type_name for t in interface.TOPICS if t.recorded}
 CELL_STATUS_TYPE = "packml_interfaces/msg/CellStatus"
-#: Publisher QoS of each unit topic (packml_ros2.qos), stored in the bag's metadata.
+#: Publisher QoS of each recorded topic (the unit's: :mod:`..ros.interface`), stored in the bag's
+#: metadata.
 PUBLISHER_QOS: dict[str, QoSProfile] = {
-    "input_log": qos.INPUT_LOG,
-    "config": qos.LATCHED,
-    "status": qos.STATUS,
-    "transitions": qos.TRANSITIONS,
-    "admin": qos.ADMIN,
-    "alarms": qos.ALARMS,
-    "em_reports": qos.EM_REPORTS,
-    "snapshot": qos.SNAPSHOT,
+    **{name: interface.TOPIC[name].qos for name in UNIT_TOPICS},
     "coordinator": qos.CELL_STATUS,
     "line_input_log": qos.LINE_INPUT_LOG,  # the line's topics: packml_ros2.bag.line
     "line_episodes": qos.LINE_EPISODES,

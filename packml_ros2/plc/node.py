@@ -4,14 +4,17 @@ Node ``/<cell>/<unit>``, one per PLC unit (a ``plc:`` block in the cell file), w
 types and QoS of :class:`packml_ros2.unit_node.UnitNode`, so the coordinator, the HMI, ``packml``,
 the OPC UA server and ``packml record`` treat it like any other unit:
 
-- topics ``status`` (latched, DDS liveliness with ``unit_lease``), ``transitions``, ``admin``,
-  ``alarms``, ``config`` and ``/diagnostics`` (entry ``packml: <unit>``);
-- services ``command``, ``set_mode`` and the Trigger shortcuts (the OPC 30050 state machine
-  methods and SetUnitMode), ``set_mach_speed`` (SetMachSpeed), ``set_unit_parameters``
-  (SetParameter), ``set_product`` (SetProduct), ``set_interlock`` (the bridge suspends and
-  unsuspends the PLC, as a unit does), ``query_alarms`` (the PLC's Admin lists). What OPC 30050
-  has no method for (``ack_alarms``, ``reset_alarms``, ``set_alarm``, ``reset_times``,
-  ``reset_counters``, ``set_em_active``) is refused with NOT_SUPPORTED and a sentence.
+- the topics :mod:`packml_ros2.ros.interface` marks ``plc``: ``status`` (latched, DDS liveliness
+  with ``unit_lease``), ``transitions``, ``admin``, ``alarms``, ``config`` and ``/diagnostics``
+  (entry ``packml: <unit>``);
+- every service the interface declares: ``command``, ``set_mode`` and the Trigger shortcuts (the
+  OPC 30050 state machine methods and SetUnitMode), ``set_mach_speed`` (SetMachSpeed),
+  ``set_unit_parameters`` (SetParameter), ``set_product`` (SetProduct), ``set_interlock`` (the
+  bridge suspends and unsuspends the PLC, as a unit does), ``query_alarms`` (the PLC's Admin
+  lists), ``set_remote_commands`` (the remote lock). What OPC 30050 has no method for (the
+  services the interface declares with ``plc_lacks``: ``ack_alarms``, ``reset_alarms``,
+  ``set_alarm``, ``reset_times``, ``reset_counters``, ``set_em_active``) is refused with
+  NOT_SUPPORTED and a sentence.
 
 A request is checked like a unit checks it, by the unit's rule book (command number, the remote
 lock of parameter ``remote_commands_enabled`` over every request that changes the unit, the
@@ -40,22 +43,15 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from functools import partial
 from pathlib import Path
 from typing import Any
 
 from asyncua import ua
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from packml_interfaces.msg import Admin, AlarmList, Count, Descriptor, Oee, Status, TransitionEvent
+from packml_interfaces.msg import Admin, AlarmList, Count, Descriptor, Oee
 from packml_interfaces.srv import (
-    AckAlarms,
     Command,
     QueryAlarms,
-    ResetAlarms,
-    ResetCounters,
-    ResetTimes,
-    SetAlarm,
-    SetEmActive,
     SetInterlock,
     SetMachSpeed,
     SetMode,
@@ -64,9 +60,8 @@ from packml_interfaces.srv import (
 )
 from rclpy.callback_groups import ReentrantCallbackGroup
 from std_msgs.msg import Header, String
-from std_srvs.srv import Trigger as TriggerSrv
 
-from .. import convert, qos, responses, run
+from .. import convert, run
 from ..boundary import GuardedNode
 from ..core import CellConfig, Cmd, UnitConfig, load_cell, state_name
 from ..core import config as cfg
@@ -79,6 +74,7 @@ from ..core.rules import locked_refusal
 from ..core.unit import Transition, Trigger
 from ..opcua.nodeset import load
 from ..remote_lock import RemoteLock
+from ..ros import interface
 from .config import PlcConfig, describe, parse_plc
 from .link import Link, NotConnected, Outcome
 from .mirror import Mirror, PlcSituation, plc_refusal
@@ -87,14 +83,6 @@ TICK = 0.1  # s: held-back state changes, the mode-change lamp, admin period
 DIAGNOSTICS_PERIOD = 1.0
 MODE_LAMP = 3.0  # s the mode_change_not_allowed flag stays up (as a unit's)
 INTERLOCK_SOURCE = "interlock"
-UNSUPPORTED = {
-    "ack_alarms": (AckAlarms, "acknowledging alarms"),
-    "reset_alarms": (ResetAlarms, "resetting alarms"),
-    "set_alarm": (SetAlarm, "raising or clearing alarms"),
-    "reset_times": (ResetTimes, "resetting times"),
-    "reset_counters": (ResetCounters, "resetting counters"),
-    "set_em_active": (SetEmActive, "switching equipment modules"),
-}
 Answer = tuple[bool, int, str]
 
 
@@ -134,10 +122,8 @@ class PlcUnitNode(GuardedNode):
         self.remote_lock = RemoteLock(self, config.name, config.remote_commands_enabled,
                                       self._on_remote_lock, callback_group=self._group)  # fmt: skip
         self.remote_enabled = config.remote_commands_enabled
-        self.pub_diagnostics = self.create_publisher(
-            DiagnosticArray, "/diagnostics", qos.DIAGNOSTICS
-        )
-        self.pub_config = self.create_publisher(String, "~/config", qos.LATCHED)
+        self.pub_diagnostics = interface.create_publisher(self, "/diagnostics")
+        self.pub_config = interface.create_publisher(self, "config")
         if source is not None:
             self.pub_config.publish(
                 String(
@@ -222,13 +208,10 @@ class PlcUnitNode(GuardedNode):
     def _make_publishers(self) -> None:
         if self._unit_pubs:
             return
+        # the unit's outputs (a unit's config and /diagnostics stay while the PLC is gone)
         self._unit_pubs = {
-            "status": self.create_publisher(
-                Status, "~/status", qos.status_publisher(self.unit_lease)
-            ),
-            "transitions": self.create_publisher(TransitionEvent, "~/transitions", qos.TRANSITIONS),
-            "admin": self.create_publisher(Admin, "~/admin", qos.ADMIN),
-            "alarms": self.create_publisher(AlarmList, "~/alarms", qos.ALARMS),
+            t.name: interface.create_publisher(self, t.name, lease=self.unit_lease)
+            for t in interface.topics(interface.Role.OUTPUT)
         }
         self._last.clear()
 
@@ -454,18 +437,20 @@ class PlcUnitNode(GuardedNode):
 
     # -- services ---------------------------------------------------------------------------------------
     def _create_services(self) -> None:
-        serve = partial(responses.create_service, self, callback_group=self._group)
-        serve(Command, "~/command", self._srv_command)
-        serve(SetMode, "~/set_mode", self._srv_set_mode)
-        for verb, cmd in responses.TRIGGER_SHORTCUTS:
-            serve(TriggerSrv, f"~/{verb}", partial(self._srv_trigger, cmd))
-        serve(SetMachSpeed, "~/set_mach_speed", self._srv_set_mach_speed)
-        serve(SetUnitParameters, "~/set_unit_parameters", self._srv_set_parameters)
-        serve(SetProduct, "~/set_product", self._srv_set_product)
-        serve(SetInterlock, "~/set_interlock", self._srv_set_interlock)
-        serve(QueryAlarms, "~/query_alarms", self._srv_query_alarms)
-        for name, (srv_type, what) in UNSUPPORTED.items():
-            serve(srv_type, f"~/{name}", partial(self._srv_unsupported, what))
+        """Every service :mod:`..ros.interface` declares: the ones OPC 30050 lacks refused."""
+        handlers: dict[str, Callable[[Any, Any], Any]] = {
+            "command": self._srv_command,
+            "set_mode": self._srv_set_mode,
+            "set_mach_speed": self._srv_set_mach_speed,
+            "set_unit_parameters": self._srv_set_parameters,
+            "set_product": self._srv_set_product,
+            "set_interlock": self._srv_set_interlock,
+            "query_alarms": self._srv_query_alarms,
+        }
+        interface.create_services(
+            self, handlers, self._srv_trigger, self._srv_unsupported,
+            skip=[RemoteLock.SERVICE], callback_group=self._group,
+        )  # fmt: skip
 
     def _call(self, method: str, args: Sequence[ua.Variant]) -> Outcome:
         """Call a method of the PLC from a service thread (blocks it, never the executor)."""

@@ -9,8 +9,8 @@ from packml_interfaces.msg import Admin, AlarmList, Status, TransitionEvent
 from packml_interfaces.srv import Command
 from std_srvs.srv import Trigger
 
-from .. import qos
 from ..core import Cmd
+from ..ros import interface
 from .harness import Collector, RosHarness
 
 
@@ -20,14 +20,15 @@ class UnitClient:
     def __init__(self, ros: RosHarness, cell: str, unit: str) -> None:
         self.ros = ros
         self.base = f"/{cell}/{unit}"
-        self.status: Collector[Status] = ros.subscribe(Status, f"{self.base}/status", qos.STATUS)
-        self.transitions: Collector[TransitionEvent] = ros.subscribe(
-            TransitionEvent, f"{self.base}/transitions", qos.TRANSITIONS
-        )
-        self.admin: Collector[Admin] = ros.subscribe(Admin, f"{self.base}/admin", qos.ADMIN)
-        self.alarms: Collector[AlarmList] = ros.subscribe(
-            AlarmList, f"{self.base}/alarms", qos.ALARMS
-        )
+
+        def follow(name: str) -> Collector[Any]:  # the unit's output, as declared
+            topic = interface.TOPIC[name]
+            return ros.subscribe(topic.type, topic.path(self.base), topic.qos)
+
+        self.status: Collector[Status] = follow("status")
+        self.transitions: Collector[TransitionEvent] = follow("transitions")
+        self.admin: Collector[Admin] = follow("admin")
+        self.alarms: Collector[AlarmList] = follow("alarms")
 
     _since = 0  # status count at the last call: waits skip older statuses
     _transitions_since = 0  # transition count at the last call
