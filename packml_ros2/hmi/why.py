@@ -25,6 +25,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from ..core.config import UnitConfig
+from ..core.line.sequence import INTERRUPTS_A_SEQUENCE
 from ..core.numbers import Cmd, Mode, State, command_name, names_of, state_name
 from ..core.reasons import Reason
 from ..core.rules import COMMANDS, GUARDS, Rules, locked_refusal, remote_locked, rules_of
@@ -222,12 +223,6 @@ def reasons(config: UnitConfig, status: Mapping[str, Any] | None,
         "modes": mode_reasons(config, status, source),
         "ems": em_reasons(config, status, source),
     }
-
-
-#: The cell commands the coordinator takes while one of its sequences runs: each interrupts it
-#: (ABORT goes to every unit beside it, STOP cancels it and then runs). Any other command is
-#: refused until the sequence has ended (the coordinator answers "busy").
-INTERRUPTS_A_SEQUENCE: tuple[Cmd, ...] = (Cmd.STOP, Cmd.ABORT)
 
 
 def cell_command_reasons(cell_status: Mapping[str, Any] | None) -> dict[str, str]:

@@ -88,3 +88,14 @@ def test_abort_during_a_start_begins_at_once() -> None:
     sim.run_until(5)
     begun = sim.line.begin_command(Cmd.ABORT, "operator")
     assert not isinstance(begun, (Outcome, StopWaits)), begun
+
+
+def test_while_a_sequence_runs_the_cell_lists_only_what_interrupts_it() -> None:
+    sim = line()
+    assert Cmd.START in sim.line.view().commands_valid
+    sim.cell_command(Cmd.START)
+    sim.run_until(5)
+    assert set(sim.line.view().commands_valid) <= {Cmd.STOP, Cmd.ABORT}
+    assert Cmd.STOP in sim.line.view().commands_valid
+    sim.run_until(14)  # the START has ended
+    assert Cmd.STOP in sim.line.view().commands_valid and Cmd.HOLD in sim.line.view().commands_valid

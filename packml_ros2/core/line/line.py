@@ -10,6 +10,7 @@ epoch: the units' stamps, shifts).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sqlite3
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -26,7 +27,16 @@ from .episodes import Episode, Root
 from .ledger import ROLLING, Fact, History, Ledger, MemoryHistory, add_clipped
 from .losses import DOWN, LINE, PLANNED, Summary, Totals, summarize
 from .performance import AHEAD_WAIT, Performance
-from .sequence import AbortRun, CommandRun, ModeRun, Outcome, Run, Runs, StopWaits
+from .sequence import (
+    INTERRUPTS_A_SEQUENCE,
+    AbortRun,
+    CommandRun,
+    ModeRun,
+    Outcome,
+    Run,
+    Runs,
+    StopWaits,
+)
 from .store import LineStore
 
 NS = 1_000_000_000
@@ -254,7 +264,7 @@ class Line:
             exclusive = False
         else:
             if self.runs.sequence is not None:
-                if cmd is Cmd.STOP:
+                if cmd in INTERRUPTS_A_SEQUENCE:  # (ABORT: above)
                     joined = self.runs.running_stop()
                     if joined is not None:
                         return Outcome(True, Reason.ACCEPTED, f"STOP joined the STOP in progress ({joined})")  # fmt: skip
@@ -313,6 +323,9 @@ class Line:
         if self._last_result and not busy and view.state_current != self._result_in:
             self._last_result = ""
             view = self.cell.view(busy, self.runs.step, "")
+        if self.runs.sequence is not None:  # only what interrupts it is taken meanwhile
+            valid = tuple(c for c in view.commands_valid if c in INTERRUPTS_A_SEQUENCE)
+            view = dataclasses.replace(view, commands_valid=valid)
         return view
 
     # ================================================================================================

@@ -31,6 +31,9 @@ from .cell import SOURCE, Cell, UnitView
 START_LIKE = frozenset({Cmd.RESET, Cmd.START, Cmd.UNHOLD, Cmd.UNSUSPEND, Cmd.CLEAR})
 STOP_LIKE = frozenset({Cmd.STOP, Cmd.HOLD, Cmd.SUSPEND, Cmd.COMPLETE})
 POLL = 0.5  # s: the longest a run waits without news
+#: The cell commands taken while a sequence runs: each interrupts it (ABORT goes to every unit
+#: beside it, STOP cancels it and then runs); any other is refused as busy until it has ended.
+INTERRUPTS_A_SEQUENCE: tuple[Cmd, ...] = (Cmd.STOP, Cmd.ABORT)
 SERVICE_POLL = 0.02  # s between looks for a service not discovered yet
 
 Ready = Callable[[str, str], bool]  #: (unit, service) -> is it there
