@@ -34,7 +34,15 @@ from rclpy.serialization import deserialize_message
 
 from ..core.files import kind_of
 from .cdr import raw_stamp, read_unit_input
-from .topics import CUSTOM_KEY, OUTPUT_TOPICS, UNIT_TOPICS, msg_class, split_topic, typestore
+from .topics import (
+    CUSTOM_KEY,
+    OUTPUT_TOPICS,
+    UNIT_TOPICS,
+    installed_hash,
+    msg_class,
+    split_topic,
+    typestore,
+)
 
 #: Why a recording cannot be replayed (:attr:`RecordingError.reason`) -> the exit code of
 #: ``packml replay``: a CI job tells a damaged file from an incomplete or inconsistent log.
@@ -576,7 +584,6 @@ def _definition_hash(msgtype: str, fmt: str, data: str) -> str:
 
 
 def _load(bag: _Bag, path: str | Path, keep_raw: bool, em_reports: bool = True) -> Recording:
-    store = typestore()
     units: dict[str, UnitRecording] = {}
     wanted = []
     digests: dict[str, str] = {}
@@ -587,10 +594,10 @@ def _load(bag: _Bag, path: str | Path, keep_raw: bool, em_reports: bool = True) 
         split = split_topic(conn.topic)
         if split is None or UNIT_TOPICS[split[1]] != conn.msgtype:
             continue
-        if have is not None and have != store.hash_rihs01(conn.msgtype):
+        if have is not None and have != installed_hash(conn.msgtype):
             raise RecordingError(
                 f"{path}: {conn.msgtype} in the bag ({have}) differs from the installed "
-                f"definition ({store.hash_rihs01(conn.msgtype)}): the bag was recorded with "
+                f"definition ({installed_hash(conn.msgtype)}): the bag was recorded with "
                 "another version of packml_interfaces; re-record it, or replay it with that version"
             )
         units.setdefault(split[0], UnitRecording(split[0]))
