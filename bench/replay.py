@@ -20,7 +20,11 @@ is shared), ``--repeats`` rounds, each running in turn:
   every recorded output on decoded values);
 - ``mcap_ros2`` and ``rosbags``: what a user would reach for to decode the same messages the
   check decodes (everything but the EM reports) — ``mcap-ros2-support``'s decoder and
-  ``rosbags``' AnyReader + deserialize.
+  ``rosbags``' AnyReader + deserialize;
+- ``engine``: the engine alone (the same inputs and deadlines through the same driver, no output
+  message built, no bag read, nothing compared): the check cannot beat it, so
+  ``ceiling_decoded_per_cpu_second`` (the check's count over the engine's CPU time) bounds what
+  any reader or comparison can reach without a faster engine.
 
 ``decoded_per_cpu_second`` counts only what the check decodes and compares: the inputs it
 replays and the outputs it compares. The EM reports (heartbeats included, about 75 % of the
@@ -67,7 +71,8 @@ from pathlib import Path
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
-from packml_ros2.bag.replay import replay
+from packml_ros2.bag.recording import load
+from packml_ros2.bag.replay import UnitReplay, gc_paused, replay, starting_point, unit_config
 from packml_ros2.bag.topics import typestore
 
 bag, repeats = Path(sys.argv[1]), int(sys.argv[2])
@@ -113,6 +118,19 @@ def check():
     return sum(len(u.inputs) + sum(u.compared.values()) for u in r.units)
 
 
+def engine():
+    # the engine alone: the same inputs and deadlines, no message built or compared
+    rec = state["recording"]
+    with gc_paused():
+        for u in state["result"].units:
+            unit = rec.units[u.prefix]
+            origin, inputs = starting_point(unit, rec.path)
+            r = UnitReplay(unit_config(unit, None, rec.path), origin)
+            r.driver.flush = lambda d=r.driver: [None for _ in d.unit.drain().raw()]
+            r.run(inputs if origin.start is None else inputs[1:], u.stop)
+    return sum(len(u.inputs) + sum(u.compared.values()) for u in state["result"].units)
+
+
 with open(file, "rb") as f:
     summary = make_reader(f).get_summary()
 topics = [c.topic for c in summary.channels.values() if not c.topic.endswith("/em_reports")]
@@ -121,6 +139,8 @@ rounds = []
 for _ in range(repeats):
     rounds.append({name: timed(fn) for name, fn in
                    (("floor", floor), ("check", check), ("mcap_ros2", mcap_ros2), ("rosbags", rosbags))})
+    state.setdefault("recording", load(bag, em_reports=False))
+    rounds[-1]["engine"] = timed(engine)
 r = state["result"]
 print(json.dumps({"rounds": rounds, "messages": r.messages, "ok": r.ok,
                   "inputs": sum(len(u.inputs) for u in r.units),
@@ -341,6 +361,11 @@ def main() -> int:
             "floor_over_check": round(floor_rate / decoded_rate, 2),
             "target_floor_ratio": FLOOR_RATIO,
             "meets_floor_ratio": floor_rate / decoded_rate <= FLOOR_RATIO,
+            # the engine alone (packml_ros2.core: inputs and deadlines, no message built, read
+            # or compared) in the same rounds: the check can go no faster than this
+            "engine_cpu_seconds": round(middle["engine"][1], 3),
+            "engine_share_of_check": round(middle["engine"][1] / middle["check"][1], 2),
+            "ceiling_decoded_per_cpu_second": round(rate(middle, "engine")),
             "mcap_ros2_support_decoded_per_cpu_second": round(median("mcap_ros2")),
             "rosbags_decoded_per_cpu_second": round(median("rosbags")),
             "match": run["ok"],

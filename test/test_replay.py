@@ -444,7 +444,7 @@ def test_the_fast_comparison_ignores_padding_only() -> None:
 
 
 def test_our_serializer_gives_rclpys_bytes() -> None:
-    """cdr.serialize (used for Admin and AlarmList comparisons) gives the bytes of
+    """cdr.serialize (used for the comparison of every output) gives the bytes of
     rclpy.serialization with the padding zeroed, for every message of a few replays."""
     for bag in ("alarm_abort_clear_reset", "mode_changes", "suspend_interlock"):
         unit = replay(BAGS / bag).units[0]

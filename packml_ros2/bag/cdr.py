@@ -134,16 +134,21 @@ class Layout(NamedTuple):
     data: struct.Struct  # reads every data byte (as segments), skipping the padding
 
 
-_layouts: dict[tuple[Any, int, int], Layout] = {}
+#: (type, length, byte order) -> the layouts seen, newest first (a topic alternates between a
+#: few with the same length: a status of another state name of the same length, ...)
+_layouts: dict[tuple[Any, int, int], list[Layout]] = {}
+LAYOUTS_PER_LENGTH = 8
 
 
 def layout(a: bytes, cls: Any) -> Layout | None:
     """The layout of serialization ``a`` of ``cls`` (cached per type, length and byte order: the
-    next message of a topic usually has the same one, checked with a single ``unpack``)."""
+    next message of a topic usually has one seen before, checked with a single ``unpack``)."""
     key = (cls, len(a), a[1])
     cached = _layouts.get(key)
-    if cached is not None and cached.probes.unpack_from(a) == cached.lengths:
-        return cached
+    if cached is not None:
+        for known in cached:
+            if known.probes.unpack_from(a) == known.lengths:
+                return known
     little = a[1] == 1
     gaps: list[tuple[int, int]] = []
     probes: list[int] = []
@@ -170,7 +175,9 @@ def layout(a: bytes, cls: Any) -> Layout | None:
     found = Layout(end, probe, probe.unpack_from(a), struct.Struct("".join(fmt)))
     if len(_layouts) > 256:
         _layouts.clear()
-    _layouts[key] = found
+    known_layouts = _layouts.setdefault(key, [])
+    known_layouts.insert(0, found)
+    del known_layouts[LAYOUTS_PER_LENGTH:]
     return found
 
 

@@ -102,9 +102,10 @@ from .topics import (
 )
 
 OUTPUT_CLASSES = {t: msg_class(UNIT_TOPICS[t]) for t in OUTPUT_TOPICS}
-#: Serializers for the comparison: ours for the messages full of shared alarms (4x faster than
-#: rclpy's there), rclpy's for the others.
-SERIALIZE = {"admin": cdr.serialize, "alarms": cdr.serialize}
+#: Serializers for the comparison: ours (:func:`.cdr.serialize`, generated from the message
+#: definitions) for every output, faster than rclpy's (4x on the messages full of shared alarms,
+#: 1.3-1.5x on statuses and transitions).
+SERIALIZE = dict.fromkeys(OUTPUT_TOPICS, cdr.serialize)
 MAX_FIELDS = 12
 MAX_INPUTS = 12
 

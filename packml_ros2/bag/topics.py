@@ -5,6 +5,7 @@ other rosbag2 tools can read them)."""
 from __future__ import annotations
 
 import functools
+import json
 import os
 import sys
 from pathlib import Path
@@ -139,6 +140,25 @@ def typestore() -> Any:
         )
     store.register(types)
     return store
+
+
+@functools.cache
+def installed_hash(msgtype: str) -> str:
+    """RIHS01 of the installed definition of ``pkg/msg/Name``: the one rosidl wrote beside the
+    installed ``.msg`` file (``<Name>.json``, ``type_hashes``), else computed by :func:`typestore`
+    (whose first use parses every definition: about half a second, more than reading a bag)."""
+    pkg, _, name = msgtype.split("/")
+    here = interface_dir()
+    description = here.parents[1] / pkg / "msg" / f"{name}.json"
+    if here.parent.name == "packml_interfaces" and here.parents[1].name == "share":
+        try:
+            with description.open(encoding="utf-8") as f:
+                for entry in json.load(f).get("type_hashes", []):
+                    if entry.get("type_name") == msgtype and entry.get("hash_string"):
+                        return str(entry["hash_string"])
+        except (OSError, ValueError, AttributeError):
+            pass
+    return str(typestore().hash_rihs01(msgtype))
 
 
 def rosbags_qos(profile: QoSProfile) -> Any:
