@@ -43,6 +43,7 @@ from .counters import Counters
 from .deadlines import Deadlines, Due
 from .durable import Durable, document
 from .equipment import Equipment
+from .fastpath import attach as attach_fast_paths
 from .interlocks import (
     EXTERNAL_KEY,
     LEGACY_SOURCE,
@@ -178,6 +179,7 @@ class UnitMachine(ModeChanges):
     def __init__(self, config: UnitConfig, clock: Clock, store: Store | None = None) -> None:
         self.config = config
         self.rules = rules = rules_of(config)
+        attach_fast_paths(rules)  # (once per rules: the runs' generated code)
         self._clock = clock
         self.store = store
         #: Called with (time, input name, arguments) for every input: the replay log.
@@ -310,52 +312,23 @@ class UnitMachine(ModeChanges):
         if self.on_input is not None:
             self._record(inputlog.COMMAND, cmd, source)
         entry = self._accepted_mode[self.state].get(cmd)
-        if entry is not None and not entry[5] & bits:  # (Accepted.watch)
+        if entry is not None and not entry.watch & bits:
             # The fast path: the table accepts and no guard of this command watches anything set.
-            run = entry[7]  # (Accepted.run)
             if self.mode_change_in_process:  # (only Stop and Abort watch no mode change)
                 self._abandon_mode_change(f"{command_name(cmd)} from {source}")
             if remote:
-                self._note_remote(entry[3], source)
-            # A unit without EMs follows the State Completes that come at once as compiled
-            # (rules.Run: what _transition's loop does, unrolled) when nothing else that loop
-            # looks at is set: a queued command, an interlock's suspension, an alarm list to
-            # publish, alarms or first-outs an entry action would reset.
-            alarms = self.alarms
-            if (
-                run is not None
-                and not self.equipment.modules
-                and not self._internal
-                and not self.interlocks.suspended
-                and alarms.version == self.publication.alarms_seen
-                and not (run[3] and (alarms.current or alarms.first_out_by_category))
-            ):
-                tails, to, between, entered, final, skipped, answer, number, trigger, tail = run
-                self.cntrl_cmd = number
-                t, mode, seq, out = self._t, self.mode, self.sequence + 1, self._out.append
-                if source is not OPERATOR:  # (the compiled tail names the operator)
-                    tail = (tail[0], final, mode, mode, trigger, number, source, skipped, "")
-                out(("transition", (t, seq, tail)))
-                for tail in tails:
-                    seq += 1
-                    out(("transition", (t, seq, tail)))
-                stops = self.stops
-                if entered & _REARM:
-                    stops.armed = True  # all the entry actions do: no alarm or first-out to reset
-                self.sequence = seq
-                self.state = to
-                self.entered_at = t
-                self.times.enter_states(
-                    t, final, to, between, stops.planned_reason and stops.planned(mode, to)
-                )
-                if self.equipment.aggregating:  # (a run ends where the unit waits)
-                    self.equipment.begin(to, seq)
+                self._note_remote(entry.cmd, source)
+            # A unit without EMs follows the State Completes that come at once as compiled: the
+            # run's code generated from the rules (core/fastpath.py), which answers None when
+            # the unit is not quiet enough for it (then the general loop decides).
+            go = entry.go
+            if go is not None and (answer := go(self, source)) is not None:
                 more = self.interlocks.busy
             else:
-                final, skipped, answer, number, trigger, _, flags, _ = entry
-                self.cntrl_cmd = number
-                more = self._transition(final, trigger, number, source, skipped, "", None, True,
-                                        flags)  # fmt: skip
+                answer = entry.answer
+                self.cntrl_cmd = entry.cmd
+                more = self._transition(entry.final, entry.trigger, entry.cmd, source,
+                                        entry.skipped, "", None, True, entry.entry)  # fmt: skip
             if not more:
                 # Nothing for _settle and nothing changed after the last transition, whose
                 # status is published with it: that is the baseline, and stays so until the
