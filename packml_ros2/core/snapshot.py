@@ -52,6 +52,7 @@ NOT_STATE: Mapping[str, str] = {
     "Unit._sc": "compiled from the configuration",
     "Unit._timed": "from the configuration",
     "Unit._handlers": "the deadline handlers (methods)",
+    "Unit._frame": "what closes an input's frame (the unit's _leave)",
     "Unit._out": "the output queue: empty between inputs (drained)",
     "Unit._internal": "commands queued inside one input: empty between inputs",
     "Unit._valid_cache": "a cache",
