@@ -38,7 +38,8 @@ if TYPE_CHECKING:  # the names, for type checkers; at run time each is imported 
     from .packtags import AdminView, StatusView, flat_tags
     from .persistence import Store, StoreError
     from .reasons import Answer, Reason
-    from .unit import CommandRequest, CompleteReport, ModeRequest, Transition, Trigger, Unit
+    from .requests import CommandRequest, CompleteReport, ModeRequest
+    from .unit import Transition, Trigger, Unit
 
 #: name -> the module that defines it (a tool that needs only ``numbers`` does not pay for the
 #: configuration parser, the engine and the store: ``packml status`` starts faster)
@@ -71,9 +72,9 @@ _LAZY = {
     "StoreError": ".persistence",
     "Answer": ".reasons",
     "Reason": ".reasons",
-    "CommandRequest": ".unit",
-    "CompleteReport": ".unit",
-    "ModeRequest": ".unit",
+    "CommandRequest": ".requests",
+    "CompleteReport": ".requests",
+    "ModeRequest": ".requests",
     "Transition": ".unit",
     "Trigger": ".unit",
     "Unit": ".unit",

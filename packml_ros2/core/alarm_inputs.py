@@ -37,15 +37,13 @@ class AlarmInputs(UnitMachine):
     ) -> Answer:
         """Raise or clear alarm (``alarm_id``, ``value``). Unconfigured alarms need a category and
         a message; ``warning``/``category``/``message`` override the configuration when given."""
-        self._enter()
         source = source or OPERATOR
-        self._record(inputlog.ALARM, alarm_id, value, active, source, em, warning, category,
-                     message)  # fmt: skip
-        answer = self._locked(f"alarm {alarm_id}/{value}", source) or self._set_alarm(
-            int(alarm_id), int(value), bool(active), source, em, warning, int(category), message
-        )
-        self._leave()
-        return answer
+        with self._input(
+            inputlog.ALARM, alarm_id, value, active, source, em, warning, category, message
+        ):
+            return self._locked(f"alarm {alarm_id}/{value}", source) or self._set_alarm(
+                int(alarm_id), int(value), bool(active), source, em, warning, int(category), message
+            )
 
     def _set_alarm(self, alarm_id: int, value: int, active: bool, source: str, em: str,
                    warning: bool | None, category: int, message: str) -> Answer:  # fmt: skip
@@ -113,39 +111,32 @@ class AlarmInputs(UnitMachine):
         self, alarm_id: int | None = None, value: int = 0, source: str = OPERATOR
     ) -> Answer:
         """Acknowledge one alarm, or all with ``alarm_id=None``; AckDateTime is stamped once."""
-        self._enter()
         source = source or OPERATOR
-        self._record(inputlog.ALARM_ACK, alarm_id, value, source)
-        refused = self._locked("acknowledging alarms", source)
-        if refused is not None:
-            self._leave()
-            return refused
-        key = None if alarm_id is None else (int(alarm_id), int(value))
-        if key is not None and key not in self.alarms.current:
-            self._leave()
-            return Answer.no(
-                Reason.ALARM_UNKNOWN, f"alarm {key[0]}/{key[1]} is not in the alarm list"
-            )
-        n = self.alarms.acknowledge(key, self._t)
-        self._leave()
-        if not n:
-            which = "every alarm is" if key is None else f"alarm {key[0]}/{key[1]} is"
-            return Answer.no(Reason.NOTHING_TO_DO, f"{which} already acknowledged")
-        return Answer.ok(f"{n} acknowledged")
+        with self._input(inputlog.ALARM_ACK, alarm_id, value, source):
+            refused = self._locked("acknowledging alarms", source)
+            if refused is not None:
+                return refused
+            key = None if alarm_id is None else (int(alarm_id), int(value))
+            if key is not None and key not in self.alarms.current:
+                return Answer.no(
+                    Reason.ALARM_UNKNOWN, f"alarm {key[0]}/{key[1]} is not in the alarm list"
+                )
+            n = self.alarms.acknowledge(key, self._t)
+            if not n:
+                which = "every alarm is" if key is None else f"alarm {key[0]}/{key[1]} is"
+                return Answer.no(Reason.NOTHING_TO_DO, f"{which} already acknowledged")
+            return Answer.ok(f"{n} acknowledged")
 
     def reset_alarms(self, clear_first_out: bool = False, source: str = OPERATOR) -> Answer:
         """Clear latched alarms that are no longer active (and optionally the first-outs)."""
-        self._enter()
         source = source or OPERATOR
-        self._record(inputlog.ALARM_RESET, clear_first_out, source)
-        refused = self._locked("resetting alarms", source)
-        if refused is not None:
-            self._leave()
-            return refused
-        n = self.alarms.reset()
-        if clear_first_out:
-            self.alarms.clear_first_out()
-        still = self.alarms.active_count()
-        self._leave()
-        tail = f"; {still} still active" if still else ""
-        return Answer.ok(f"{n} cleared{tail}")
+        with self._input(inputlog.ALARM_RESET, clear_first_out, source):
+            refused = self._locked("resetting alarms", source)
+            if refused is not None:
+                return refused
+            n = self.alarms.reset()
+            if clear_first_out:
+                self.alarms.clear_first_out()
+            still = self.alarms.active_count()
+            tail = f"; {still} still active" if still else ""
+            return Answer.ok(f"{n} cleared{tail}")

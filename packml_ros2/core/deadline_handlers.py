@@ -2,15 +2,18 @@
 what is due when): a state's timeout, the end of a minimum dwell, a mode change's timeout, the
 mode-change-not-allowed flag going out, a coalesced status or admin, the periodic admin and save.
 
-:meth:`~.machine.UnitMachine._fire` calls them by kind (``_on_<kind>``, the kinds of
-``machine._HANDLERS``) at their own times, then settles and publishes as after any input.
+:data:`DeadlineHandlers.DEADLINE_HANDLERS` maps each kind of :class:`~.deadlines.Due` to its
+handler, once; :meth:`~.machine.UnitMachine._fire` calls them at their own times, then settles
+and publishes as after any input.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Callable, Mapping
+from typing import Any, ClassVar
 
 from .alarms import AlarmDef
+from .deadlines import Due
 from .machine import UnitMachine
 from .numbers import State, state_name
 from .packtags import build_admin
@@ -74,8 +77,19 @@ class DeadlineHandlers(UnitMachine):
 
     def _on_save(self, period: float) -> None:
         self._snapshot()
-        self._every("save", period)
+        self._every(Due.SAVE, period)
 
     def _on_admin(self, period: float) -> None:
         self.publication.admin(build_admin(self, self._t), coalesced=False)
-        self._every("admin", period)
+        self._every(Due.ADMIN, period)
+
+    DEADLINE_HANDLERS: ClassVar[Mapping[Due, Callable[[Any, Any], None]]] = {
+        Due.TIMEOUT: _on_timeout,
+        Due.DWELL: _on_dwell,
+        Due.MODE_TIMEOUT: _on_mode_timeout,
+        Due.STATUS: _on_status,
+        Due.LAMP_OFF: _on_lamp_off,
+        Due.ADMIN_CHANGE: _on_admin_change,
+        Due.SAVE: _on_save,
+        Due.ADMIN: _on_admin,
+    }

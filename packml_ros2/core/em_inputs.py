@@ -34,67 +34,68 @@ class EquipmentInputs(UnitMachine):
         """The EM ``name`` is alive (first heartbeat, or back after being lost). An unknown EM
         registers, where the configuration allows it; ``report``: the EM's own report is what
         says so, which registers it in Production only at rest (rules, section 7)."""
-        self._enter()
-        self._record(inputlog.EM_SEEN, name, report)
-        em = self.equipment.get(name)
-        if em is None:
-            why = registration_refusal(
-                self.mode, self.state, self.config.allow_registration, report, len(self.equipment)
-            )
-            if why is not None:
-                if name not in self._strays and len(self._strays) < MAX_STRAYS_LOGGED:
-                    self._strays.add(name)  # said once per name (its reports keep coming)
-                    self._log("warn", f"EM {name!r} not registered: {self.config.name} {why}")
-                self._leave()
-                return Answer.no(
-                    Reason.EM_UNKNOWN, f"EM {name!r} is not configured and {self.config.name} {why}"
+        with self._input(inputlog.EM_SEEN, name, report):
+            em = self.equipment.get(name)
+            if em is None:
+                why = registration_refusal(
+                    self.mode,
+                    self.state,
+                    self.config.allow_registration,
+                    report,
+                    len(self.equipment),
                 )
-            self._strays.discard(name)
-            ignore = not self._lost_reaction(None)
-            if not self.equipment.modules:  # the first EM: the equipment follows the unit now
-                self.equipment.begin(self.state, self.sequence)
-            em = self.equipment.add(name, False, True, None, ignore)
-            self.alarms.log_event(f"EM {name} registered", self._t, source=f"em:{name}")
-            self._log("info", f"EM {name} registered (active)")
-        if not em.online:
-            em.online = True
-            self.equipment.changed_roster()
-            self.alarms.clear(self.config.system_alarms.em_lost, em.index, self._t)
-            self.equipment.require(name)
-            self._log("info", f"EM {name} online at {state_name(self.state)} seq {self.sequence}")
-        self._leave()
-        return Answer.ok(f"EM {name} online")
+                if why is not None:
+                    if name not in self._strays and len(self._strays) < MAX_STRAYS_LOGGED:
+                        self._strays.add(name)  # said once per name (its reports keep coming)
+                        self._log("warn", f"EM {name!r} not registered: {self.config.name} {why}")
+                    return Answer.no(
+                        Reason.EM_UNKNOWN,
+                        f"EM {name!r} is not configured and {self.config.name} {why}",
+                    )
+                self._strays.discard(name)
+                ignore = not self._lost_reaction(None)
+                if not self.equipment.modules:  # the first EM: the equipment follows the unit now
+                    self.equipment.begin(self.state, self.sequence)
+                em = self.equipment.add(name, False, True, None, ignore)
+                self.alarms.log_event(f"EM {name} registered", self._t, source=f"em:{name}")
+                self._log("info", f"EM {name} registered (active)")
+            if not em.online:
+                em.online = True
+                self.equipment.changed_roster()
+                self.alarms.clear(self.config.system_alarms.em_lost, em.index, self._t)
+                self.equipment.require(name)
+                self._log(
+                    "info", f"EM {name} online at {state_name(self.state)} seq {self.sequence}"
+                )
+            return Answer.ok(f"EM {name} online")
 
     def em_lost(self, name: str, detail: str = "") -> Answer:
         """The EM ``name`` missed its lease (or left); the configured reaction applies."""
-        self._enter()
-        self._record(inputlog.EM_LOST, name, detail)
-        em = self.equipment.get(name)
-        if em is None or not em.online:
-            self._leave()
-            return Answer.no(Reason.NOTHING_TO_DO, f"EM {name!r} is not online")
-        em.online = False
-        self.equipment.changed_roster()
-        # Inactive EMs are ignored (docs/packml.md §4): off for diagnosis, their loss is no fault.
-        reaction = self._lost_reaction(em.lost_reaction) if em.active else 0
-        if self.state in EXCUSE_OFFLINE or not reaction:
-            self.equipment.excuse(name)
-        why = f" ({detail})" if detail else ""
-        category = {Cmd.ABORT: 0, Cmd.STOP: 2}.get(Cmd(reaction), 5) if reaction else 9
-        definition = AlarmDef(
-            id=self.config.system_alarms.em_lost,
-            value=em.index,
-            message=f"EM {name} lost{why}",
-            category=category,
-            warning=not reaction,
-            reaction=reaction,
-            em=name,
-        )
-        self._raise(definition, source="unit", trigger=Trigger.EM_LOST)
-        what = command_name(reaction) if reaction else "none"
-        self._log("warn", f"EM {name} lost{why}: reaction {what}")
-        self._leave()
-        return Answer.ok(f"EM {name} lost; reaction {what}")
+        with self._input(inputlog.EM_LOST, name, detail):
+            em = self.equipment.get(name)
+            if em is None or not em.online:
+                return Answer.no(Reason.NOTHING_TO_DO, f"EM {name!r} is not online")
+            em.online = False
+            self.equipment.changed_roster()
+            # Inactive EMs are ignored (docs/packml.md §4): off for diagnosis, their loss is no fault.
+            reaction = self._lost_reaction(em.lost_reaction) if em.active else 0
+            if self.state in EXCUSE_OFFLINE or not reaction:
+                self.equipment.excuse(name)
+            why = f" ({detail})" if detail else ""
+            category = {Cmd.ABORT: 0, Cmd.STOP: 2}.get(Cmd(reaction), 5) if reaction else 9
+            definition = AlarmDef(
+                id=self.config.system_alarms.em_lost,
+                value=em.index,
+                message=f"EM {name} lost{why}",
+                category=category,
+                warning=not reaction,
+                reaction=reaction,
+                em=name,
+            )
+            self._raise(definition, source="unit", trigger=Trigger.EM_LOST)
+            what = command_name(reaction) if reaction else "none"
+            self._log("warn", f"EM {name} lost{why}: reaction {what}")
+            return Answer.ok(f"EM {name} lost; reaction {what}")
 
     def em_request(self, name: str, cmd: int) -> Answer:
         """EM ``name`` asks the unit for command ``cmd`` (0 withdraws a request: nothing to do)."""
@@ -107,49 +108,44 @@ class EquipmentInputs(UnitMachine):
 
     def em_interlock(self, name: str, blocked: bool, starved: bool, material: int = 0) -> Answer:
         """EM ``name`` reports Blocked/Starved (``Status.EquipmentInterlock``) and material bits."""
-        self._enter()
-        self._record(inputlog.EM_INTERLOCK, name, blocked, starved, material)
-        em = self.equipment.get(name)
-        if em is None:
-            self._leave()
-            return Answer.no(Reason.EM_UNKNOWN, f"no EM {name!r} in {self.config.name}")
-        em.blocked, em.starved, em.material_interlock = bool(blocked), bool(starved), int(material)
-        self.equipment.version += 1
-        key = f"em:{name}"
-        if em.active and (blocked or starved):
-            what = "blocked" if blocked else "starved"
-            self.interlocks.set(
-                key, f"{name} {what}", STOP_ID_BLOCKED if blocked else STOP_ID_STARVED
+        with self._input(inputlog.EM_INTERLOCK, name, blocked, starved, material):
+            em = self.equipment.get(name)
+            if em is None:
+                return Answer.no(Reason.EM_UNKNOWN, f"no EM {name!r} in {self.config.name}")
+            em.blocked, em.starved, em.material_interlock = (
+                bool(blocked),
+                bool(starved),
+                int(material),
             )
-        else:
-            self.interlocks.clear(key)
-        self._rev += 1
-        self._leave()
-        return Answer.ok("interlock updated")
+            self.equipment.version += 1
+            key = f"em:{name}"
+            if em.active and (blocked or starved):
+                what = "blocked" if blocked else "starved"
+                self.interlocks.set(
+                    key, f"{name} {what}", STOP_ID_BLOCKED if blocked else STOP_ID_STARVED
+                )
+            else:
+                self.interlocks.clear(key)
+            self._rev += 1
+            return Answer.ok("interlock updated")
 
     def em_count(self, name: str, kind: str, index: int, increment: int) -> Answer:
         """EM ``name`` adds ``increment`` to counter ``index`` of ``kind``
         (``consumed`` / ``processed`` / ``defective``)."""
-        self._enter()
-        self._record(inputlog.EM_COUNT, name, kind, index, increment)
-        problem = self.counters.add(kind, int(index), int(increment))
-        if problem:
-            self.stats.bad_reports += 1
-            self._leave()
-            return Answer.no(Reason.INVALID_ARGUMENT, f"count from {name} refused: {problem}")
-        self._leave()
-        return Answer.ok("counted")
+        with self._input(inputlog.EM_COUNT, name, kind, index, increment):
+            problem = self.counters.add(kind, int(index), int(increment))
+            if problem:
+                self.stats.bad_reports += 1
+                return Answer.no(Reason.INVALID_ARGUMENT, f"count from {name} refused: {problem}")
+            return Answer.ok("counted")
 
     def set_em_active(self, name: str, active: bool, source: str = OPERATOR) -> Answer:
         """Switch ModuleActive; only outside Production, and always logged."""
-        self._enter()
         source = source or OPERATOR
-        self._record(inputlog.EM_ACTIVE, name, active, source)
-        answer = self._locked(f"switching EM {name}", source) or self._set_em_active(
-            name, bool(active), source
-        )
-        self._leave()
-        return answer
+        with self._input(inputlog.EM_ACTIVE, name, active, source):
+            return self._locked(f"switching EM {name}", source) or self._set_em_active(
+                name, bool(active), source
+            )
 
     def _set_em_active(self, name: str, active: bool, source: str) -> Answer:
         em = self.equipment.get(name)

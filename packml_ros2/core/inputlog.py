@@ -15,13 +15,11 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from .config import Descriptor, Ingredient, Product
 from .reasons import Answer
-
-if TYPE_CHECKING:
-    from .unit import Request, Unit
+from .requests import CommandRequest, CompleteReport, ModeRequest, Request
 
 #: 2: the inputs of schema 1; the outputs name an interlock's holder in the source of the
 #: transitions it causes (``interlock:<holder>``, core/interlocks.py), where schema 1 and 0 said
@@ -41,6 +39,9 @@ class InputDef:
     fields: tuple[str, ...]
     method: str
     decode: Mapping[str, Callable[[Any], Any]] | None = None
+    #: How the engine's values of fields that are not plain values are written (the inverse of
+    #: ``decode``).
+    encode: Mapping[str, Callable[[Any], Any]] | None = None
 
 
 # -- values that are not plain JSON ---------------------------------------------------------------------
@@ -77,8 +78,6 @@ def product_from_dict(d: Mapping[str, Any]) -> Product:
 
 
 def request_to_dict(r: Request) -> dict[str, Any]:
-    from .unit import CommandRequest, ModeRequest
-
     if isinstance(r, CommandRequest):
         return {"kind": "command", "command": r.cmd, "source": r.source}
     if isinstance(r, ModeRequest):
@@ -87,8 +86,6 @@ def request_to_dict(r: Request) -> dict[str, Any]:
 
 
 def request_from_dict(d: Mapping[str, Any]) -> Request:
-    from .unit import CommandRequest, CompleteReport, ModeRequest
-
     kind = d["kind"]
     if kind == "command":
         return CommandRequest(int(d["command"]), str(d["source"]))
@@ -102,13 +99,24 @@ def _list_of(decode: Callable[[Any], Any]) -> Callable[[Any], Any]:
 
 
 # -- schema 1 ------------------------------------------------------------------------------------------------
-def _def(name: str, method: str, *fields: str, **decode: Callable[[Any], Any]) -> InputDef:
-    return InputDef(name, fields, method, decode or None)
+Codec = tuple[Callable[[Any], Any], Callable[[Any], Any]]  #: (encode, decode) of a field
+
+
+def _def(name: str, method: str, *fields: str, **codecs: Codec) -> InputDef:
+    """An input; ``codecs``: (encode, decode) of the fields whose values are not plain."""
+    encode = {f: enc for f, (enc, _) in codecs.items()}
+    decode = {f: dec for f, (_, dec) in codecs.items()}
+    return InputDef(name, fields, method, decode or None, encode or None)
+
+
+def _list_codec(encode: Callable[[Any], Any], decode: Callable[[Any], Any]) -> Codec:
+    return _list_of(encode), _list_of(decode)
 
 
 COMMAND = _def("command", "command", "command", "source")
 MODE = _def("mode", "set_mode", "mode", "source")
-STEP = _def("step", "step", "requests", requests=_list_of(request_from_dict))
+STEP = _def("step", "step", "requests",
+            requests=_list_codec(request_to_dict, request_from_dict))  # fmt: skip
 EM_STATE_COMPLETE = _def("em.state_complete", "em_complete", "em", "state", "sequence")
 EM_SEEN = _def("em.seen", "em_seen", "em", "report")
 EM_LOST = _def("em.lost", "em_lost", "em", "detail")
@@ -123,9 +131,9 @@ TIMES_RESET = _def("times.reset", "reset_times", "all", "source")
 COUNTERS_RESET = _def("counters.reset", "reset_counters", "source")
 SPEED = _def("speed", "set_mach_speed", "speed", "source")
 PARAMETERS = _def("parameters", "set_parameters", "parameters", "source",
-                  parameters=_list_of(descriptor_from_dict))  # fmt: skip
+                  parameters=_list_codec(descriptor_to_dict, descriptor_from_dict))  # fmt: skip
 PRODUCTS = _def("products", "set_product", "products", "source",
-                products=_list_of(product_from_dict))  # fmt: skip
+                products=_list_codec(product_to_dict, product_from_dict))  # fmt: skip
 REMOTE = _def("remote", "set_remote_enabled", "enabled")
 INTERLOCK = _def("interlock", "set_interlock", "active", "reason", "source")
 ADVANCE = _def("advance", "advance")
@@ -143,12 +151,18 @@ EM_INPUTS = frozenset(d.name for d in (EM_STATE_COMPLETE, EM_SEEN, EM_LOST, EM_I
 
 
 def fields_of(d: InputDef, values: Sequence[Any]) -> dict[str, Any]:
-    """A record's fields from the values of its input, in field order."""
-    return dict(zip(d.fields, values, strict=True))
+    """A record's fields from the values of its input, in field order (encoded as ``d`` says)."""
+    fields = dict(zip(d.fields, values, strict=True))
+    if d.encode:
+        for name, encode in d.encode.items():
+            fields[name] = encode(fields[name])
+    return fields
 
 
-def apply(unit: Unit, name: str, fields: Mapping[str, Any]) -> Answer | list[Answer] | None:
-    """Apply a logged input (schema 1) to ``unit`` again: the replay entry."""
+def apply(unit: object, name: str, fields: Mapping[str, Any]) -> Answer | list[Answer] | None:
+    """Apply a logged input (schema 1) to ``unit`` (a :class:`~.unit.Unit`) again: the replay
+    entry. (The unit is taken as any object with the inputs' methods: this module is below the
+    engine, which records its inputs here.)"""
     d = INPUTS.get(name)
     if d is None:
         raise ValueError(f"{name!r} is not an engine input (inputs: {', '.join(sorted(INPUTS))})")

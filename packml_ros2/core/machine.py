@@ -33,15 +33,17 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from types import MethodType
+from typing import Any, ClassVar, NamedTuple
 
 from . import inputlog
 from .alarms import AlarmDef, AlarmEvent, AlarmManager
 from .config import Descriptor, Product, UnitConfig
 from .counters import Counters
-from .deadlines import Deadlines
+from .deadlines import Deadlines, Due
 from .durable import Durable, document
 from .equipment import Equipment
+from .fastpath import attach as attach_fast_paths
 from .interlocks import (
     EXTERNAL_KEY,
     LEGACY_SOURCE,
@@ -59,14 +61,13 @@ from .persistence import Store
 from .publication import Publication as _Publication
 from .publication import StatusMark
 from .reasons import Answer, Reason
+from .requests import CommandRequest, CompleteReport, ModeRequest, Request, priority
 from .rules import (
     AT_ONCE_WITHOUT_EMS,
     ENTRY,
     MODE_CHANGE_NOT_ALLOWED_SECONDS,
-    MODE_REQUESTS,
     OPERATOR,
     SETTLE,
-    STATE_COMPLETE_REPORTS,
     SUPERSEDED_SENTENCE,
     Alert,
     Entry,
@@ -86,35 +87,20 @@ S, C = State, Cmd
 Clock = Callable[[], float]
 
 
-# -- requests of one evaluation step -----------------------------------------------------------------
-@dataclass(frozen=True, slots=True)
-class CommandRequest:
-    cmd: int
-    source: str = OPERATOR
+class _Frame:
+    """What closes every input's frame (:meth:`UnitMachine._input`): settle, publish, journal."""
 
+    __slots__ = ("_leave",)
 
-@dataclass(frozen=True, slots=True)
-class ModeRequest:
-    mode: int | str
-    source: str = OPERATOR
+    def __init__(self, leave: Callable[[], None]) -> None:
+        self._leave = leave
 
+    def __enter__(self) -> None:
+        return None
 
-@dataclass(frozen=True, slots=True)
-class CompleteReport:
-    em: str
-    state: int
-    sequence: int
-
-
-Request = CommandRequest | ModeRequest | CompleteReport
-
-
-def _priority(r: Request) -> int:
-    if isinstance(r, CommandRequest):
-        return command_priority(r.cmd)
-    if isinstance(r, ModeRequest):
-        return MODE_REQUESTS
-    return STATE_COMPLETE_REPORTS
+    def __exit__(self, kind: type[BaseException] | None, value: object, tb: object) -> None:
+        if kind is None:
+            self._leave()
 
 
 class _Cmd(NamedTuple):
@@ -151,9 +137,6 @@ _NOT_QUIET = ~(_REARM | _RESET_ALARMS | _CLEAR_FIRST_OUT)
 _REPORT_OK = Answer(True, Reason.ACCEPTED, "State Complete accepted")
 #: At most this many rounds of _settle (each applies a queued command or a State Complete).
 _SETTLE_BOUND = range(1000)
-#: Handlers of deadlines, by kind (``_on_<kind>`` of Unit: core/deadline_handlers.py).
-_HANDLERS = ("timeout", "dwell", "mode_timeout", "status", "lamp_off", "admin_change", "save",
-             "admin")  # fmt: skip
 
 
 class UnitMachine(ModeChanges):
@@ -182,16 +165,21 @@ class UnitMachine(ModeChanges):
         # the compiled rules the hot paths index, and configuration they test
         "_accepted", "_sc", "_timed",
         # evaluation
-        "_t", "_advance_to", "_internal", "_step_winner", "_restart_detail", "_handlers", "_out",
+        "_t", "_advance_to", "_frame", "_internal", "_step_winner", "_restart_detail", "_handlers", "_out",
         # caches
         "_valid_cache", "_rev", "_strays",
         # compatibility
         "legacy_interlock_source",
     )  # fmt: skip
 
+    #: What each kind of deadline does, a handler taking (the unit, the deadline's data): the
+    #: table of :mod:`.deadline_handlers`, where the handlers are.
+    DEADLINE_HANDLERS: ClassVar[Mapping[Due, Callable[[Any, Any], None]]] = {}
+
     def __init__(self, config: UnitConfig, clock: Clock, store: Store | None = None) -> None:
         self.config = config
         self.rules = rules = rules_of(config)
+        attach_fast_paths(rules)  # (once per rules: the runs' generated code)
         self._clock = clock
         self.store = store
         #: Called with (time, input name, arguments) for every input: the replay log.
@@ -244,8 +232,9 @@ class UnitMachine(ModeChanges):
         #: interlock transitions name their source "interlock", as input logs of schema 1 and
         #: before recorded it (replay sets it for those; core/interlocks.py)
         self.legacy_interlock_source = False
-        self._handlers: Mapping[str, Callable[[Any], None]] = {
-            kind: getattr(self, f"_on_{kind}") for kind in _HANDLERS
+        self._frame = _Frame(self._leave)
+        self._handlers: Mapping[Due, Callable[[Any], None]] = {
+            kind: MethodType(handler, self) for kind, handler in self.DEADLINE_HANDLERS.items()
         }
         self._durable = (
             None
@@ -258,8 +247,8 @@ class UnitMachine(ModeChanges):
         self._journal()
         self.publication.baseline()  # the start-up status is the baseline for later changes
         if store is not None:
-            self._every("save", config.persistence_period)
-        self._every("admin", config.admin_period)
+            self._every(Due.SAVE, config.persistence_period)
+        self._every(Due.ADMIN, config.admin_period)
 
     @property
     def stop_reason(self) -> AlarmEvent | None:
@@ -289,6 +278,19 @@ class UnitMachine(ModeChanges):
         self.publication.flush(self._t, self.sequence)
         self._journal()
 
+    def _input(self, d: inputlog.InputDef | None, *values: Any) -> _Frame:
+        """The frame of one input, ``with self._input(inputlog.X, *values): ...``: on entry the
+        engine is brought to the clock's time (what falls due fires at its own time) and the
+        input is recorded (``values`` in the order of ``d``'s fields, encoded as ``d`` says; no
+        ``d``: not recorded); on leaving, however the body returns, what follows is settled,
+        published and journalled. (An exception leaves it unsettled, as it found it.)
+        :meth:`command` and :meth:`em_complete`, the inputs that run most, frame themselves
+        with the same steps, taking only those their case needs."""
+        self._enter()
+        if d is not None and self.on_input is not None:
+            self.on_input(self._t, d.name, inputlog.fields_of(d, values))
+        return self._frame
+
     def command(self, cmd: int, source: str = OPERATOR) -> Answer:
         """A state command (``Command.CntrlCmd`` + ``CmdChangeRequest``)."""
         now = self._clock()
@@ -310,52 +312,23 @@ class UnitMachine(ModeChanges):
         if self.on_input is not None:
             self._record(inputlog.COMMAND, cmd, source)
         entry = self._accepted_mode[self.state].get(cmd)
-        if entry is not None and not entry[5] & bits:  # (Accepted.watch)
+        if entry is not None and not entry.watch & bits:
             # The fast path: the table accepts and no guard of this command watches anything set.
-            run = entry[7]  # (Accepted.run)
             if self.mode_change_in_process:  # (only Stop and Abort watch no mode change)
                 self._abandon_mode_change(f"{command_name(cmd)} from {source}")
             if remote:
-                self._note_remote(entry[3], source)
-            # A unit without EMs follows the State Completes that come at once as compiled
-            # (rules.Run: what _transition's loop does, unrolled) when nothing else that loop
-            # looks at is set: a queued command, an interlock's suspension, an alarm list to
-            # publish, alarms or first-outs an entry action would reset.
-            alarms = self.alarms
-            if (
-                run is not None
-                and not self.equipment.modules
-                and not self._internal
-                and not self.interlocks.suspended
-                and alarms.version == self.publication.alarms_seen
-                and not (run[3] and (alarms.current or alarms.first_out_by_category))
-            ):
-                tails, to, between, entered, final, skipped, answer, number, trigger, tail = run
-                self.cntrl_cmd = number
-                t, mode, seq, out = self._t, self.mode, self.sequence + 1, self._out.append
-                if source is not OPERATOR:  # (the compiled tail names the operator)
-                    tail = (tail[0], final, mode, mode, trigger, number, source, skipped, "")
-                out(("transition", (t, seq, tail)))
-                for tail in tails:
-                    seq += 1
-                    out(("transition", (t, seq, tail)))
-                stops = self.stops
-                if entered & _REARM:
-                    stops.armed = True  # all the entry actions do: no alarm or first-out to reset
-                self.sequence = seq
-                self.state = to
-                self.entered_at = t
-                self.times.enter_states(
-                    t, final, to, between, stops.planned_reason and stops.planned(mode, to)
-                )
-                if self.equipment.aggregating:  # (a run ends where the unit waits)
-                    self.equipment.begin(to, seq)
+                self._note_remote(entry.cmd, source)
+            # A unit without EMs follows the State Completes that come at once as compiled: the
+            # run's code generated from the rules (core/fastpath.py), which answers None when
+            # the unit is not quiet enough for it (then the general loop decides).
+            go = entry.go
+            if go is not None and (answer := go(self, source)) is not None:
                 more = self.interlocks.busy
             else:
-                final, skipped, answer, number, trigger, _, flags, _ = entry
-                self.cntrl_cmd = number
-                more = self._transition(final, trigger, number, source, skipped, "", None, True,
-                                        flags)  # fmt: skip
+                answer = entry.answer
+                self.cntrl_cmd = entry.cmd
+                more = self._transition(entry.final, entry.trigger, entry.cmd, source,
+                                        entry.skipped, "", None, True, entry.entry)  # fmt: skip
             if not more:
                 # Nothing for _settle and nothing changed after the last transition, whose
                 # status is published with it: that is the baseline, and stays so until the
@@ -384,32 +357,26 @@ class UnitMachine(ModeChanges):
 
     def set_mode(self, mode: int | str, source: str = OPERATOR) -> Answer:
         """A mode change (``Command.UnitMode`` + ``UnitModeChangeRequest``), by number or name."""
-        self._enter()
         source = source or OPERATOR
-        self._record(inputlog.MODE, mode, source)
-        answer = self._apply_mode(mode, source)
-        self._leave()
-        return answer
+        with self._input(inputlog.MODE, mode, source):
+            return self._apply_mode(mode, source)
 
     def step(self, requests: Sequence[Request]) -> list[Answer]:
         """Several requests in one evaluation step, applied by priority: Abort > Stop > Hold >
         Suspend > other commands > mode changes > State Complete (docs/packml.md §2)."""
-        self._enter()
-        if self.on_input is not None:
-            self._record(inputlog.STEP, [inputlog.request_to_dict(r) for r in requests])
-        start_state = self.state
-        self._step_winner = None
-        answers: list[Answer] = [Answer.ok("")] * len(requests)
-        for i in sorted(range(len(requests)), key=lambda i: _priority(requests[i])):
-            r = requests[i]
-            if isinstance(r, CommandRequest):
-                answers[i] = self._apply_command(int(r.cmd), r.source or OPERATOR, start_state)
-            elif isinstance(r, ModeRequest):
-                answers[i] = self._apply_mode(r.mode, r.source)
-            else:
-                answers[i] = self._apply_report(r.em, r.state, r.sequence)
-        self._leave()
-        return answers
+        with self._input(inputlog.STEP, requests):
+            start_state = self.state
+            self._step_winner = None
+            answers: list[Answer] = [Answer.ok("")] * len(requests)
+            for i in sorted(range(len(requests)), key=lambda i: priority(requests[i])):
+                r = requests[i]
+                if isinstance(r, CommandRequest):
+                    answers[i] = self._apply_command(int(r.cmd), r.source or OPERATOR, start_state)
+                elif isinstance(r, ModeRequest):
+                    answers[i] = self._apply_mode(r.mode, r.source)
+                else:
+                    answers[i] = self._apply_report(r.em, r.state, r.sequence)
+            return answers
 
     # -- equipment modules ------------------------------------------------------------------------------
     def em_complete(self, name: str, state: int, sequence: int) -> Answer:
@@ -450,40 +417,35 @@ class UnitMachine(ModeChanges):
 
     def set_remote_enabled(self, enabled: bool) -> None:
         """Whether commands with a remote source are accepted (the remote lock, rules section 4)."""
-        self._enter()
-        self._record(inputlog.REMOTE, enabled)
-        self.remote_enabled = bool(enabled)
-        self._rev += 1
-        self._leave()
+        with self._input(inputlog.REMOTE, enabled):
+            self.remote_enabled = bool(enabled)
+            self._rev += 1
 
     def shutdown(self, detail: str = "") -> Answer:
         """The unit's own process is shutting down (Ctrl-C, SIGTERM): recorded as what it is, an
         event in the alarm history and, when the unit was producing (Execute or on its way
         there), its StopReason, so the restarted unit tells why it stopped. The state is not
         changed; status, alarms and admin go out at once (the process ends after this)."""
-        self._enter()
-        self._record(inputlog.SHUTDOWN, detail)
-        message = f"unit shut down{f' ({detail})' if detail else ''} in {state_name(self.state)}"
-        self.alarms.log_event(message, self._t, source="unit")
-        stops = self.stops
-        if stops.armed and SETTLE.get(self.state) is S.EXECUTE:
-            stops.record(stops.of_shutdown(message, self._t))
-            self._rev += 1
-        self._status_now()
-        self.publication.admin(build_admin(self, self._t), coalesced=False)
-        self._leave()
-        return Answer.ok(message)
+        with self._input(inputlog.SHUTDOWN, detail):
+            message = (
+                f"unit shut down{f' ({detail})' if detail else ''} in {state_name(self.state)}"
+            )
+            self.alarms.log_event(message, self._t, source="unit")
+            stops = self.stops
+            if stops.armed and SETTLE.get(self.state) is S.EXECUTE:
+                stops.record(stops.of_shutdown(message, self._t))
+                self._rev += 1
+            self._status_now()
+            self.publication.admin(build_admin(self, self._t), coalesced=False)
+            return Answer.ok(message)
 
     def set_interlock(self, active: bool, reason: str = "", source: str = OPERATOR) -> Answer:
         """A line interlock from outside (the coordinator): suspend while set, unsuspend when
         cleared (``interlock_reaction: suspend``). Each source holds its own interlock, and clears
         only its own."""
-        self._enter()
         source = source or OPERATOR
-        self._record(inputlog.INTERLOCK, active, reason, source)
-        answer = self._set_interlock(bool(active), reason, source)
-        self._leave()
-        return answer
+        with self._input(inputlog.INTERLOCK, active, reason, source):
+            return self._set_interlock(bool(active), reason, source)
 
     def _set_interlock(self, active: bool, reason: str, source: str) -> Answer:
         key = f"{EXTERNAL_KEY}{source}"
@@ -505,8 +467,8 @@ class UnitMachine(ModeChanges):
     def advance(self) -> None:
         """Fire every deadline due by the clock's time (call periodically, or at
         :meth:`next_deadline`)."""
-        self._enter()
-        self._leave()
+        with self._input(None):
+            pass  # (the frame alone: what falls due fires as it opens, then settles)
 
     def next_deadline(self) -> float | None:
         """When the engine has something to do next on its own (a timeout, a periodic admin...)."""
@@ -735,9 +697,9 @@ class UnitMachine(ModeChanges):
             if timed and to in timed:  # (an empty set is cheaper to test than to search)
                 config = self.config
                 if to in config.timeouts:
-                    self.deadlines.at(t + config.timeouts[to], "timeout", (to, seq))
+                    self.deadlines.at(t + config.timeouts[to], Due.TIMEOUT, (to, seq))
                 if to in config.min_dwell:
-                    self.deadlines.at(t + config.min_dwell[to], "dwell", (to, seq))
+                    self.deadlines.at(t + config.min_dwell[to], Due.DWELL, (to, seq))
                     due = False  # State Complete waits for the dwell (_settle)
             # State Complete, at once? (the order of _settle: queued commands, mode change, SC)
             if not (follow and due):
@@ -892,7 +854,7 @@ class UnitMachine(ModeChanges):
         why = mode_change_refusal(self.mode_def, target, self.state)
         if why is not None:
             self.mode_change_not_allowed_until = self._t + MODE_CHANGE_NOT_ALLOWED_SECONDS
-            self.deadlines.at(self.mode_change_not_allowed_until, "lamp_off")
+            self.deadlines.at(self.mode_change_not_allowed_until, Due.LAMP_OFF)
             self._rev += 1
             self._status_now()
             return Answer.no(
@@ -906,7 +868,9 @@ class UnitMachine(ModeChanges):
         self._mode_source = source
         self.sequence += 1
         self.equipment.begin_mode_change(self.sequence)
-        self.deadlines.at(self._t + self.config.mode_change_timeout, "mode_timeout", self.sequence)
+        self.deadlines.at(
+            self._t + self.config.mode_change_timeout, Due.MODE_TIMEOUT, self.sequence
+        )
         self._status_now()
         return Answer.ok(f"mode change {self.mode_def.name} -> {target.name} accepted")
 
@@ -932,7 +896,7 @@ class UnitMachine(ModeChanges):
         return self.config.em_lost_reaction if configured is None else configured
 
     # -- deadlines ----------------------------------------------------------------------------------------
-    def _every(self, kind: str, period: float) -> None:
+    def _every(self, kind: Due, period: float) -> None:
         self.deadlines.every(self._t, self._advance_to, kind, period)
 
     def _fire(self) -> None:
@@ -940,9 +904,7 @@ class UnitMachine(ModeChanges):
         when, kind, data = self.deadlines.pop()
         self._t = max(self._t, when)
         self._handlers[kind](data)
-        self._settle()
-        self.publication.flush(self._t, self.sequence)
-        self._journal()
+        self._leave()
 
     def _advance(self, now: float) -> None:
         self._advance_to = now
@@ -1068,6 +1030,7 @@ __all__ = [
     "CommandRequest",
     "CompleteReport",
     "ModeRequest",
+    "Request",
     "Stats",
     "StatusMark",
     "Transition",

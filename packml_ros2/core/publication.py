@@ -20,7 +20,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any, NamedTuple, Protocol
 
-from .deadlines import Deadlines
+from .deadlines import Deadlines, Due
 
 STATUS_COALESCE = 0.05
 ADMIN_COALESCE = 0.25
@@ -90,11 +90,11 @@ class Publication:
             self.status_key = self._status_key_of()
         elif not self.status_due and self._status_key_of() != self.status_key:
             self.status_due = True
-            self._deadlines.at(now + STATUS_COALESCE, "status")
+            self._deadlines.at(now + STATUS_COALESCE, Due.STATUS)
         self.alarms_changed()
         if not self.admin_due and self._admin_key_of() != self.admin_key:
             self.admin_due = True
-            self._deadlines.at(now + ADMIN_COALESCE, "admin_change")
+            self._deadlines.at(now + ADMIN_COALESCE, Due.ADMIN_CHANGE)
 
     def status_deadline(self, time: float, state: int, sequence: int) -> None:
         """The coalescing deadline: publish the status if it still differs."""

@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 from . import inputlog
 from .alarms import AlarmEvent
+from .deadlines import Due
 from .equipment import EquipmentModule
 from .numbers import NUM_MODES, NUM_STATES, State
 from .outputs import Outputs
@@ -51,6 +52,7 @@ NOT_STATE: Mapping[str, str] = {
     "Unit._sc": "compiled from the configuration",
     "Unit._timed": "from the configuration",
     "Unit._handlers": "the deadline handlers (methods)",
+    "Unit._frame": "what closes an input's frame (the unit's _leave)",
     "Unit._out": "the output queue: empty between inputs (drained)",
     "Unit._internal": "commands queued inside one input: empty between inputs",
     "Unit._valid_cache": "a cache",
@@ -203,7 +205,7 @@ def capture(unit: Unit) -> dict[str, Any]:
             "released": unit.interlocks.released,
         },
         "deadlines": {
-            "heap": [[when, order, kind, _plain(data)] for when, order, kind, data in dl.heap],
+            "heap": [[when, order, kind.name.lower(), _plain(data)] for when, order, kind, data in dl.heap],
             "counter": dl._counter,
         },
         "publication": {
@@ -226,15 +228,15 @@ def _plain(data: Any) -> Any:
 
 
 #: Deadline data from JSON, by kind (the handlers' argument types).
-_DEADLINE_DATA: Mapping[str, Callable[[Any], Any]] = {
-    "timeout": lambda d: (State(int(d[0])), int(d[1])),
-    "dwell": lambda d: (State(int(d[0])), int(d[1])),
-    "mode_timeout": int,
-    "save": float,
-    "admin": float,
-    "status": lambda d: None,
-    "lamp_off": lambda d: None,
-    "admin_change": lambda d: None,
+_DEADLINE_DATA: Mapping[Due, Callable[[Any], Any]] = {
+    Due.TIMEOUT: lambda d: (State(int(d[0])), int(d[1])),
+    Due.DWELL: lambda d: (State(int(d[0])), int(d[1])),
+    Due.MODE_TIMEOUT: int,
+    Due.SAVE: float,
+    Due.ADMIN: float,
+    Due.STATUS: lambda d: None,
+    Due.LAMP_OFF: lambda d: None,
+    Due.ADMIN_CHANGE: lambda d: None,
 }
 
 
@@ -390,7 +392,7 @@ def _restore(unit: Unit, d: Mapping[str, Any]) -> None:
     interlocks.released = str(i.get("released", ""))
 
     dl = unit.deadlines
-    heap = [(float(w), int(o), str(kind), _DEADLINE_DATA[kind](data))
+    heap = [(float(w), int(o), Due[kind.upper()], _DEADLINE_DATA[Due[kind.upper()]](data))
             for w, o, kind, data in d["deadlines"]["heap"]]  # fmt: skip
     if any(heap[(j - 1) // 2][:2] > heap[j][:2] for j in range(1, len(heap))):
         raise SnapshotError("the deadlines are not a heap")

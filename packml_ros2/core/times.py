@@ -84,10 +84,17 @@ class ModeStateTimes:
         """The unit entered ``first``, the states ``between``, then ``last`` (maybe ``first``)
         in the current mode at ``now``: a command and the State Completes that followed at once,
         one call for them all. ``planned``: ``last`` is a planned stop (OEE)."""
-        if now > self._since:
-            self._close_state(now)
         current = self.state_current
         base = self._base
+        dt = now - self._since
+        if dt > 0.0:  # (_close_state, inline: this runs at every command)
+            i = base + self._state
+            self.mode_current[self._mode] += dt
+            current[i] += dt
+            self.state_cumulative[i] += dt
+            if self._planned:
+                self.planned_stop += dt
+            self._since = now
         current[base + first] = 0.0
         if between:  # (rare: a third state in one step)
             for state in between:

@@ -35,17 +35,9 @@ from . import inputlog
 from .alarm_inputs import AlarmInputs
 from .deadline_handlers import DeadlineHandlers
 from .em_inputs import EquipmentInputs
-from .machine import (
-    CommandRequest,
-    CompleteReport,
-    ModeRequest,
-    Request,
-    Stats,
-    StatusMark,
-    Transition,
-    Trigger,
-)
+from .machine import Stats, StatusMark, Transition, Trigger
 from .reasons import Answer
+from .requests import CommandRequest, CompleteReport, ModeRequest, Request
 from .tag_inputs import TagInputs
 from .unit_views import UnitViews
 

@@ -230,3 +230,31 @@ def test_a_compiled_run_does_what_the_general_loop_does(steps: list[tuple[Any, .
             general.stops.armed,
             general.interlocks.suspended,
         ), step
+
+
+def test_the_fast_path_is_generated_from_the_compiled_runs() -> None:
+    """Every accepted command with a run has its code generated from it (core/fastpath.py): the
+    run's records unrolled, its constants bound by name; the engine reads the compiled entries by
+    name, not by position."""
+    import inspect
+
+    from packml_ros2.core import fastpath
+    from packml_ros2.core.machine import UnitMachine
+
+    unit = Unit(cell_unit(RUN_UNIT), clock=FakeClock())
+    runs = [
+        e
+        for by_state in rules_of(unit.config).accepted.values()
+        for by_cmd in by_state
+        for e in by_cmd.values()
+        if e.run is not None
+    ]
+    assert runs
+    for e in runs:
+        assert e.run is not None and e.go is not None
+        assert e.go.__code__.co_filename.startswith("<packml run ")
+        source = fastpath.source_of(e.run)
+        assert "for " not in source and "while " not in source
+        assert source.count("out(('transition'") == 2 + len(e.run.tails)
+    command = inspect.getsource(UnitMachine.command)
+    assert "entry[" not in command and "run[" not in command
