@@ -45,11 +45,41 @@ def start(ros, processes, tmp_path, em: dict[str, Any], step: float = 0.1, **uni
 
 
 def wait_ready(servers, node: InterfaceEm) -> None:  # type: ignore[no-untyped-def]
-    """The servers' process is up and the EM sees its server (a slow start under load)."""
+    """The servers' process is up and the EM sees its server (a slow start under load), and one
+    answer of each kind has come back through the EM's own client: a plain rclpy server drops an
+    answer to a client whose response reader it has not discovered yet (Fast DDS waits 100 ms),
+    so an EM's first goal could go unanswered in a test only because discovery was slow."""
     wait_until(lambda: "drivers ready" in servers.output(), 60, what="the servers' process")
     client = node._action or node._service
     ready = getattr(client, "server_is_ready", None) or client.service_is_ready
     wait_until(ready, 30, what="the EM seeing its server")
+    if node._action is not None:
+        from test_msgs.action import Fibonacci
+
+        def round_trip() -> bool:  # a one-step move, its goal answered and its result back
+            sent = node._action.send_goal_async(Fibonacci.Goal(order=1))
+            if not _done(sent, 2.0) or not sent.result().accepted:
+                return False
+            return _done(sent.result().get_result_async(), 5.0)
+    else:
+        from std_srvs.srv import SetBool
+
+        def round_trip() -> bool:
+            return _done(node._service.call_async(SetBool.Request(data=True)), 2.0)
+
+    wait_until(round_trip, 60, what="an answer through the EM's client")
+
+
+def _done(future: Any, timeout: float) -> bool:
+    """Whether ``future`` (completed by the spinning harness) is done within ``timeout``."""
+    import time
+
+    deadline = time.monotonic() + timeout
+    while not future.done():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
 
 
 def test_an_action_em_sends_goals_in_its_states_and_counts_results(
