@@ -31,6 +31,7 @@ from packml_ros2.core import (
     times,
     unit,
 )
+from packml_ros2.core.deadlines import Due
 from packml_ros2.core.line import episodes as line_episodes
 from packml_ros2.core.line import losses as line_losses
 from packml_ros2.core.line import performance as line_performance
@@ -53,6 +54,14 @@ def _entry(patch: Patch, state: State, flags: Entry) -> None:
 def _wrap(patch: Patch, cls: Any, name: str, make: Callable[[Any], Any]) -> None:
     """``cls.name`` replaced by ``make(original)``."""
     patch.setattr(cls, name, make(getattr(cls, name)))
+
+
+def _wrap_deadline(patch: Patch, kind: Due, make: Callable[[Any], Any]) -> None:
+    """The handler of deadline ``kind`` replaced by ``make(original)`` (the unit binds its
+    handlers from the table ``DEADLINE_HANDLERS``, not by name)."""
+    table = dict(unit.Unit.DEADLINE_HANDLERS)
+    table[kind] = make(table[kind])
+    patch.setattr(unit.Unit, "DEADLINE_HANDLERS", table)
 
 
 def _stale_twice(original: Any) -> Any:
@@ -210,7 +219,7 @@ MUTATIONS: dict[str, Callable[[Patch], None]] = {
     "admin coalescing 0.5 s instead of 0.25 s":
         lambda p: p.setattr(publication, "ADMIN_COALESCE", 0.5),
     "admin heartbeat at twice its period":
-        lambda p: _wrap(p, unit.Unit, "_on_admin", _admin_period_doubled),
+        lambda p: _wrap_deadline(p, Due.ADMIN, _admin_period_doubled),
     "AccCount not counted": lambda p: _wrap(p, counters.Counters, "add", _acc_not_counted),
     "reset_counters resets AccCount too":
         lambda p: _wrap(p, counters.Counters, "reset", _reset_acc_too),
