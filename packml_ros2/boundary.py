@@ -35,6 +35,7 @@ from functools import cache
 from typing import Any
 
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from .core.limits import MAX_ITEMS, MAX_REQUEST_TEXT, LogLimiter, printable, text_problem
@@ -208,9 +209,32 @@ class GuardedNode(Node):
         return super().create_subscription(msg_type, topic, contain(callback, where, self.get_logger()), qos_profile, **kwargs)  # fmt: skip
 
     def create_timer(self, timer_period_sec: float, callback: Any, *args: Any, **kwargs: Any) -> Any:  # fmt: skip
+        """rclpy's timer on a clock that never steps (an NTP step of the wall clock neither
+        silences a timer nor fires it early), unless the node runs on simulated time or the
+        caller names a clock."""
         if callback is not None:
             callback = contain(callback, f"a timer of {self.get_fully_qualified_name()}", self.get_logger())  # fmt: skip
+        if len(args) < 2 and "clock" not in kwargs and not self.uses_sim_time():
+            kwargs["clock"] = self._steady_clock()
         return super().create_timer(timer_period_sec, callback, *args, **kwargs)
+
+    def uses_sim_time(self) -> bool:
+        """Whether the node's clock follows ``/clock`` (parameter ``use_sim_time``)."""
+        return self.has_parameter("use_sim_time") and bool(self.get_parameter("use_sim_time").value)  # fmt: skip
+
+    def steady(self) -> float:
+        """Seconds on the clock of the node's own leases and waits: monotonic (it never steps
+        with the wall clock); the node's ROS clock under simulated time. Timestamps stay on the
+        ROS clock (wall time)."""
+        if self.uses_sim_time():
+            return float(self.get_clock().now().nanoseconds) * 1e-9
+        return time.monotonic()
+
+    def _steady_clock(self) -> Clock:
+        clock: Clock | None = self.__dict__.get("_packml_steady_clock")
+        if clock is None:
+            clock = self.__dict__["_packml_steady_clock"] = Clock(clock_type=ClockType.STEADY_TIME)
+        return clock
 
     def create_service(self, srv_type: Any, srv_name: str, callback: Any, **kwargs: Any) -> Any:
         where = f"{self.get_fully_qualified_name()}/{srv_name[2:]}" if srv_name.startswith("~/") else srv_name  # fmt: skip

@@ -66,16 +66,17 @@ class UnitDriver:
             self.flush()
             self.clock.frozen = None
 
-    def report(self, now: float, msg: Any, liveliness: Liveliness) -> None:
+    def report(self, now: float, msg: Any, liveliness: Liveliness, tick: float | None = None) -> None:  # fmt: skip
         """An ``EmReport`` received at ``now``, applied as the engine inputs it stands for: every
         report is a heartbeat (``em_seen`` when the EM was not alive), then its kind's input. The
-        unit node and the synthetic recorder (bag/synthetic.py) both come here."""
+        unit node and the synthetic recorder (bag/synthetic.py) both come here. ``tick``: the
+        time on the leases' clock (the node's steady clock; default ``now``)."""
         unit, run, name, kind, cls = self.unit, self.call, msg.em, msg.kind, type(msg)
         if kind == cls.KIND_LEAVE:
             if liveliness.left(name):
                 run(now, unit.em_lost, name, "left")
             return
-        if liveliness.seen(name, now) and not run(now, unit.em_seen, name, True).accepted:
+        if liveliness.seen(name, now if tick is None else tick) and not run(now, unit.em_seen, name, True).accepted:  # fmt: skip
             liveliness.forget(name)  # not registered: its next report asks again
             return  # the rest of a report of an EM the unit does not know changes nothing
         warning = liveliness.announce(name, msg.lease)

@@ -149,7 +149,7 @@ class UnitNode(GuardedNode):
         # expire, a goodbye's grace or the input log's batch (_arm after every callback).
         self._wake = self.create_timer(3600.0, self._on_wake)
         self._wake.cancel()
-        self._wake_at = math.inf
+        self._wake_at: tuple[float, float] | None = None  # (engine due, steady due) armed
         self._timers = [
             self._wake,
             self.create_timer(DIAGNOSTICS_PERIOD, self._publish_diagnostics),
@@ -363,7 +363,7 @@ class UnitNode(GuardedNode):
     def _on_report(self, msg: EmReport, info: MessageInfo) -> None:
         """An EM report: checked field by field, and taken only from the writer that speaks for
         its EM (core.reports); then applied (driver.report), a goodbye after a grace."""
-        now = self._now()
+        now, tick = self._now(), self.steady()  # (engine time; the leases' clock)
         problem = report_problem(msg, self.unit.sequence)
         if problem is not None:
             self.refused_reports += 1
@@ -372,7 +372,7 @@ class UnitNode(GuardedNode):
             return
         gid = info.get("publisher_gid")
         writer = bytes(gid["data"]) if gid else b""
-        taken, note = self.writers.claim(msg.em, writer, now, self._writer_gone)
+        taken, note = self.writers.claim(msg.em, writer, tick, self._writer_gone)
         if note is not None:
             self._log("warn" if not taken else "info", note)
         if not taken:
@@ -383,17 +383,17 @@ class UnitNode(GuardedNode):
             self.writers.release(msg.em)  # left, or not an EM of the unit: keep nothing
             self.beat_writers.release(msg.em)
         if leaving:
-            self._leave(msg, now)
+            self._leave(msg, now, tick)
         else:
             self._leaving.pop(msg.em, None)  # anything else from it: it is back (or never left)
-            self.driver.report(now, msg, self.liveliness)
+            self.driver.report(now, msg, self.liveliness, tick)
         self._arm(now)
 
     def _on_heartbeat(self, msg: EmReport, info: MessageInfo) -> None:
         """A heartbeat on the best-effort channel: it renews the EM's lease however long a
         reliable report ahead of it on ``em_reports`` waits for its repair (a network blip
         shorter than the lease never loses an EM). Nothing but heartbeats is taken here."""
-        now = self._now()
+        tick = self.steady()  # a heartbeat only renews a lease: the leases' clock
         problem = report_problem(msg, self.unit.sequence)
         if problem is None and msg.kind != EmReport.KIND_HEARTBEAT:
             problem = f"a report of kind {msg.kind} on em_heartbeats (only heartbeats go there)"
@@ -406,33 +406,33 @@ class UnitNode(GuardedNode):
             return  # (registration and goodbyes go by em_reports, in order)
         gid = info.get("publisher_gid")
         writer = bytes(gid["data"]) if gid else b""
-        taken, note = self.beat_writers.claim(msg.em, writer, now, self._beat_writer_gone)
+        taken, note = self.beat_writers.claim(msg.em, writer, tick, self._beat_writer_gone)
         if note is not None and not taken:
             self._log("warn", note)
         if not taken:
             self.refused_reports += 1
             return
         if msg.em in self.liveliness.alive:  # (the wake-up due at the old expiry re-arms)
-            self.liveliness.seen(msg.em, now)
+            self.liveliness.seen(msg.em, tick)
 
     def _beat_writer_gone(self, writer: bytes) -> bool:
         return self._writer_gone(writer, self._beats.topic_name)
 
-    def _leave(self, msg: EmReport, now: float) -> None:
+    def _leave(self, msg: EmReport, now: float, tick: float) -> None:
         """An EM's goodbye counts after a grace: when a whole cell is stopped (Ctrl-C under
         ros2 launch: every process gets SIGINT at once), its EMs' goodbyes can arrive before
         this process notices its own signal; its shutdown then drops them (no false fault)."""
         if not run.shutting_down():
             grace = float(self.get_parameter("em_leave_grace").value)
-            self._leaving[msg.em] = (now + grace, msg)
+            self._leaving[msg.em] = (tick + grace, msg)
             if grace <= 0:
-                self._apply_leaves(now)
+                self._apply_leaves(now, tick)
 
-    def _apply_leaves(self, now: float) -> None:
+    def _apply_leaves(self, now: float, tick: float) -> None:
         for name, (due, msg) in list(self._leaving.items()):
-            if due <= now:
+            if due <= tick:
                 del self._leaving[name]
-                self.driver.report(now, msg, self.liveliness)
+                self.driver.report(now, msg, self.liveliness, tick)
 
     def _writer_gone(self, writer: bytes, topic: str = "") -> bool:
         """Whether ``writer`` no longer publishes EM reports here (its node or process ended)."""
@@ -445,7 +445,7 @@ class UnitNode(GuardedNode):
     def _on_wake(self) -> None:
         if self._closed:
             return  # closed while this wake-up waited (a test's multi-threaded executor): no timer
-        self._wake_at = math.inf  # fired: _arm sets it again
+        self._wake_at = None  # fired: _arm sets it again
         self._wake.cancel()
         if run.shutting_down():
             return  # this process is stopping: EMs going silent now are no news
@@ -453,14 +453,14 @@ class UnitNode(GuardedNode):
         # unit) counts before any lease is judged: a heartbeat received in time renews it
         self._take_waiting(self._beats, self._on_heartbeat)
         self._take_waiting(self._reports, self._on_report)
-        now = self._now()
-        self._apply_leaves(now)
-        for name, lease in self.liveliness.expired(now):
+        now, tick = self._now(), self.steady()
+        self._apply_leaves(now, tick)
+        for name, lease in self.liveliness.expired(tick):
             self.writers.release(name)
             self.beat_writers.release(name)
             self._leaving.pop(name, None)
             self.driver.call(now, self.unit.em_lost, name, f"no report for {lease:g} s")
-        summary = self._log_limiter.due(now)
+        summary = self._log_limiter.due(tick)
         if summary is not None:
             self.get_logger().warning(summary)
         self.driver.catch_up(now)
@@ -483,22 +483,25 @@ class UnitNode(GuardedNode):
             handle(*taken)
 
     def _arm(self, now: float) -> None:
-        """Arm the wake-up timer for the next thing due (nothing: no timer runs)."""
+        """Arm the wake-up timer for the next thing due (nothing: no timer runs). The engine's
+        deadlines and the input log's batch are due in engine time (``now``); leases and
+        goodbyes on the steady clock, so a step of the wall clock neither expires them nor
+        holds them off."""
         due = self.unit.deadlines.next_due
-        expiry = self.liveliness.next_expiry() + LEASE_SLACK
-        due = min(due, expiry)
-        for leave_at, _ in self._leaving.values():
-            due = min(due, leave_at)
         if self._inputs:  # the batch goes out INPUT_LOG_DELAY after its first input: a due
             # time that inputs do not move, so the EMs' reports do not reset the timer one by one
             due = min(due, self._inputs[0][0] + INPUT_LOG_DELAY)
-        if due == self._wake_at or self._closed:
+        steady_due = self.liveliness.next_expiry() + LEASE_SLACK
+        for leave_at, _ in self._leaving.values():
+            steady_due = min(steady_due, leave_at)
+        if (due, steady_due) == self._wake_at or self._closed:
             return
-        self._wake_at = due
-        if due == math.inf:
+        self._wake_at = (due, steady_due)
+        if due == math.inf and steady_due == math.inf:
             self._wake.cancel()
             return
-        self._wake.timer_period_ns = max(int((due - now) * 1e9), 1)
+        delay = min(due - now, steady_due - self.steady())
+        self._wake.timer_period_ns = max(int(delay * 1e9), 1)
         self._wake.reset()
 
     # -- publishing ------------------------------------------------------------------------------------
@@ -559,7 +562,7 @@ class UnitNode(GuardedNode):
     def _log(self, level: str, text: str) -> None:
         """A log line of the engine or the node: callers' text escaped (no forged lines), repeated
         lines rate-limited (core.limits)."""
-        write, summary = self._log_limiter.admit(text, self._now())
+        write, summary = self._log_limiter.admit(text, self.steady())
         if summary is not None:
             self.get_logger().warning(summary)
         if not write:

@@ -36,6 +36,7 @@ if ((for_tests)); then
   command -v chromium >/dev/null || missing+=(chromium)
   command -v node >/dev/null || missing+=(nodejs)
   command -v npm >/dev/null || missing+=(npm)
+  command -v faketime >/dev/null || missing+=(faketime)  # wall-clock steps (test_clock_steps)
 fi
 if command -v "$PYTHON" >/dev/null; then
   "$PYTHON" - <<'PY' || missing+=(python3-dev)

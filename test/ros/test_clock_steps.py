@@ -1,0 +1,86 @@
+"""Issue 25 item 6: a step of the wall clock (NTP) neither silences nor aborts a cell.
+
+The unit and its EMs run as processes whose wall clock (CLOCK_REALTIME) is stepped by libfaketime
+(Debian's ``faketime``, installed by tools/setup.sh) while their monotonic clock runs on: 60 s
+back, then forward again, as a machine whose time server corrects it. The timers of every node
+run on the steady clock and the EM leases on the monotonic one, so ``/diagnostics`` keeps coming
+through the step back and no lease "expires" at the step forward; the unit stays in Execute with
+its EMs online. Timestamps stay wall-clock: they follow the step.
+"""
+
+from __future__ import annotations
+
+import glob
+import time
+from pathlib import Path
+
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from packml_interfaces.srv import SetMachSpeed
+
+from packml_ros2 import qos
+from packml_ros2.testing.processes import Processes
+from test.ros.cells import UnitClient, write_cell
+
+FAST = {"resetting": 0.05, "starting": 0.05, "stopping": 0.05, "aborting": 0.05, "clearing": 0.05}
+
+
+def libfaketime() -> str:
+    found = sorted(glob.glob("/usr/lib/*/faketime/libfaketimeMT.so.1"))
+    if not found:
+        pytest.fail("libfaketime is missing: tools/setup.sh installs Debian's faketime for the tests")  # fmt: skip
+    return found[0]
+
+
+def _ems_online(status, names) -> bool:  # type: ignore[no-untyped-def]
+    ems = {e.name: e for e in status.equipment_modules}
+    return all(n in ems and ems[n].online for n in names)
+
+
+def test_a_wall_clock_step_back_and_forward_neither_silences_nor_aborts_the_cell(
+    ros, processes: Processes, tmp_path: Path
+) -> None:
+    offset = tmp_path / "faketime"
+    offset.write_text("+0\n")
+    stepped = {"LD_PRELOAD": libfaketime(), "FAKETIME_TIMESTAMP_FILE": str(offset),
+               "FAKETIME_NO_CACHE": "1", "DONT_FAKE_MONOTONIC": "1"}  # fmt: skip
+    ems = ("infeed", "robot")
+    em = {"sim": {"durations": FAST, "lease": 1.0}}
+    cell_file, cell = write_cell(tmp_path, {"u": {"em_lease": 1.5, "equipment_modules": dict.fromkeys(ems, em)}})  # fmt: skip
+    processes.module("unit", "packml_ros2.unit_node", str(cell_file), "u", env=stepped)
+    for name in ems:
+        processes.module(f"em_{name}", "packml_ros2.sim_em", str(cell_file), "u", name, env=stepped)
+    diagnostics = ros.subscribe(DiagnosticArray, "/diagnostics", qos.DIAGNOSTICS)
+    unit = UnitClient(ros, cell, "u")
+    unit.ready(30)
+    unit.wait_status(lambda s: _ems_online(s, ems), 30, "both EMs online")
+    for command, state in (("reset", "IDLE"), ("start", "EXECUTE")):
+        assert unit.trigger(command).success
+        unit.wait_state(state, 15)
+    ours = f"{cell}/u"  # (the hardware id)
+
+    def from_unit(m: DiagnosticArray) -> bool:
+        return any(s.hardware_id == ours for s in m.status)
+
+    diagnostics.wait_for(from_unit, 10, "the unit's diagnostics")
+    transitions = len(unit.transitions)
+
+    # -- 60 s back: the diagnostics (a 1 s timer) go on ------------------------------------------------
+    offset.write_text("-60\n")
+    start = len(diagnostics)
+    for n in range(1, 4):
+        diagnostics.wait_for(from_unit, 3, f"diagnostics {n} s after the step back", start)  # fmt: skip
+        start = len(diagnostics)
+    # -- and forward again (60 s at once): no lease has expired, nothing stops ----------------------
+    offset.write_text("+0\n")
+    for _ in range(5):  # inputs: each wakes the unit 50 ms later (its input log's batch), before
+        # the EMs' next heartbeats (every 0.25 s): a lease judged on the wall clock expires there
+        unit.call(SetMachSpeed, "set_mach_speed", mach_speed=50.0)
+        time.sleep(0.05)
+    diagnostics.wait_for(from_unit, 3, "diagnostics after the step forward", len(diagnostics))  # fmt: skip
+    watched_until = time.monotonic() + 3 * 1.5  # three leases of the unit
+    while time.monotonic() < watched_until:
+        last = unit.status.last
+        assert last.state_current_name == "EXECUTE" and _ems_online(last, ems), last
+        time.sleep(0.1)
+    assert [(t.from_state_name, t.to_state_name) for t in unit.transitions.messages[transitions:]] == []  # fmt: skip
