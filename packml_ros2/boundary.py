@@ -35,7 +35,8 @@ from functools import cache
 from typing import Any
 
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.clock import Clock, ClockType
+from rclpy.clock import Clock
+from rclpy.clock_type import ClockType
 from rclpy.node import Node
 
 from .core.limits import MAX_ITEMS, MAX_REQUEST_TEXT, LogLimiter, printable, text_problem
@@ -73,7 +74,7 @@ def _walk(value: Any, field: str, budget: list[int]) -> None:
         for item in value:
             _walk(item, field, budget)
     elif hasattr(value, "get_fields_and_field_types"):
-        for name in _fields(type(value)):
+        for name in _fields(type(value)):  # type: ignore[arg-type]  # (a message type: hashable)
             _walk(getattr(value, name), name, budget)
 
 
@@ -145,9 +146,9 @@ def _origin(exc: BaseException) -> str:
     innermost frame), relative to the package."""
     frames = traceback.extract_tb(exc.__traceback__)
     ours = [f for f in frames if os.path.abspath(f.filename).startswith(_PACKAGE)]
-    frame = (ours or frames or [None])[-1]
-    if frame is None:
+    if not (ours or frames):
         return "?"
+    frame = (ours or frames)[-1]
     name = os.path.abspath(frame.filename)
     shown = os.path.relpath(name, os.path.dirname(_PACKAGE)) if name.startswith(_PACKAGE) else os.path.basename(name)  # fmt: skip
     return f"{shown}:{frame.lineno}"

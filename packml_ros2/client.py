@@ -173,11 +173,11 @@ class UnitProxy:
 
     def wait_admin(self, timeout: float = 10.0) -> Admin:
         """Block (not in an executor thread) until the unit's admin data has arrived."""
-        return self._wait_latched("admin", "admin data", timeout)  # type: ignore[no-any-return]
+        return self._wait_latched("admin", "admin data", timeout)
 
     def wait_alarms(self, timeout: float = 10.0) -> AlarmList:
         """Block (not in an executor thread) until the unit's (latched) alarm list has arrived."""
-        return self._wait_latched("alarms", "alarm list", timeout)  # type: ignore[no-any-return]
+        return self._wait_latched("alarms", "alarm list", timeout)
 
     def _wait_latched(self, attr: str, what: str, timeout: float) -> Any:
         deadline = time.monotonic() + timeout

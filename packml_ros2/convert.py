@@ -67,7 +67,7 @@ def stamp(seconds: float) -> Time:
 
 
 def seconds(t: Time) -> float:
-    return t.sec + t.nanosec * 1e-9
+    return float(t.sec + t.nanosec * 1e-9)
 
 
 # -- descriptors and products -----------------------------------------------------------------------

@@ -91,7 +91,8 @@ def status_view(raw: bytes, em: str) -> StatusView:
         head = [getattr(msg, f) for f in _STATUS_FIELDS]
         entries = [tuple(getattr(e, f) for f in _EM_FIELDS) for e in msg.equipment_modules]
     mine = next(((active, done) for name, active, done in entries if name == em), None)
-    return StatusView(*head, mine)
+    state, sequence, mode, mode_requested, mode_changing = head
+    return StatusView(state, sequence, mode, mode_requested, bool(mode_changing), mine)
 
 
 class EquipmentModule(GuardedNode):

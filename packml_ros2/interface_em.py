@@ -54,7 +54,7 @@ from enum import IntEnum
 from typing import Any
 
 from action_msgs.msg import GoalStatus
-from rclpy.action import ActionClient
+from rclpy.action.client import ActionClient
 from rclpy.task import Future
 
 from . import run
@@ -287,7 +287,7 @@ def parse_interface(data: Mapping[str, Any], kind: str, path: str, file: str,
         other = "request" if kind == "action" else "goal"
         if other in child.mapping():
             child.child(other, None).error(f"{_an(kind)} EM sends a {word}, not a {other}")
-        fields = child.get(word, lambda x: dict(x.mapping()), {})
+        fields: dict[str, Any] = child.get(word, lambda x: dict(x.mapping()), {})
         if request_type is not None:
             try:
                 build(request_type, fill(fields, None))
@@ -357,8 +357,8 @@ class InterfaceEm(EquipmentModule):
         self.last_feedback: Any = None
         self.failures: list[tuple[Failure, str]] = []
         if config.kind == "action":
-            self._action: ActionClient | None = ActionClient(self, config.interface, config.name)
-            self._service = None
+            self._action: ActionClient[Any, Any, Any] | None = ActionClient(self, config.interface, config.name)  # fmt: skip
+            self._service: Any = None
         else:
             self._action = None
             self._service = self.create_client(config.interface, config.name)
@@ -418,12 +418,12 @@ class InterfaceEm(EquipmentModule):
                 raise StepFailed(Failure.NO_SERVER, f"{self.config.name} is not there")
             await asyncio.sleep(WATCH)
 
-    def _wrap(self, future: Future) -> asyncio.Future[Any]:
+    def _wrap(self, future: Future[Any]) -> asyncio.Future[Any]:
         """An rclpy future (done in the executor's thread) as an asyncio one on the EM's loop."""
         loop = asyncio.get_running_loop()
         out: asyncio.Future[Any] = loop.create_future()
 
-        def done(f: Future) -> None:
+        def done(f: Future[Any]) -> None:
             def settle() -> None:
                 if out.done():
                     return

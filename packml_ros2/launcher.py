@@ -114,7 +114,7 @@ def wait_ready(
     services = [f"/{cell}/{u}/command" for u in p.cell.units]
     if p.cell.coordinator.enabled:
         services.append(f"/{cell}/coordinator/command")
-    clients = {name: node.create_client(Command, name) for name in services}
+    clients: dict[str, Any] = {name: node.create_client(Command, name) for name in services}
     latest: dict[str, Status] = {}
     status = interface.TOPIC["status"]
     subscriptions = [

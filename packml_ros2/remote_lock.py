@@ -50,7 +50,7 @@ class RemoteLock:
     def enabled(self) -> bool:
         return bool(self.node.get_parameter(NAME).value)
 
-    def _validate(self, params: list[Parameter]) -> SetParametersResult:
+    def _validate(self, params: list[Parameter[Any]]) -> SetParametersResult:
         for p in params:
             if p.name != NAME:
                 continue

@@ -108,7 +108,7 @@ def make_executor(nodes: int, threads: int = 0) -> Executor:
     if threads > 1:
         return MultiThreadedExecutor(num_threads=threads)
     if os.environ.get("PACKML_EXECUTOR", "events") == "events":
-        from rclpy.experimental import EventsExecutor
+        from rclpy.experimental.events_executor import EventsExecutor
 
         return EventsExecutor()
     return SingleThreadedExecutor()

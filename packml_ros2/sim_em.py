@@ -118,7 +118,7 @@ def parse_sim(data: Mapping[str, Any], path: str = "sim", file: str = "<memory>"
         cycles_per_run=n.get("cycles_per_run", sc.integer(0), 0),
         lease=n.get("lease", sc.number(positive=True), lease),
         faults=faults,
-        seed=n.get("seed", sc.integer(), None),  # type: ignore[arg-type]
+        seed=n.get("seed", sc.integer(), None),
         fed_by=n.get("fed_by", sc.name, ""),
         buffer=n.get("buffer", sc.number(lo=0), 5.0),
     )

@@ -195,7 +195,7 @@ class UnitNode(GuardedNode):
             ),
         )
 
-    def _validate_parameters(self, params: list[Parameter]) -> SetParametersResult:
+    def _validate_parameters(self, params: list[Parameter[Any]]) -> SetParametersResult:
         for p in params:
             if p.name == "em_leave_grace" and not (
                 p.type_ in (Parameter.Type.DOUBLE, Parameter.Type.INTEGER) and 0 <= p.value <= 60
@@ -475,7 +475,7 @@ class UnitNode(GuardedNode):
         for _ in range(MAX_TAKEN):
             try:
                 with subscription.handle:
-                    taken = subscription.handle.take_message(subscription.msg_type, False)
+                    taken: Any = subscription.handle.take_message(subscription.msg_type, False)
             except InvalidHandle:
                 return
             if taken is None:

@@ -293,8 +293,8 @@ def check(recording: Recording, path: str | Path) -> None:
                     args = bounded_json(i.args_json, f"{unit.prefix} input #{i.index}")
                 except ValueError as exc:
                     raise RecordingError(f"{path}: {exc}") from None
-                t = args.get("time", i.time) if isinstance(args, dict) else None
-                if not isinstance(t, int | float) or not lo <= t <= hi:
+                started = args.get("time", i.time) if isinstance(args, dict) else None
+                if not isinstance(started, int | float) or not lo <= started <= hi:
                     raise RecordingError(f"{path}: {unit.prefix} input #{i.index} (start) has no "
                                          "time inside the time the bag was recorded in")  # fmt: skip
 
@@ -307,7 +307,7 @@ def _bound_decompression() -> None:
     from rosbags.rosbag2 import storage_mcap
     from rosbags.rosbag2.errors import ReaderError
 
-    zstd: Any = storage_mcap.zstd
+    zstd: Any = getattr(storage_mcap, "zstd")  # noqa: B009  (not in its __all__)
     from lz4.frame import LZ4FrameDecompressor
 
     def bounded(make: Any) -> Any:

@@ -266,7 +266,7 @@ def replay(args: argparse.Namespace) -> int:
         from ..bag.replay import replay as check
 
         lines = line.check(args.bag, args.config) if not args.unit else []
-        result = None if lines and not _has_units(args.bag) else check(args.bag, args.config, args.unit)  # fmt: skip
+        checked = None if lines and not _has_units(args.bag) else check(args.bag, args.config, args.unit)  # fmt: skip
     except RecordingError as exc:
         if args.junit:
             _junit(args, time.perf_counter() - started, None, [], exc)
@@ -276,16 +276,16 @@ def replay(args: argparse.Namespace) -> int:
     except (RecursionError, MemoryError) as exc:  # what no check of the bag foresaw: still input
         return _fail(f"{args.bag}: cannot replay the bag: {type(exc).__name__} (nested too deeply, or larger than memory)", EXIT_UNUSABLE)  # fmt: skip
     seconds = time.perf_counter() - started  # the whole check: units and line
-    if result is not None:
-        result.seconds = seconds
-        print(result.report())
+    if checked is not None:
+        checked.seconds = seconds
+        print(checked.report())
     for r in lines:
         print(r.report())
-    ok = (result is None or result.ok) and all(r.ok for r in lines)
-    if result is None:
+    ok = (checked is None or checked.ok) and all(r.ok for r in lines)
+    if checked is None:
         print(f"{args.bag}: {'match' if ok else 'MISMATCH'} ({seconds:.2f} s)")
     if args.junit:
-        _junit(args, seconds, result, lines, None)
+        _junit(args, seconds, checked, lines, None)
     return EXIT_OK if ok else EXIT_MISMATCH
 
 

@@ -74,7 +74,7 @@ def _report(resp: Any, ok_text: str) -> int:
 def _coordinator(
     s: Session, cell: str, service: str, srv: Any, request: Any, timeout: float
 ) -> Any:
-    client = s.node.create_client(srv, f"/{cell}/coordinator/{service}")
+    client: Any = s.node.create_client(srv, f"/{cell}/coordinator/{service}")
     if not client.wait_for_service(timeout_sec=s.timeout):
         raise Unavailable(
             f"the coordinator of cell {cell} does not answer (/{cell}/coordinator/{service})"
@@ -89,7 +89,7 @@ def _cell_command(s: Session, cell_name: str, request: Any, timeout: float) -> A
     cell = s.cell(cell_name)
     wait_cell(cell, s.timeout)  # the states before (a lost unit is not waited for)
     path = f"/{cell_name}/coordinator/command"
-    client = s.node.create_client(Command, path)
+    client: Any = s.node.create_client(Command, path)
     if not client.wait_for_service(timeout_sec=s.timeout):
         raise Unavailable(f"the coordinator of cell {cell_name} does not answer ({path})")
     changed = threading.Event()
@@ -190,7 +190,7 @@ def fault(args: argparse.Namespace) -> int:
                 path = f"{unit.path}/{parts[1]}"
             else:
                 path = "/" + "/".join(parts)
-            client = s.node.create_client(SetBool, f"{path}/fault/{args.fault}")
+            client: Any = s.node.create_client(SetBool, f"{path}/fault/{args.fault}")
             if not client.wait_for_service(timeout_sec=s.timeout):
                 return fail(
                     f"no fault {args.fault!r} at {path} (is it a simulated EM with that fault?)",

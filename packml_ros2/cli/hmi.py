@@ -18,7 +18,7 @@ from .main import EXIT_OK, EXIT_USAGE
 TOKEN_ENV = "PACKML_HMI_TOKEN"
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "hmi",
         help="the operator HMI in a browser",

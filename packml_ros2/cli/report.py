@@ -214,7 +214,7 @@ def table(cell: str, data: dict[str, Any], episodes: list[dict[str, Any]], total
     lines = [f"line {cell}: {data['window']} ({clock(data['start']) if data['start'] else 'since the first record'} .. {clock(data['end'])})"]  # fmt: skip
     head = ("SCOPE", "ELAPSED", "PLANNED", "UNPLANNED", "BLOCKED", "STARVED", "HELD", "RUNNING",
             "SPEED LOSS", "QUALITY LOSS", "PRODUCTIVE", "A", "P", "Q", "OEE")  # fmt: skip
-    rows = [head]
+    rows: list[tuple[str, ...]] = [head]
     times = ("elapsed", "planned_stop", "unplanned_stop", "blocked", "starved", "held", "running",
              "speed_loss", "quality_loss", "productive")  # fmt: skip
     for s in data["scopes"]:

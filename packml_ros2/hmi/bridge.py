@@ -88,7 +88,7 @@ class ActionError(LookupError):
 
 # -- messages -> dicts -------------------------------------------------------------------------------------
 def _sec(t: Any) -> float:
-    return t.sec + t.nanosec * 1e-9
+    return float(t.sec + t.nanosec * 1e-9)
 
 
 def _time_or_none(t: Any) -> float | None:
@@ -432,7 +432,7 @@ class Bridge:
                 self.node, [f"/{cell.cell}/coordinator"], self.lease,
                 on_change=self._on_presence, message_type=CellStatus,
             )  # fmt: skip
-        self._coordinator = {
+        self._coordinator: dict[str, Any] = {
             "command": self.node.create_client(
                 Command, f"/{cell.cell}/coordinator/command", callback_group=self._group
             ),

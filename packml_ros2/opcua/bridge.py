@@ -178,7 +178,7 @@ def check_arguments(model: PackMLModel, method: MethodDef, args: Sequence[Any]) 
         raise BadArguments(S.BadArgumentsMissing, f"expected {names}")
     if len(args) > len(expected):
         raise BadArguments(S.BadTooManyArguments, f"expected {names}")
-    values = []
+    values: list[Any] = []
     for i, (arg, spec) in enumerate(zip(args, expected, strict=True)):
         variant = arg if isinstance(arg, ua.Variant) else ua.Variant(arg)
         ns, ident = spec.data_type

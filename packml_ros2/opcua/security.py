@@ -342,9 +342,9 @@ def install() -> None:
             _diagnostics(response, refusals, mask)
         return send_response(self, requesthandle, seqhdr, response, *args, **kwargs)
 
-    processor.process_message = wrapped_process_message  # type: ignore[method-assign]
-    processor.send_response = wrapped_send_response  # type: ignore[method-assign]
-    processor._packml_hooks = True  # type: ignore[attr-defined]
+    processor.process_message = wrapped_process_message
+    processor.send_response = wrapped_send_response
+    processor._packml_hooks = True
 
 
 async def trusted_validator(paths: tuple[Path, ...]) -> Any:

@@ -841,13 +841,13 @@ def _eu(unit: str) -> Any:
 
 
 def _ua_descriptor(d: Descriptor) -> Any:
-    cls = ua.PackMLDescriptorDataType  # type: ignore[attr-defined]  # generated from the PLC's types
+    cls = ua.PackMLDescriptorDataType  # generated from the PLC's types
     return cls(ID=d.id, Name=d.name, Unit=_eu(d.unit), Value=float(d.value))
 
 
 def _ua_product(p: Any) -> Any:
-    cls = ua.PackMLProductDataType  # type: ignore[attr-defined]
-    ingredient = ua.PackMLIngredientsDataType  # type: ignore[attr-defined]
+    cls = ua.PackMLProductDataType
+    ingredient = ua.PackMLIngredientsDataType
     return cls(
         ProductID=p.product_id,
         ProcessVariables=[_ua_descriptor(d) for d in p.process_variables],

@@ -143,7 +143,7 @@ class RosHarness:
         return future.result()
 
     def wait_for_service(self, srv_type: Any, name: str, timeout: float = 10.0) -> None:
-        client = self.node.create_client(srv_type, name)
+        client: Any = self.node.create_client(srv_type, name)
         try:
             if not client.wait_for_service(timeout_sec=timeout):
                 raise TimeoutError(f"service {name} did not appear within {timeout:g} s")

@@ -9,7 +9,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from . import shm
@@ -103,8 +103,11 @@ class Processes:
 
 
 def wait_until(
-    predicate, timeout: float = 10.0, interval: float = 0.01, what: str = "condition"
-) -> None:  # type: ignore[no-untyped-def]
+    predicate: Callable[[], object],
+    timeout: float = 10.0,
+    interval: float = 0.01,
+    what: str = "condition",
+) -> None:
     """Poll ``predicate`` (no fixed sleeps: returns as soon as it holds)."""
     deadline = time.monotonic() + timeout
     while not predicate():
