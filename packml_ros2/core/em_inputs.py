@@ -12,9 +12,10 @@ from . import inputlog
 from .alarms import AlarmDef
 from .interlocks import STOP_ID_BLOCKED, STOP_ID_STARVED
 from .machine import UnitMachine
-from .numbers import Cmd, Mode, command_name, state_name
+from .numbers import Mode, command_name, state_name
 from .reasons import Answer, Reason
 from .rules import (
+    CATEGORY_OF_REACTION,
     EXCUSE_OFFLINE,
     OPERATOR,
     Trigger,
@@ -82,7 +83,7 @@ class EquipmentInputs(UnitMachine):
             if self.state in EXCUSE_OFFLINE or not reaction:
                 self.equipment.excuse(name)
             why = f" ({detail})" if detail else ""
-            category = {Cmd.ABORT: 0, Cmd.STOP: 2}.get(Cmd(reaction), 5) if reaction else 9
+            category = CATEGORY_OF_REACTION[reaction]
             definition = AlarmDef(
                 id=self.config.system_alarms.em_lost,
                 value=em.index,

@@ -18,7 +18,7 @@ from .config import Descriptor, Product, UnitConfig
 from .counters import Counter, Counters
 from .equipment import Equipment
 from .interlocks import Interlocks
-from .modes import ModeDef
+from .modes import GROUPS, ModeDef
 from .numbers import NUM_STATES, Cmd, Mode, State, command_name, state_name
 from .times import ROLLOVER, ModeStateTimes, TimesSnapshot
 
@@ -231,8 +231,10 @@ def build_status(unit: UnitView, time: float, state: State, sequence: int) -> St
     )
 
 
-_INTERNAL = (S.HOLDING, S.HELD, S.UNHOLDING)
-_EXTERNAL = (S.SUSPENDING, S.SUSPENDED, S.UNSUSPENDING)
+#: Held and suspended time: the state groups a configuration names (modes.GROUPS, one
+#: declaration), in the states' order
+_INTERNAL = tuple(s for s in State if s in GROUPS["HOLD"])
+_EXTERNAL = tuple(s for s in State if s in GROUPS["SUSPEND"])
 _ABORTED = (S.ABORTING, S.ABORTED, S.CLEARING)
 _STOPPED = (S.STOPPING, S.STOPPED, S.RESETTING, S.IDLE, S.STARTING, S.COMPLETING, S.COMPLETE)
 

@@ -520,6 +520,23 @@ DEFAULT_REACTIONS: Mapping[int, int] = {
 }
 
 
+def _category_of_reaction() -> dict[int, int]:
+    first: dict[int, int] = {}
+    for category, reaction in sorted(DEFAULT_REACTIONS.items()):
+        first.setdefault(reaction, category)
+    quiet = first[0]  # the first category that does not react by itself
+    out = {r: first.get(r, quiet) for r in REACTIONS.values() if r}
+    out[0] = NUM_CATEGORIES - 1  # no reaction: the least severe category
+    return out
+
+
+#: The category of an alarm the unit raises for a reaction (an EM lost, reaction ``abort``): the
+#: first category whose default reaction that is (Abort 0, Stop 2); Hold and Suspend, which no
+#: category has by default, the first one that does not react by itself (5: the alarm carries its
+#: reaction); no reaction, the last category (9).
+CATEGORY_OF_REACTION: Mapping[int, int] = _category_of_reaction()
+
+
 class AlarmLike(Protocol):
     """What the alarm rules read of a configured alarm (``alarms.AlarmDef``)."""
 
@@ -555,6 +572,11 @@ def override_refusal(d: AlarmLike, category: int, message: str,
 #: SUSPENDED because of one (``interlock_reaction: suspend``; ``none`` switches it off).
 INTERLOCK_SUSPEND: tuple[State, Cmd] = (S.EXECUTE, C.SUSPEND)
 INTERLOCK_RESUME: tuple[State, Cmd] = (S.SUSPENDED, C.UNSUSPEND)
+#: The states an interlock's suspension passes through: from where it suspends, on the way (the
+#: acting state of that command) and where it resumes from. Outside them the unit has left it.
+INTERLOCK_PATH: frozenset[State] = frozenset(
+    {INTERLOCK_SUSPEND[0], COMMANDS_2022[INTERLOCK_SUSPEND], INTERLOCK_RESUME[0]}
+)
 
 # ==================================================================================================
 # 6. Entry actions: what entering a state does besides the transition

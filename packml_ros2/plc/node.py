@@ -67,10 +67,10 @@ from ..core import CellConfig, Cmd, UnitConfig, load_cell, state_name
 from ..core import config as cfg
 from ..core.alarms import select_events
 from ..core.interlocks import interlock_refusal
-from ..core.numbers import NUM_STATES, Mode, State, command_name
+from ..core.numbers import NUM_STATES, Mode, command_name
 from ..core.packtags import EmView, RemoteInterfaceView, StatusView, compute_oee
 from ..core.reasons import Reason
-from ..core.rules import locked_refusal
+from ..core.rules import INTERLOCK_PATH, INTERLOCK_RESUME, INTERLOCK_SUSPEND, locked_refusal
 from ..core.unit import Transition, Trigger
 from ..opcua.nodeset import load
 from ..remote_lock import RemoteLock
@@ -715,14 +715,16 @@ class PlcUnitNode(GuardedNode):
                 or not self.config.interlock_reaction
             ):
                 return
-            state = self.mirror.state
-            if self._interlocks and state is State.EXECUTE:
-                cmd, detail = Cmd.SUSPEND, "; ".join(self._interlocks.values())
+            state = self.mirror.state  # (the unit's rule: core.rules INTERLOCK_*)
+            if self._interlocks and state is INTERLOCK_SUSPEND[0]:
+                cmd, detail = INTERLOCK_SUSPEND[1], "; ".join(self._interlocks.values())
                 source = next(iter(self._interlocks))
-            elif not self._interlocks and self._interlock_suspended and state is State.SUSPENDED:
-                cmd, detail, source = Cmd.UNSUSPEND, "interlock cleared", INTERLOCK_SOURCE
+            elif (
+                not self._interlocks and self._interlock_suspended and state is INTERLOCK_RESUME[0]
+            ):
+                cmd, detail, source = INTERLOCK_RESUME[1], "interlock cleared", INTERLOCK_SOURCE
             else:
-                if state not in (State.SUSPENDING, State.SUSPENDED, State.EXECUTE):
+                if state not in INTERLOCK_PATH:
                     self._interlock_suspended = False
                 return
             self._interlock_busy = True
@@ -734,7 +736,7 @@ class PlcUnitNode(GuardedNode):
                 )
                 with self._lock:
                     if accepted:
-                        self._interlock_suspended = cmd is Cmd.SUSPEND
+                        self._interlock_suspended = cmd is INTERLOCK_SUSPEND[1]
                     else:
                         self.get_logger().warning(f"interlock: {message}")
             finally:

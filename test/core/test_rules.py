@@ -258,3 +258,37 @@ def test_the_fast_path_is_generated_from_the_compiled_runs() -> None:
         assert source.count("out(('transition'") == 2 + len(e.run.tails)
     command = inspect.getsource(UnitMachine.command)
     assert "entry[" not in command and "run[" not in command
+
+
+def test_the_category_of_a_reaction_is_derived_from_the_default_reactions() -> None:
+    from packml_ros2.core.rules import (
+        CATEGORY_OF_REACTION,
+        DEFAULT_REACTIONS,
+        NUM_CATEGORIES,
+        REACTIONS,
+    )
+
+    assert set(CATEGORY_OF_REACTION) == set(REACTIONS.values())
+    for reaction, category in CATEGORY_OF_REACTION.items():
+        if not reaction:
+            assert category == NUM_CATEGORIES - 1 and DEFAULT_REACTIONS[category] == 0
+        elif reaction in DEFAULT_REACTIONS.values():  # the first category that reacts so
+            assert DEFAULT_REACTIONS[category] == reaction
+            assert all(DEFAULT_REACTIONS[c] != reaction for c in range(category))
+        else:  # no category reacts so by default: the first that does not react by itself
+            assert DEFAULT_REACTIONS[category] == 0
+            assert all(DEFAULT_REACTIONS[c] for c in range(category))
+
+
+def test_an_interlock_suspension_passes_through_the_acting_state_of_its_command() -> None:
+    from packml_ros2.core.rules import (
+        INTERLOCK_PATH,
+        INTERLOCK_RESUME,
+        INTERLOCK_SUSPEND,
+        STATE_COMPLETE,
+        build_table,
+    )
+
+    on_the_way = build_table().target(*INTERLOCK_SUSPEND)
+    assert on_the_way is not None and STATE_COMPLETE[on_the_way] is INTERLOCK_RESUME[0]
+    assert {INTERLOCK_SUSPEND[0], on_the_way, INTERLOCK_RESUME[0]} == INTERLOCK_PATH
