@@ -135,7 +135,7 @@ def guard(callback: Callable[[Any, Any], Any], service: str, log: Any,
     return guarded
 
 
-# -- callbacks that raise ---------------------------------------------------------------------------
+# -- callbacks that raise --------------------------------------------------------------------------
 def handler_failure(service: str, exc: BaseException) -> str:
     """What the caller of ``service`` is told when its handler raised ``exc`` (the type only)."""
     return f"refused: {service} could not handle this request ({type(exc).__name__}); see its log"
@@ -150,7 +150,11 @@ def _origin(exc: BaseException) -> str:
         return "?"
     frame = (ours or frames)[-1]
     name = os.path.abspath(frame.filename)
-    shown = os.path.relpath(name, os.path.dirname(_PACKAGE)) if name.startswith(_PACKAGE) else os.path.basename(name)  # fmt: skip
+    shown = (
+        os.path.relpath(name, os.path.dirname(_PACKAGE))
+        if name.startswith(_PACKAGE)
+        else os.path.basename(name)
+    )
     return f"{shown}:{frame.lineno}"
 
 
@@ -207,21 +211,25 @@ class GuardedNode(Node):
     def create_subscription(self, msg_type: Any, topic: str, callback: Any, qos_profile: Any,
                             **kwargs: Any) -> Any:  # fmt: skip
         where = f"topic {topic} of {self.get_fully_qualified_name()}"
-        return super().create_subscription(msg_type, topic, contain(callback, where, self.get_logger()), qos_profile, **kwargs)  # fmt: skip
+        return super().create_subscription(
+            msg_type, topic, contain(callback, where, self.get_logger()), qos_profile, **kwargs
+        )
 
     def create_timer(self, timer_period_sec: float, callback: Any, *args: Any, **kwargs: Any) -> Any:  # fmt: skip
         """rclpy's timer on a clock that never steps (an NTP step of the wall clock neither
         silences a timer nor fires it early), unless the node runs on simulated time or the
         caller names a clock."""
         if callback is not None:
-            callback = contain(callback, f"a timer of {self.get_fully_qualified_name()}", self.get_logger())  # fmt: skip
+            callback = contain(
+                callback, f"a timer of {self.get_fully_qualified_name()}", self.get_logger()
+            )
         if len(args) < 2 and "clock" not in kwargs and not self.uses_sim_time():
             kwargs["clock"] = self._steady_clock()
         return super().create_timer(timer_period_sec, callback, *args, **kwargs)
 
     def uses_sim_time(self) -> bool:
         """Whether the node's clock follows ``/clock`` (parameter ``use_sim_time``)."""
-        return self.has_parameter("use_sim_time") and bool(self.get_parameter("use_sim_time").value)  # fmt: skip
+        return self.has_parameter("use_sim_time") and bool(self.get_parameter("use_sim_time").value)
 
     def steady(self) -> float:
         """Seconds on the clock of the node's own leases and waits: monotonic (it never steps
@@ -238,8 +246,14 @@ class GuardedNode(Node):
         return clock
 
     def create_service(self, srv_type: Any, srv_name: str, callback: Any, **kwargs: Any) -> Any:
-        where = f"{self.get_fully_qualified_name()}/{srv_name[2:]}" if srv_name.startswith("~/") else srv_name  # fmt: skip
-        return super().create_service(srv_type, srv_name, contain_service(callback, where, self.get_logger()), **kwargs)  # fmt: skip
+        where = (
+            f"{self.get_fully_qualified_name()}/{srv_name[2:]}"
+            if srv_name.startswith("~/")
+            else srv_name
+        )
+        return super().create_service(
+            srv_type, srv_name, contain_service(callback, where, self.get_logger()), **kwargs
+        )
 
     def add_on_set_parameters_callback(self, callback: Any) -> None:
         log = self.get_logger()
@@ -251,6 +265,8 @@ class GuardedNode(Node):
                 return callback(parameters)
             except Exception as exc:
                 failed(what, exc, log)
-                return SetParametersResult(successful=False, reason=f"{what} failed ({type(exc).__name__})")  # fmt: skip
+                return SetParametersResult(
+                    successful=False, reason=f"{what} failed ({type(exc).__name__})"
+                )
 
         super().add_on_set_parameters_callback(contained)

@@ -44,7 +44,7 @@ class _Gen(cdr._Gen):
         if size > 1:
             self.emit(indent, f"p = (p + {size - 1}) & {-size}")
 
-    # -- reading --------------------------------------------------------------------------------------------
+    # -- reading -----------------------------------------------------------------------------------
     def read(self, indent: int, t: str, into: str) -> None:
         """Read a primitive or a string field at ``p`` into variable ``into``."""
         if t in SIZES:

@@ -128,7 +128,7 @@ class UnitProxy:
             if old is not None:
                 self.node.destroy_subscription(old)
 
-    # -- topics ------------------------------------------------------------------------------------------
+    # -- topics ------------------------------------------------------------------------------------
     def _on_status(self, msg: Status) -> None:
         with self._cond:
             self.status = msg
@@ -189,7 +189,7 @@ class UnitProxy:
                 self._cond.wait(remaining)
             return getattr(self, attr)
 
-    # -- services ----------------------------------------------------------------------------------------
+    # -- services ----------------------------------------------------------------------------------
     def client(self, service: str) -> Any:
         if service not in self._clients:
             self._clients[service] = self.node.create_client(

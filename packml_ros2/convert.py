@@ -70,7 +70,7 @@ def seconds(t: Time) -> float:
     return float(t.sec + t.nanosec * 1e-9)
 
 
-# -- descriptors and products -----------------------------------------------------------------------
+# -- descriptors and products ----------------------------------------------------------------------
 def descriptor(d: cfg.Descriptor) -> Descriptor:
     return Descriptor(id=d.id, name=d.name, unit=d.unit, value=float(d.value))
 
@@ -103,7 +103,7 @@ def product_in(p: Product) -> cfg.Product:
     )
 
 
-# -- status -------------------------------------------------------------------------------------------------
+# -- status ----------------------------------------------------------------------------------------
 def _generated(cls: type[M], made: dict[str, str], names: dict[str, Any]) -> Callable[[Any], M]:
     """``f(v)``: a ``cls`` message from the view ``v``, each field the expression ``made`` gives
     for it or else ``v``'s field of the same name; generated as if written by hand, one keyword
@@ -158,9 +158,25 @@ def transition(
 ) -> TransitionEvent:
     """``TransitionEvent`` of a record, typed or as queued (time, sequence, the other fields)."""
     if isinstance(t, Transition):
-        time, sequence, from_state, to_state, from_mode, to_mode, trigger, command, source, skipped, detail = t  # fmt: skip
+        (
+            time,
+            sequence,
+            from_state,
+            to_state,
+            from_mode,
+            to_mode,
+            trigger,
+            command,
+            source,
+            skipped,
+            detail,
+        ) = t
     else:
-        time, sequence, (from_state, to_state, from_mode, to_mode, trigger, command, source, skipped, detail) = t  # fmt: skip
+        (
+            time,
+            sequence,
+            (from_state, to_state, from_mode, to_mode, trigger, command, source, skipped, detail),
+        ) = t
     return TransitionEvent(
         stamp=stamp(time),
         unit=unit,
@@ -180,7 +196,7 @@ def transition(
     )
 
 
-# -- alarms --------------------------------------------------------------------------------------------------
+# -- alarms ----------------------------------------------------------------------------------------
 def alarm(ev: AlarmEvent | None) -> Alarm:
     if ev is None:
         return Alarm(date_time=_ZERO7, ack_date_time=_ZERO7)
@@ -288,7 +304,7 @@ def alarm_list(
     )
 
 
-# -- admin --------------------------------------------------------------------------------------------------
+# -- admin -----------------------------------------------------------------------------------------
 def mode_slots(config: cfg.UnitConfig) -> int:
     """Mode slots of the Admin time arrays: index = mode number, up to the highest configured."""
     return max(config.modes, default=0) + 1
@@ -366,7 +382,7 @@ def admin(v: AdminView, cache: MessageCache | None = None, modes: int = NUM_MODE
     )
 
 
-# -- diagnostics -------------------------------------------------------------------------------------------
+# -- diagnostics -----------------------------------------------------------------------------------
 
 
 def diagnostics(

@@ -128,7 +128,7 @@ class CoordinatorNode(GuardedNode):
             CellStatus, "~/status", qos.with_lease(qos.CELL_STATUS, self.config.unit_lease)
         )
         self.pub_inputs = self.create_publisher(UnitInput, "~/line/input_log", qos.LINE_INPUT_LOG)
-        self.pub_episodes = self.create_publisher(LineEpisode, "~/line/episodes", qos.LINE_EPISODES)  # fmt: skip
+        self.pub_episodes = self.create_publisher(LineEpisode, "~/line/episodes", qos.LINE_EPISODES)
         self.pub_losses = self.create_publisher(LineLosses, "~/line/losses", qos.LINE_LOSSES)
         self._published = {"episodes": 0, "losses": 0}  # what a snapshot says was published
         self.pub_snapshot = self.create_publisher(
@@ -172,9 +172,9 @@ class CoordinatorNode(GuardedNode):
     def _wall(self) -> int:
         return int(self.get_clock().now().nanoseconds)
 
-    # ================================================================================================
+    # ==============================================================================================
     # What arrives
-    # ================================================================================================
+    # ==============================================================================================
     def _on_unit(self, path: str, topic: str, msg: Any) -> None:
         name = path.rsplit("/", 1)[-1]
         with self._cond:
@@ -216,7 +216,9 @@ class CoordinatorNode(GuardedNode):
             self._apply(effects)
             at, views = self.line.losses_due()
             for view in views:
-                self.pub_losses.publish(line_msgs.losses_msg(view, self.cell.cell, at, self._designs()))  # fmt: skip
+                self.pub_losses.publish(
+                    line_msgs.losses_msg(view, self.cell.cell, at, self._designs())
+                )
                 self._published["losses"] += 1
             self._cond.notify_all()
             self._flush()
@@ -226,9 +228,9 @@ class CoordinatorNode(GuardedNode):
     def _designs(self) -> dict[str, float]:
         return {s: self.line.perf.design(s) for s in ("", *self.line.perf.order)}
 
-    # ================================================================================================
+    # ==============================================================================================
     # Effects and publications (lock held)
-    # ================================================================================================
+    # ==============================================================================================
     def _apply(self, effects: list[Effect]) -> None:
         log = self.get_logger()
         for e in effects:
@@ -244,7 +246,9 @@ class CoordinatorNode(GuardedNode):
                 if e.purpose == "interlock":
                     self.line.interlock_sending(e)
                     future = proxy.call(e.service, **e.fields)
-                    future.add_done_callback(partial(self._interlock_done, e.unit, bool(e.fields["active"]), e.why))  # fmt: skip
+                    future.add_done_callback(
+                        partial(self._interlock_done, e.unit, bool(e.fields["active"]), e.why)
+                    )
                 else:
                     future = proxy.call(e.service, **e.fields)
                     future.add_done_callback(partial(self._reacted, e.why))
@@ -289,9 +293,13 @@ class CoordinatorNode(GuardedNode):
         if failing == self._not_durable:
             return
         if failing and not self._not_durable:
-            self.get_logger().error(f"line store: persistence failing: {failing}; the line's losses since are held in memory, not durable (retried at each input)")  # fmt: skip
+            self.get_logger().error(
+                f"line store: persistence failing: {failing}; the line's losses since are held in memory, not durable (retried at each input)"
+            )
         elif not failing:
-            self.get_logger().info("line store: persistence recovered: the held losses are on the disk")  # fmt: skip
+            self.get_logger().info(
+                "line store: persistence recovered: the held losses are on the disk"
+            )
         self._not_durable = failing
 
     def _durability_note(self) -> str:
@@ -370,9 +378,9 @@ class CoordinatorNode(GuardedNode):
         with self._cond:
             return self._last_msg
 
-    # ================================================================================================
+    # ==============================================================================================
     # Runs: cell commands and mode changes
-    # ================================================================================================
+    # ==============================================================================================
     def _ready(self, unit: str, service: str) -> bool:
         return bool(self._proxies[unit].client(service).service_is_ready())
 
@@ -485,7 +493,7 @@ class CoordinatorNode(GuardedNode):
                 self.get_logger().info(text)
             else:
                 self.get_logger().warning(text)
-            self.line.last_result = f"{command.name} {'done' if outcome.accepted else 'failed'} ({time.monotonic() - started:.1f} s)"  # fmt: skip
+            self.line.last_result = f"{command.name} {'done' if outcome.accepted else 'failed'} ({time.monotonic() - started:.1f} s)"
             self._flush()
         return outcome.accepted, outcome.result, outcome.message
 
@@ -514,9 +522,9 @@ class CoordinatorNode(GuardedNode):
                 self.get_logger().warning(f"from {caller}: {outcome.message}")
         return outcome.accepted, outcome.result, outcome.message, outcome.mode
 
-    # ================================================================================================
+    # ==============================================================================================
     # Services
-    # ================================================================================================
+    # ==============================================================================================
     def _srv_command(self, req: Command.Request, resp: Command.Response) -> Command.Response:
         resp.accepted, resp.result, resp.message = self.cell_command(
             req.command, req.source or "operator"
@@ -539,7 +547,12 @@ class CoordinatorNode(GuardedNode):
         return resp
 
     def _srv_episodes(self, req: QueryEpisodes.Request, resp: QueryEpisodes.Response) -> QueryEpisodes.Response:  # fmt: skip
-        since, until, unit, bucket = line_msgs.ns_of(req.since), line_msgs.ns_of(req.until), req.unit[:200], req.bucket[:40]  # fmt: skip
+        since, until, unit, bucket = (
+            line_msgs.ns_of(req.since),
+            line_msgs.ns_of(req.until),
+            req.unit[:200],
+            req.bucket[:40],
+        )
         with self._cond:
             why = self.line.episode_filter_problem(since, until, unit, bucket)
             if why:
@@ -575,7 +588,7 @@ class CoordinatorNode(GuardedNode):
         self.get_logger().info("line losses: since-reset window reset")
         return resp
 
-    # ================================================================================================
+    # ==============================================================================================
     def close(self) -> None:
         """End running sequences and close the line's store; the timer does nothing from now on
         (idempotent; destroy_node calls it too). The timer itself goes with the node: destroying it

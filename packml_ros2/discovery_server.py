@@ -77,7 +77,9 @@ class HostedServer:
             if time.monotonic() > deadline or self.proc.poll() is not None:
                 words = _last_words(self.output())
                 self.stop()
-                raise DiscoveryServerError(f"the discovery server on {self.address} did not start: {words}")  # fmt: skip
+                raise DiscoveryServerError(
+                    f"the discovery server on {self.address} did not start: {words}"
+                )
             time.sleep(0.05)
 
     def output(self) -> bytes:

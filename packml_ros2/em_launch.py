@@ -246,7 +246,7 @@ def _class_problems(target: str, path: str, functions: bool = False) -> list[tup
     ]
 
 
-# -- building and starting -----------------------------------------------------------------------------
+# -- building and starting -------------------------------------------------------------------------
 def build(run: EmRun, cell: CellConfig, file: str | os.PathLike[str], **node_kwargs: Any) -> Any:
     """The node of a ``class`` EM."""
     cls = load_target(run.target)

@@ -149,7 +149,7 @@ class EquipmentModule(GuardedNode):
         """This EM is active in its unit (the unit's status says so)."""
         return self.hooks.active
 
-    # -- what integrators call -------------------------------------------------------------------------
+    # -- what integrators call ---------------------------------------------------------------------
     @property
     def unit_status(self) -> Status | None:
         """The unit's latest status message in full (decoded when asked for)."""
@@ -220,7 +220,7 @@ class EquipmentModule(GuardedNode):
         self._reported = (*key, time.monotonic())
         self._send(EmReport.KIND_STATE_COMPLETE, state=key[0], sequence=key[1])
 
-    # -- plumbing ------------------------------------------------------------------------------------------
+    # -- plumbing ----------------------------------------------------------------------------------
     def _send(self, kind: int, **fields: Any) -> None:
         if self.unit_lost and kind == EmReport.KIND_STATE_COMPLETE:
             return  # (the safe state's hook ended: nobody to tell; the unit is gone)
@@ -250,10 +250,16 @@ class EquipmentModule(GuardedNode):
         ):
             self.report_complete(state, sequence)
 
-    # -- the unit this EM follows: its one status writer, and its loss (issue 25) ------------------------
+    # -- the unit this EM follows: its one status writer, and its loss (issue 25) ------------------
     def _follow_unit(self, unit_lost_state: State | str | None) -> None:
         if unit_lost_state != "":
-            self.unit_lost_state = None if unit_lost_state is None else State[str(unit_lost_state).upper()] if isinstance(unit_lost_state, str) else State(unit_lost_state)  # fmt: skip
+            self.unit_lost_state = (
+                None
+                if unit_lost_state is None
+                else State[str(unit_lost_state).upper()]
+                if isinstance(unit_lost_state, str)
+                else State(unit_lost_state)
+            )
         #: the unit's status writer (DDS publisher GID), as the unit binds each EM's writer: a
         #: status from another writer (a forger, a second node of the name) is refused
         self._unit_writer = Writers()
@@ -268,7 +274,9 @@ class EquipmentModule(GuardedNode):
         """Executor thread: a status taken only from the writer bound for the unit."""
         gid = info.get("publisher_gid")
         writer = bytes(gid["data"]) if gid else b""
-        taken, _ = self._unit_writer.claim(self.unit_name, writer, time.monotonic(), self._status_writer_gone)  # fmt: skip
+        taken, _ = self._unit_writer.claim(
+            self.unit_name, writer, time.monotonic(), self._status_writer_gone
+        )
         if not taken:
             self.refused_statuses += 1
             self._candidate = (writer, raw)  # (taken when the bound writer is found gone)
@@ -316,7 +324,9 @@ class EquipmentModule(GuardedNode):
         self.unit_lost = True
         safe = self.unit_lost_state
         what = f"running its {state_name(safe)} hook" if safe is not None else "hooks stopped"
-        self.get_logger().warning(f"unit {self.unit_name} lost (its status writer left): {what} until it is back")  # fmt: skip
+        self.get_logger().warning(
+            f"unit {self.unit_name} lost (its status writer left): {what} until it is back"
+        )
         now = self.status
         view = now._replace(state=int(safe) if safe is not None else int(State.STOPPED),
                             mode_changing=False, mine=(True, False))  # fmt: skip

@@ -259,7 +259,9 @@ def parse_interface(data: Mapping[str, Any], kind: str, path: str, file: str,
     alarm = n.child("alarm", n.mapping().get("alarm"))
     alarm_id, category, message = 0, -1, ""
     if alarm.value is None:
-        alarm.error(f"{_an(kind)} EM needs an alarm to raise when it fails: alarm: {{id: ..., category: ...}}")  # fmt: skip
+        alarm.error(
+            f"{_an(kind)} EM needs an alarm to raise when it fails: alarm: {{id: ..., category: ...}}"
+        )
     else:
         alarm.check_keys(ALARM_KEYS)
         alarm_id = alarm.get("id", sc.integer(1, 2**31 - 1), 0)
@@ -270,9 +272,13 @@ def parse_interface(data: Mapping[str, Any], kind: str, path: str, file: str,
         if reaction is not None:
             fitting = sorted(c for c, r in unit.reactions.items() if r == reaction)
             if category >= 0 and category not in fitting:
-                alarm.error(f"category {category} of unit {unit.name} reacts otherwise than the reaction given")  # fmt: skip
+                alarm.error(
+                    f"category {category} of unit {unit.name} reacts otherwise than the reaction given"
+                )
             elif category < 0 and not fitting:
-                alarm.error(f"no alarm category of unit {unit.name} has that reaction (its reactions: table)")  # fmt: skip
+                alarm.error(
+                    f"no alarm category of unit {unit.name} has that reaction (its reactions: table)"
+                )
             elif category < 0:
                 category = fitting[0]
         message = alarm.get("message", sc.text, "")
@@ -310,7 +316,9 @@ def parse_interface(data: Mapping[str, Any], kind: str, path: str, file: str,
                 c.error("a count is a number >= 0 or the name of a result field")
         steps[state] = Step(fields, repeat, count)
     if not steps and "states" not in n.mapping():
-        n.child("states", None).error(f"{_an(kind)} EM needs states: which acting states send a {word}")  # fmt: skip
+        n.child("states", None).error(
+            f"{_an(kind)} EM needs states: which acting states send a {word}"
+        )
     timeout = n.get("timeout", sc.number(positive=True), DEFAULT_TIMEOUT)
     lease = n.get("lease", sc.number(positive=True), unit.em_lease)
     if n.problems:
@@ -357,7 +365,9 @@ class InterfaceEm(EquipmentModule):
         self.last_feedback: Any = None
         self.failures: list[tuple[Failure, str]] = []
         if config.kind == "action":
-            self._action: ActionClient[Any, Any, Any] | None = ActionClient(self, config.interface, config.name)  # fmt: skip
+            self._action: ActionClient[Any, Any, Any] | None = ActionClient(
+                self, config.interface, config.name
+            )
             self._service: Any = None
         else:
             self._action = None
@@ -471,7 +481,10 @@ class InterfaceEm(EquipmentModule):
                                    ctx, handle)  # fmt: skip
         if answer.status != GoalStatus.STATUS_SUCCEEDED:
             what = {GoalStatus.STATUS_ABORTED: "aborted", GoalStatus.STATUS_CANCELED: "cancelled"}
-            raise StepFailed(Failure.FAILED, f"the goal was {what.get(answer.status, f'status {answer.status}')} by {self.config.name}")  # fmt: skip
+            raise StepFailed(
+                Failure.FAILED,
+                f"the goal was {what.get(answer.status, f'status {answer.status}')} by {self.config.name}",
+            )
         self._check_success(answer.result)
         return answer.result
 

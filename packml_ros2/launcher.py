@@ -96,7 +96,7 @@ def _plc_problems(cell: CellConfig, unit: str) -> list[tuple[str, str]]:
     return []
 
 
-# -- readiness and the summary ----------------------------------------------------------------------------
+# -- readiness and the summary ---------------------------------------------------------------------
 def wait_ready(
     node: Node,
     p: Plan,
@@ -205,7 +205,7 @@ def summary(p: Plan, mode: str) -> str:
     return "\n".join(lines)
 
 
-# -- one process -----------------------------------------------------------------------------------------
+# -- one process -----------------------------------------------------------------------------------
 def build_nodes(p: Plan, **node_kwargs: Any) -> list[Node]:
     """Every node of the cell, in start order: units first, then EMs, then the coordinator."""
     from .em_launch import build
@@ -306,7 +306,7 @@ def launch_in_process(p: Plan, threads: int = 0, ready: Callable[[str], None] = 
     return run.spin(light, on_shutdown=shutdown, blocking=blocking)
 
 
-# -- one process per node --------------------------------------------------------------------------------
+# -- one process per node --------------------------------------------------------------------------
 @dataclass(frozen=True)
 class NodeSpec:
     """One node of a cell as an executable of this package (setup.py entry points)."""

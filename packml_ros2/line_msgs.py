@@ -96,7 +96,7 @@ def losses_msg(view: LossesView, cell: str, now: int, designs: dict[str, float])
     )  # fmt: skip
 
 
-# -- messages as dicts ---------------------------------------------------------------------------------
+# -- messages as dicts -----------------------------------------------------------------------------
 def _sec(t: Any) -> float | None:
     n = ns_of(t)
     return n / NS if n else None

@@ -105,7 +105,7 @@ class Presence:
             )  # fmt: skip
         self._timer = node.create_timer(lease, self._on_start_lease, callback_group=callback_group)
 
-    # -- queries (any thread) ------------------------------------------------------------------------
+    # -- queries (any thread) ----------------------------------------------------------------------
     def seen(self, path: str) -> Seen:
         with self._lock:
             return self._seen[path]
@@ -122,7 +122,7 @@ class Presence:
                 self._lock.wait(left)
             return self._seen[path]
 
-    # -- events (executor thread) --------------------------------------------------------------------
+    # -- events (executor thread) ------------------------------------------------------------------
     def _set(self, path: str, present: bool, reason: str, only_unknown: bool = False) -> None:
         with self._lock:
             before = self._seen[path].present

@@ -149,7 +149,9 @@ def spin(
     previous = {s: signal.signal(s, _on_stop_signal) for s in STOP_SIGNALS}
     side_thread = None
     if side is not None:
-        side_thread = threading.Thread(target=_spin_side, args=(side,), name="packml-blocking", daemon=True)  # fmt: skip
+        side_thread = threading.Thread(
+            target=_spin_side, args=(side,), name="packml-blocking", daemon=True
+        )
         side_thread.start()
     try:
         _spin_loop(executor)

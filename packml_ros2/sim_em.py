@@ -164,7 +164,7 @@ class SimulatedEm(EquipmentModule):
         sim = parse_sim(entry, f"units.{unit}.equipment_modules.{em}.sim", file, config.em_lease)
         return cls(em, unit, cell.cell, sim, **node_kwargs)
 
-    # -- acting states: wait for the configured duration --------------------------------------------------
+    # -- acting states: wait for the configured duration -------------------------------------------
     def hook_for(self, state: State):  # type: ignore[no-untyped-def]
         """Execute cycles; other acting states take their configured duration (none: at once)."""
         if state is State.EXECUTE:
@@ -190,7 +190,7 @@ class SimulatedEm(EquipmentModule):
             if self.sim.defect_rate and self.random.random() < self.sim.defect_rate:
                 self.count("defective", 1, self.sim.defect_counter_index)
 
-    # -- fed by a unit upstream --------------------------------------------------------------------------------
+    # -- fed by a unit upstream --------------------------------------------------------------------
     def _on_status(self, msg: StatusView) -> None:
         super()._on_status(msg)
         self._watch_buffer()
@@ -231,7 +231,7 @@ class SimulatedEm(EquipmentModule):
         self.set_interlock(blocked="blocked" in kinds,
                            starved="starved" in kinds or (bool(self.sim.fed_by) and self.buffer <= 0))  # fmt: skip
 
-    # -- fault injection ----------------------------------------------------------------------------------------
+    # -- fault injection ---------------------------------------------------------------------------
     def report_complete(self, state: int | None = None, sequence: int | None = None) -> None:
         state = int(self.state if state is None else state)
         sequence = self.sequence if sequence is None else sequence

@@ -170,7 +170,7 @@ class UnitNode(GuardedNode):
             + (f", admin data from {path}" if path else ", no persistence")
         )
 
-    # -- parameters ----------------------------------------------------------------------------------
+    # -- parameters --------------------------------------------------------------------------------
     def _declare_parameters(self, config: UnitConfig, store_path: str | None) -> None:
         self.declare_parameter(
             "persistence_path",
@@ -205,11 +205,11 @@ class UnitNode(GuardedNode):
                 )
         return SetParametersResult(successful=True)
 
-    # -- clock ----------------------------------------------------------------------------------------
+    # -- clock -------------------------------------------------------------------------------------
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
-    # -- services --------------------------------------------------------------------------------------
+    # -- services ----------------------------------------------------------------------------------
     def _create_services(self) -> None:
         """Every service :mod:`.ros.interface` declares (``set_remote_commands``: the remote lock)."""
         handlers: dict[str, Callable[[Any, Any], Any]] = {
@@ -359,7 +359,7 @@ class UnitNode(GuardedNode):
         answer = self._run(self.unit.set_interlock, req.active, req.reason, req.source)
         return self._answer(resp, answer)
 
-    # -- equipment modules ---------------------------------------------------------------------------
+    # -- equipment modules -------------------------------------------------------------------------
     def _on_report(self, msg: EmReport, info: MessageInfo) -> None:
         """An EM report: checked field by field, and taken only from the writer that speaks for
         its EM (core.reports); then applied (driver.report), a goodbye after a grace."""
@@ -504,7 +504,7 @@ class UnitNode(GuardedNode):
         self._wake.timer_period_ns = max(int(delay * 1e9), 1)
         self._wake.reset()
 
-    # -- publishing ------------------------------------------------------------------------------------
+    # -- publishing --------------------------------------------------------------------------------
     def _run(self, fn: Callable[..., T], *args: Any) -> T:
         """An input from a service or parameter callback, at the node's time now."""
         now = self._now()
@@ -654,7 +654,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         cell = load_cell(args[0])
         config = pick_unit(cell, args[0], args[1] if len(args) > 1 else None)
         if config.plc is not None:
-            raise ValueError(f"{config.name} is a PLC unit (plc:): run plc_bridge {args[0]} {config.name}")  # fmt: skip
+            raise ValueError(
+                f"{config.name} is a PLC unit (plc:): run plc_bridge {args[0]} {config.name}"
+            )
         source = Path(args[0]).read_text(encoding="utf-8")
     except ConfigError as exc:
         print(exc.prefixed("unit_node"), file=sys.stderr)

@@ -211,7 +211,7 @@ def canonical(raw: bytes, cls: Any) -> bytes:
     return bytes(out)
 
 
-# -- serializing without rclpy -----------------------------------------------------------------------
+# -- serializing without rclpy ---------------------------------------------------------------------
 # rclpy.serialization costs about 8 us per nested message (an Admin with 50 alarms in its history:
 # 0.3-0.4 ms). For comparisons, messages are serialized here instead, little-endian with zeroed
 # padding: straight-line code per type, and nested messages that publishers share between
@@ -366,7 +366,7 @@ def serialize(msg: Any) -> bytes:
     return bytes(out)
 
 
-# -- reading the input log without rclpy --------------------------------------------------------------
+# -- reading the input log without rclpy -----------------------------------------------------------
 _TIME_INDEX = struct.Struct("<iIQ")  # after the header: stamp, then the uint64 index (aligned)
 _U32_LE = struct.Struct("<I").unpack_from
 

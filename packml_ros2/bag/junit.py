@@ -45,7 +45,9 @@ def write(path: str | Path, bag: str | Path, seconds: float, units: ReplayResult
     if units is not None:
         share = units.seconds / max(len(units.units), 1)
         for u in units.units:
-            c = case(f"packml_replay.{name}.{u.prefix.strip('/').split('/')[0]}", f"unit {u.unit}", share)  # fmt: skip
+            c = case(
+                f"packml_replay.{name}.{u.prefix.strip('/').split('/')[0]}", f"unit {u.unit}", share
+            )
             if not u.ok:
                 from .replay import explain
 
@@ -56,7 +58,11 @@ def write(path: str | Path, bag: str | Path, seconds: float, units: ReplayResult
                 failures += 1
     for r in lines:
         for check, problem in r.checks.items():
-            c = case(f"packml_replay.{name}.{r.cell}", f"line {r.cell} {check}", r.seconds / max(len(r.checks), 1))  # fmt: skip
+            c = case(
+                f"packml_replay.{name}.{r.cell}",
+                f"line {r.cell} {check}",
+                r.seconds / max(len(r.checks), 1),
+            )
             if problem:
                 f = ET.SubElement(c, "failure", type="mismatch", message=_text(problem)[:1000])
                 f.text = _text(problem)

@@ -121,7 +121,9 @@ def load(path: str | Path) -> list[LineRecording]:
                     cell = conn.topic.strip("/").split("/")[0]
                     rec = lines.get(cell)
                     if rec is not None and rec.config_yaml is None:
-                        rec.config_yaml = json.loads(deserialize_message(bytes(data), string_cls).data).get("cell_yaml")  # fmt: skip
+                        rec.config_yaml = json.loads(
+                            deserialize_message(bytes(data), string_cls).data
+                        ).get("cell_yaml")
                     continue
                 cell, name = found
                 last = max(last, ts)
@@ -133,7 +135,9 @@ def load(path: str | Path) -> list[LineRecording]:
                 for conn, _, data in bag.messages([c for c in wanted if c.topic.endswith("/config")]):  # fmt: skip
                     rec = lines.get(conn.topic.strip("/").split("/")[0])
                     if rec is not None and rec.config_yaml is None:
-                        rec.config_yaml = json.loads(deserialize_message(bytes(data), string_cls).data).get("cell_yaml")  # fmt: skip
+                        rec.config_yaml = json.loads(
+                            deserialize_message(bytes(data), string_cls).data
+                        ).get("cell_yaml")
             notes = bag.custom
     except RecordingError:
         raise
@@ -197,8 +201,12 @@ def _config(rec: LineRecording, config_file: str | Path | None, bag: Path) -> Ce
             source = f"{bag}:/{rec.cell}/<unit>/config"
             return parse_cell(redact(parse_document(rec.config_yaml, source)), source)
     except ConfigError as exc:
-        raise RecordingError(f"{bag}: the configuration of line {rec.cell} is not valid: {exc}") from None  # fmt: skip
-    raise RecordingError(f"{bag}: line {rec.cell} has no recorded configuration (no unit's config topic); give it with --config <cell.yaml>")  # fmt: skip
+        raise RecordingError(
+            f"{bag}: the configuration of line {rec.cell} is not valid: {exc}"
+        ) from None
+    raise RecordingError(
+        f"{bag}: line {rec.cell} has no recorded configuration (no unit's config topic); give it with --config <cell.yaml>"
+    )
 
 
 @dataclass
@@ -225,12 +233,16 @@ def _origin(rec: LineRecording, cell: CellConfig, log: list[Any]) -> tuple[LineO
     if log and log[0].index == 1 and log[0].name == inputs.START and tail == 1:
         start = json.loads(log[0].args_json)
         if start.get("schema") != inputs.SCHEMA:
-            raise RecordingError(f"{where}: input log schema {start.get('schema')!r}, this version reads {inputs.SCHEMA}")  # fmt: skip
+            raise RecordingError(
+                f"{where}: input log schema {start.get('schema')!r}, this version reads {inputs.SCHEMA}"
+            )
         perf = Performance(cell.line, cell.units, Ledger())
         if start.get("state"):
             perf.restore(start["state"])
         perf.ledger.restore(start.get("ledger") or {})
-        origin = LineOrigin(0, line_msgs.ns_of(log[0].stamp) * 1e-9, perf, {"episodes": 0, "losses": 0})  # fmt: skip
+        origin = LineOrigin(
+            0, line_msgs.ns_of(log[0].stamp) * 1e-9, perf, {"episodes": 0, "losses": 0}
+        )
         return origin, log[1:]
     usable = [s for s in rec.snapshots if s.index + 1 >= tail]
     if usable:
@@ -242,14 +254,20 @@ def _origin(rec: LineRecording, cell: CellConfig, log: list[Any]) -> tuple[LineO
             raise RecordingError(f"{at} is not JSON: {exc}") from None
         schema = doc.get("schema") if isinstance(doc, dict) else None
         if schema != SNAPSHOT_SCHEMA:
-            raise RecordingError(f"{at} has schema {schema!r}; this version reads {SNAPSHOT_SCHEMA}: replay it with the version that recorded it")  # fmt: skip
+            raise RecordingError(
+                f"{at} has schema {schema!r}; this version reads {SNAPSHOT_SCHEMA}: replay it with the version that recorded it"
+            )
         if doc.get("input_schema", inputs.SCHEMA) != inputs.SCHEMA:
-            raise RecordingError(f"{at}: input log schema {doc.get('input_schema')!r}, this version reads {inputs.SCHEMA}")  # fmt: skip
+            raise RecordingError(
+                f"{at}: input log schema {doc.get('input_schema')!r}, this version reads {inputs.SCHEMA}"
+            )
         published = doc.get("published")
         if not isinstance(published, dict) or not all(
             isinstance(published.get(k), int) and published[k] >= 0 for k in ("episodes", "losses")
         ):
-            raise RecordingError(f"{at} does not say how many messages the coordinator had published")  # fmt: skip
+            raise RecordingError(
+                f"{at} does not say how many messages the coordinator had published"
+            )
         try:
             perf = line_snapshot.restore(cell.line, cell.units, doc.get("line"))
         except SnapshotError as exc:
@@ -259,9 +277,15 @@ def _origin(rec: LineRecording, cell: CellConfig, log: list[Any]) -> tuple[LineO
         return origin, [m for m in log if m.index > snap.index]
     if present and tail > present[0]:
         before = max(i for i in present if i < tail)
-        raise RecordingError(f"{where}: the input log has a gap: inputs #{before + 1}..#{tail - 1} are missing (the recorder lost them) and no snapshot of the line's state follows it; record again", "missing_input")  # fmt: skip
+        raise RecordingError(
+            f"{where}: the input log has a gap: inputs #{before + 1}..#{tail - 1} are missing (the recorder lost them) and no snapshot of the line's state follows it; record again",
+            "missing_input",
+        )
     first = present[0] if present else "none"
-    raise RecordingError(f"{where}: the input log begins at #{first}, not at the coordinator's start, and the bag holds no snapshot of the line's state (/{rec.cell}/coordinator/line/snapshot) to start from: the coordinator runs a version that does not publish one; record it again with packml record", "missing_input")  # fmt: skip
+    raise RecordingError(
+        f"{where}: the input log begins at #{first}, not at the coordinator's start, and the bag holds no snapshot of the line's state (/{rec.cell}/coordinator/line/snapshot) to start from: the coordinator runs a version that does not publish one; record it again with packml record",
+        "missing_input",
+    )
 
 
 def replay(rec: LineRecording, cell: CellConfig) -> tuple[list[Any], list[Any], int, LineOrigin]:
@@ -283,11 +307,15 @@ def replay(rec: LineRecording, cell: CellConfig) -> tuple[list[Any], list[Any], 
             fields = json.loads(m.args_json)
             inputs.apply(perf, m.name, t, fields)
         except (KeyError, ValueError, TypeError) as exc:
-            raise RecordingError(f"line {rec.cell}: input #{m.index} ({m.name[:40]}) cannot be applied: {exc}") from None  # fmt: skip
+            raise RecordingError(
+                f"line {rec.cell}: input #{m.index} ({m.name[:40]}) cannot be applied: {exc}"
+            ) from None
         _, changed = perf.take()
         episodes += [line_msgs.episode_msg(episode_view(perf, e, t), cell.cell) for e in changed]
         if m.name == inputs.TICK and fields.get("publish"):
-            losses += [line_msgs.losses_msg(v, cell.cell, t, designs) for v in published_windows(perf, t)]  # fmt: skip
+            losses += [
+                line_msgs.losses_msg(v, cell.cell, t, designs) for v in published_windows(perf, t)
+            ]
     return episodes, losses, len(after), origin
 
 
@@ -310,12 +338,16 @@ def _compare(topic: str, recorded: list[Any], pubs: list[int] | None, replayed: 
         if k0 < len(recorded):
             j0 = next((j for j, m in enumerate(replayed) if not diff(m, recorded[k0], limit=1)), -1)
             if j0 < 0:
-                out.append(f"{topic}: recorded message #{k0} was not made by the replay ({len(replayed)} made)")  # fmt: skip
+                out.append(
+                    f"{topic}: recorded message #{k0} was not made by the replay ({len(replayed)} made)"
+                )
                 return 0
         pairs = [(k, j0 + k - k0) for k in range(k0, len(recorded))]
     for n, (k, j) in enumerate(pairs):
         if j >= len(replayed):
-            out.append(f"{topic}: recorded message #{k} (t={stamp(recorded[k]):.3f}) was not made by the replay ({len(replayed)} made)")  # fmt: skip
+            out.append(
+                f"{topic}: recorded message #{k} (t={stamp(recorded[k]):.3f}) was not made by the replay ({len(replayed)} made)"
+            )
             return n
         fields = diff(replayed[j], recorded[k])
         if fields:
@@ -325,7 +357,9 @@ def _compare(topic: str, recorded: list[Any], pubs: list[int] | None, replayed: 
     end = pairs[-1][1] + 1 if pairs else 0
     for j in range(end, len(replayed)):
         if stamp(replayed[j]) < stop:
-            out.append(f"{topic}: the replay made message #{j} (t={stamp(replayed[j]):.3f}) that the recording does not have, although the recorder was listening then")  # fmt: skip
+            out.append(
+                f"{topic}: the replay made message #{j} (t={stamp(replayed[j]):.3f}) that the recording does not have, although the recorder was listening then"
+            )
             return len(pairs)
         break
     return len(pairs)
@@ -342,7 +376,9 @@ def check(path: str | Path, config_file: str | Path | None = None) -> list[LineR
         episodes, losses, n, origin = replay(rec, cell)
         stop = rec.stop
         if stop is None:  # another recorder's bag: up to its end, at least to the last input
-            last_input = max((line_msgs.ns_of(m.stamp) * 1e-9 for m in rec.inputs), default=origin.time)  # fmt: skip
+            last_input = max(
+                (line_msgs.ns_of(m.stamp) * 1e-9 for m in rec.inputs), default=origin.time
+            )
             end = -math.inf if rec.end is None else rec.end - FOREIGN_MARGIN
             stop = max(end, math.nextafter(last_input, math.inf))
         compared: dict[str, int] = {}

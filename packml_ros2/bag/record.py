@@ -131,7 +131,7 @@ class Recorder:
             msg_class(type_name), topic, callback, reader_qos(kind), raw=True
         )
 
-    # -- receiving ----------------------------------------------------------------------------------
+    # -- receiving ---------------------------------------------------------------------------------
     def _on_message(self, topic: str, conn: Any, input_log: bool,
                     output: Callable[[bytes], float] | None, raw: bytes, info: Any) -> None:  # fmt: skip
         """``output``: the stamp reader of an output topic (None: not an output)."""
@@ -171,7 +171,7 @@ class Recorder:
         else:
             ranges.append([seq, seq])
 
-    # -- state --------------------------------------------------------------------------------------
+    # -- state -------------------------------------------------------------------------------------
     def received(self, topic: str) -> int:
         return self.counts.get(topic, 0)
 

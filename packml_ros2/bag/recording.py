@@ -200,7 +200,9 @@ def load(path: str | Path, keep_raw: bool = False, em_reports: bool = True) -> R
         raise RecordingError(f"{path}: cannot read the bag: a size recorded in it is larger than "
                              "this machine's memory (a damaged record?)", "unreadable") from None  # fmt: skip
     except RecursionError:
-        raise RecordingError(f"{path}: cannot read the bag: its data is nested too deeply") from None  # fmt: skip
+        raise RecordingError(
+            f"{path}: cannot read the bag: its data is nested too deeply"
+        ) from None
     except (OSError, ValueError, KeyError, TypeError, OverflowError, IndexError, AttributeError,
             struct.error, EOFError, RuntimeError) as exc:  # fmt: skip
         raise RecordingError(f"{path}: cannot read the bag: {_said(exc)}", "unreadable") from None
@@ -273,12 +275,22 @@ def check(recording: Recording, path: str | Path) -> None:
             except ValueError as exc:
                 raise RecordingError(f"{path}: {exc}") from None
             if not isinstance(config, dict):
-                raise RecordingError(f"{path}: the configuration of {unit.prefix} is not a JSON object")  # fmt: skip
+                raise RecordingError(
+                    f"{path}: the configuration of {unit.prefix} is not a JSON object"
+                )
         stamps = [(f"input #{i.index}", i.time) for i in unit.inputs]
-        stamps += [(f"{t} message {k}", raw_stamp(m)) for t, msgs in unit.outputs.items() for k, m in enumerate(msgs)]  # fmt: skip
+        stamps += [
+            (f"{t} message {k}", raw_stamp(m))
+            for t, msgs in unit.outputs.items()
+            for k, m in enumerate(msgs)
+        ]
         for what, t in stamps:
             if not lo <= t <= hi:  # (NaN too)
-                shown = "not a time" if math.isnan(t) else f"{t - recording.end:+.0f} s from its last message"  # fmt: skip
+                shown = (
+                    "not a time"
+                    if math.isnan(t)
+                    else f"{t - recording.end:+.0f} s from its last message"
+                )
                 raise RecordingError(f"{path}: {unit.prefix} {what} is stamped {shown}: outside the "
                                      f"time the bag was recorded in (+-{MAX_SKEW:g} s; a damaged "
                                      "bag, or a clock that jumped)")  # fmt: skip
@@ -313,7 +325,9 @@ def _bound_decompression() -> None:
     def bounded(make: Any) -> Any:
         def decompress(data: bytes, size: int) -> bytes:
             if not 0 <= size <= MAX_CHUNK_BYTES:
-                raise ReaderError(f"a chunk declares {size} bytes once decompressed (at most {MAX_CHUNK_BYTES})")  # fmt: skip
+                raise ReaderError(
+                    f"a chunk declares {size} bytes once decompressed (at most {MAX_CHUNK_BYTES})"
+                )
             out = bytearray()
             rest = bytes(data)
             while rest and len(out) <= size:

@@ -127,7 +127,7 @@ class MemoryStore:
         pass
 
 
-# -- values ------------------------------------------------------------------------------------------
+# -- values ----------------------------------------------------------------------------------------
 def stamp_of(msg: Any) -> float:
     s = msg.stamp
     return float(s.sec + s.nanosec * 1e-9)
@@ -177,7 +177,7 @@ def same(raw: bytes, msg: Any) -> bool:
     return not diff(deserialize_message(raw, type(msg)), msg, limit=1)
 
 
-# -- results ----------------------------------------------------------------------------------------------
+# -- results ---------------------------------------------------------------------------------------
 @dataclass
 class Difference:
     """The first difference on one output topic of one unit."""
@@ -602,7 +602,9 @@ class UnitReplay:
             try:
                 self.unit = snapshot.restore(config, self.clock, origin.state["engine"], self.store)
             except snapshot.SnapshotError as exc:
-                raise RecordingError(f"the snapshot of {config.name} after input #{origin.index}: {exc}") from None  # fmt: skip
+                raise RecordingError(
+                    f"the snapshot of {config.name} after input #{origin.index}: {exc}"
+                ) from None
             schema = origin.state.get("input_schema", inputlog.SCHEMA)
             self.unit.legacy_interlock_source = _before_holders(schema)
             self.clock.frozen = None
@@ -784,7 +786,7 @@ def _replay(path: str | Path, config: str | Path | None, units: Sequence[str],
     return ReplayResult(Path(path), results, rec.message_count, time.perf_counter() - t)
 
 
-# -- --update ------------------------------------------------------------------------------------------
+# -- --update --------------------------------------------------------------------------------------
 def update(path: str | Path, out: str | Path | None = None, config: str | Path | None = None,
            storage: str | None = None) -> tuple[ReplayResult, Path]:  # fmt: skip
     """Rewrite the recorded outputs with the replayed ones (into ``out``, or in place for a bag

@@ -173,7 +173,9 @@ def record(args: argparse.Namespace) -> int:
     if args.duration is not None and args.duration <= 0:
         return _fail("--duration must be > 0", EXIT_USAGE)
     if args.storage != "mcap":
-        return _fail(f"--storage {args.storage}: packml record writes mcap; {SQLITE_WHY}", EXIT_USAGE)  # fmt: skip
+        return _fail(
+            f"--storage {args.storage}: packml record writes mcap; {SQLITE_WHY}", EXIT_USAGE
+        )
     run.default_environment(tool=True)
     context = Context()
     rclpy.init(context=context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
@@ -266,7 +268,9 @@ def replay(args: argparse.Namespace) -> int:
         from ..bag.replay import replay as check
 
         lines = line.check(args.bag, args.config) if not args.unit else []
-        checked = None if lines and not _has_units(args.bag) else check(args.bag, args.config, args.unit)  # fmt: skip
+        checked = (
+            None if lines and not _has_units(args.bag) else check(args.bag, args.config, args.unit)
+        )
     except RecordingError as exc:
         if args.junit:
             _junit(args, time.perf_counter() - started, None, [], exc)
@@ -274,7 +278,10 @@ def replay(args: argparse.Namespace) -> int:
     except KeyError as exc:
         return _fail(str(exc.args[0] if exc.args else exc), EXIT_USAGE)
     except (RecursionError, MemoryError) as exc:  # what no check of the bag foresaw: still input
-        return _fail(f"{args.bag}: cannot replay the bag: {type(exc).__name__} (nested too deeply, or larger than memory)", EXIT_UNUSABLE)  # fmt: skip
+        return _fail(
+            f"{args.bag}: cannot replay the bag: {type(exc).__name__} (nested too deeply, or larger than memory)",
+            EXIT_UNUSABLE,
+        )
     seconds = time.perf_counter() - started  # the whole check: units and line
     if checked is not None:
         checked.seconds = seconds

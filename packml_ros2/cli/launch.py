@@ -105,7 +105,10 @@ def launch(args: argparse.Namespace) -> int:
         print(f"packml launch: {exc}", file=sys.stderr)
         return EXIT_USAGE
     if hosted is not None:
-        print(f"Discovery server on {hosted.address} (ROS_DISCOVERY_SERVER={found.server_text})", flush=True)  # fmt: skip
+        print(
+            f"Discovery server on {hosted.address} (ROS_DISCOVERY_SERVER={found.server_text})",
+            flush=True,
+        )
     server = _start_server("hmi", args.cell_file, hmi) if hmi is not None else None
     opcua_server = _start_server("opcua", args.cell_file, opcua) if opcua is not None else None
     try:

@@ -44,12 +44,18 @@ BUCKET_NAMES = {
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = subparsers.add_parser("report", help="the line's losses, OEE and stop episodes",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
-    p.add_argument("cell_name", nargs="?", metavar="cell", help="the cell (default: the only one running)")  # fmt: skip
+    p.add_argument(
+        "cell_name", nargs="?", metavar="cell", help="the cell (default: the only one running)"
+    )
     which = p.add_mutually_exclusive_group()
     which.add_argument("--shift", nargs="?", const="current", metavar="SHIFT",
                        help="current (default), previous, or 'YYYY-MM-DD name'")  # fmt: skip
-    which.add_argument("--since", metavar="TIME", help="a span back from now (2h, 30min) or an ISO time")  # fmt: skip
-    which.add_argument("--window", choices=("15min", "1h", "reset", "lifetime"), help="a running window")  # fmt: skip
+    which.add_argument(
+        "--since", metavar="TIME", help="a span back from now (2h, 30min) or an ISO time"
+    )
+    which.add_argument(
+        "--window", choices=("15min", "1h", "reset", "lifetime"), help="a running window"
+    )
     p.add_argument("--until", metavar="TIME", help="with --since: the end (ISO time; default now)")
     p.add_argument("--format", choices=("table", "csv", "episodes-csv", "json"), default="table")
     p.add_argument("--episodes", type=int, default=None, metavar="N",
@@ -63,14 +69,20 @@ def parse_time(text: str, now: float) -> float:
     (local time unless it names its zone)."""
     m = _SPAN.match(text.strip().lower())
     try:
-        t = now - float(m[1]) * _UNITS[m[2]] if m else dt.datetime.fromisoformat(text.strip()).timestamp()  # fmt: skip
+        t = (
+            now - float(m[1]) * _UNITS[m[2]]
+            if m
+            else dt.datetime.fromisoformat(text.strip()).timestamp()
+        )
     except (
         ValueError,
         OverflowError,
     ):  # (a year out of range, or a date out of what a platform's time holds)
         t = math.nan
     if not 0 <= t < 2**31:  # what a ROS Time holds (NaN too): 1970 .. 2038
-        raise ValueError(f"{text[:60]!r} is not a time between 1970 and 2038: give 2h, 30min, 90s or 2025-06-16T06:00")  # fmt: skip
+        raise ValueError(
+            f"{text[:60]!r} is not a time between 1970 and 2038: give 2h, 30min, 90s or 2025-06-16T06:00"
+        )
     return t
 
 
@@ -102,7 +114,12 @@ def report(args: argparse.Namespace) -> int:
             if not cell:
                 cells = discover_cells(s.node, s.timeout)
                 if len(cells) != 1:
-                    return fail("no cell running" if not cells else f"several cells are running ({', '.join(cells)}): name one", EXIT_USAGE if cells else EXIT_UNAVAILABLE)  # fmt: skip
+                    return fail(
+                        "no cell running"
+                        if not cells
+                        else f"several cells are running ({', '.join(cells)}): name one",
+                        EXIT_USAGE if cells else EXIT_UNAVAILABLE,
+                    )
                 cell = next(iter(cells))
             base = f"/{cell}/coordinator/line"
             losses = call_blocking(s.node.create_client(QueryLosses, f"{base}/query_losses"),
@@ -114,7 +131,11 @@ def report(args: argparse.Namespace) -> int:
             if not losses.accepted:
                 return fail(f"{cell}: {losses.message}", EXIT_REFUSED)
             window = losses.windows[0]
-            wanted = args.episodes if args.episodes is not None else (1000 if args.format == "episodes-csv" else 10)  # fmt: skip
+            wanted = (
+                args.episodes
+                if args.episodes is not None
+                else (1000 if args.format == "episodes-csv" else 10)
+            )
             ep_req = QueryEpisodes.Request(limit=max(1, min(wanted, 1000)))
             ep_req.since = window.start if (window.start.sec or window.start.nanosec) else Time()
             ep_req.until = window.end
@@ -125,7 +146,11 @@ def report(args: argparse.Namespace) -> int:
     data = line_msgs.losses_dict(window)
     eps = [line_msgs.episode_dict(e) for e in episodes.episodes]
     if args.format == "json":
-        print(json.dumps({"cell": cell, **data, "episodes": eps, "episodes_total": episodes.total}, indent=2))  # fmt: skip
+        print(
+            json.dumps(
+                {"cell": cell, **data, "episodes": eps, "episodes_total": episodes.total}, indent=2
+            )
+        )
     elif args.format == "csv":
         sys.stdout.write(to_csv(data))
     elif args.format == "episodes-csv":
@@ -135,7 +160,7 @@ def report(args: argparse.Namespace) -> int:
     return 0
 
 
-# -- output ----------------------------------------------------------------------------------------------
+# -- output ----------------------------------------------------------------------------------------
 def duration(seconds: float) -> str:
     sign = "-" if seconds < 0 else ""
     seconds = abs(seconds)
@@ -173,7 +198,11 @@ def affected(e: dict[str, Any]) -> str:
 def rows_of(scope: dict[str, Any]) -> list[tuple[str, str, float]]:
     """(bucket, reason, seconds) rows of a scope: the stops by reason, then the running time as
     speed loss, quality loss and productive time; they add up to its elapsed time."""
-    rows = [(b["bucket"], b["reason"], b["seconds"]) for b in scope["buckets"] if b["bucket"] != "running"]  # fmt: skip
+    rows = [
+        (b["bucket"], b["reason"], b["seconds"])
+        for b in scope["buckets"]
+        if b["bucket"] != "running"
+    ]
     rows += [("speed_loss", "", scope["speed_loss"]), ("quality_loss", "", scope["quality_loss"]),
              ("productive", "", scope["productive"])]  # fmt: skip
     return rows
@@ -186,8 +215,12 @@ def to_csv(data: dict[str, Any]) -> str:
     start, end = iso(data["start"]), iso(data["end"])
     for scope in data["scopes"]:
         for bucket, reason, seconds in rows_of(scope):
-            w.writerow([data["window"], start, end, scope["scope"], bucket, reason, f"{seconds:.3f}"])  # fmt: skip
-        w.writerow([data["window"], start, end, scope["scope"], "elapsed", "", f"{scope['elapsed']:.3f}"])  # fmt: skip
+            w.writerow(
+                [data["window"], start, end, scope["scope"], bucket, reason, f"{seconds:.3f}"]
+            )
+        w.writerow(
+            [data["window"], start, end, scope["scope"], "elapsed", "", f"{scope['elapsed']:.3f}"]
+        )
     return out.getvalue()
 
 
@@ -207,11 +240,18 @@ def episodes_csv(episodes: list[dict[str, Any]]) -> str:
 
 def _grid(rows: list[tuple[str, ...]], right: set[int]) -> list[str]:
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
-    return ["  ".join(c.rjust(widths[i]) if i in right else c.ljust(widths[i]) for i, c in enumerate(r)).rstrip() for r in rows]  # fmt: skip
+    return [
+        "  ".join(
+            c.rjust(widths[i]) if i in right else c.ljust(widths[i]) for i, c in enumerate(r)
+        ).rstrip()
+        for r in rows
+    ]
 
 
 def table(cell: str, data: dict[str, Any], episodes: list[dict[str, Any]], total: int) -> str:
-    lines = [f"line {cell}: {data['window']} ({clock(data['start']) if data['start'] else 'since the first record'} .. {clock(data['end'])})"]  # fmt: skip
+    lines = [
+        f"line {cell}: {data['window']} ({clock(data['start']) if data['start'] else 'since the first record'} .. {clock(data['end'])})"
+    ]
     head = ("SCOPE", "ELAPSED", "PLANNED", "UNPLANNED", "BLOCKED", "STARVED", "HELD", "RUNNING",
             "SPEED LOSS", "QUALITY LOSS", "PRODUCTIVE", "A", "P", "Q", "OEE")  # fmt: skip
     rows: list[tuple[str, ...]] = [head]
@@ -226,16 +266,42 @@ def table(cell: str, data: dict[str, Any], episodes: list[dict[str, Any]], total
     loss_rows: list[tuple[str, ...]] = [("BUCKET", "REASON", "TIME", "SHARE")]
     for bucket, reason, seconds in rows_of(line):
         share = seconds / line["elapsed"] if line["elapsed"] else None
-        loss_rows.append((BUCKET_NAMES.get(bucket, bucket.replace("_", " ")), reason or "-", duration(seconds), percent(share)))  # fmt: skip
-    loss_rows.append(("total", "", duration(sum(r[2] for r in rows_of(line))), percent(1.0 if line["elapsed"] else None)))  # fmt: skip
+        loss_rows.append(
+            (
+                BUCKET_NAMES.get(bucket, bucket.replace("_", " ")),
+                reason or "-",
+                duration(seconds),
+                percent(share),
+            )
+        )
+    loss_rows.append(
+        (
+            "total",
+            "",
+            duration(sum(r[2] for r in rows_of(line))),
+            percent(1.0 if line["elapsed"] else None),
+        )
+    )
     loss_rows.append(("elapsed", "", duration(line["elapsed"]), ""))
     lines += ["  " + x for x in _grid(loss_rows, {2, 3})]
     lines += ["", f"STOP EPISODES ({len(episodes)} of {total}, newest first)"]
     if episodes:
-        ep_rows: list[tuple[str, ...]] = [("#", "START", "DURATION", "ROOT CAUSE", "BUCKET", "REASON", "AFFECTED")]  # fmt: skip
+        ep_rows: list[tuple[str, ...]] = [
+            ("#", "START", "DURATION", "ROOT CAUSE", "BUCKET", "REASON", "AFFECTED")
+        ]
         for e in episodes:
             dur = duration(e["duration"]) + (" open" if e["open"] else "")
-            ep_rows.append((str(e["id"]), clock(e["start"]), dur, e["root_unit"], BUCKET_NAMES.get(e["bucket"], e["bucket"]), e["reason"], affected(e)))  # fmt: skip
+            ep_rows.append(
+                (
+                    str(e["id"]),
+                    clock(e["start"]),
+                    dur,
+                    e["root_unit"],
+                    BUCKET_NAMES.get(e["bucket"], e["bucket"]),
+                    e["reason"],
+                    affected(e),
+                )
+            )
         lines += ["  " + x for x in _grid(ep_rows, {0, 2})]
     else:
         lines.append("  none")

@@ -60,7 +60,7 @@ class Session:
         rclpy.try_shutdown(context=self.context)
         self._thread.join(2)
 
-    # -- finding things ----------------------------------------------------------------------------------
+    # -- finding things ----------------------------------------------------------------------------
     def graph(self) -> dict[str, list[str]]:
         """The cells and units on the graph, discovered once per session."""
         if self._graph is None:

@@ -201,7 +201,7 @@ class AlarmManager:
         #: without persistence).
         self.changed: dict[int, AlarmEvent] | None = None
 
-    # -- raising and clearing ------------------------------------------------------------------------
+    # -- raising and clearing ----------------------------------------------------------------------
     def full(self) -> bool:
         """Whether the list holds as many alarms and warnings as it takes unconfigured ones in:
         twice what Admin.Alarm[] and Warning[] show (beyond that, only configured alarms are
@@ -301,7 +301,7 @@ class AlarmManager:
                 Watch.ALARM, any(ev.trigger and ev.reaction for ev in self.current.values())
             )
 
-    # -- operator actions ----------------------------------------------------------------------------
+    # -- operator actions --------------------------------------------------------------------------
     def acknowledge(self, key: tuple[int, int] | None, now: float) -> int:
         """Acknowledge one alarm (``key``) or all; returns how many were acknowledged now."""
         targets = self.current.values() if key is None else [self.current[key]]
@@ -335,7 +335,7 @@ class AlarmManager:
             self.version += 1
         return had
 
-    # -- reading -----------------------------------------------------------------------------------------
+    # -- reading -----------------------------------------------------------------------------------
     def alarms(self) -> list[AlarmEvent]:
         return [ev for ev in self.current.values() if ev.kind is Kind.ALARM]
 
@@ -391,7 +391,7 @@ class AlarmManager:
             kinds |= {Kind.EVENT, Kind.COMMAND}
         return select_events([ev for ev in source if ev.kind in kinds], active_only, category, sort)
 
-    # -- persistence -------------------------------------------------------------------------------------
+    # -- persistence -------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
         """For persistence (saved at every transition): rebuilt only when something changed."""
         cached = self.__dict__.get("_saved")

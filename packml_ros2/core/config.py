@@ -221,7 +221,7 @@ class CellConfig:
     dds_interfaces: tuple[str, ...] = ()
 
 
-# -- parsing ---------------------------------------------------------------------------------------------
+# -- parsing ---------------------------------------------------------------------------------------
 def _state(n: Node) -> State:
     if isinstance(n.value, bool) or not isinstance(n.value, str | int) or len(str(n.value)) > 40:
         raise invalid(f"{sc.shown(n.value)} is not a PackML state")

@@ -56,7 +56,9 @@ def _server(n: Node) -> tuple[str, int]:
         ipaddress.ip_address(host)
     except ValueError:
         if not all(_LABEL.fullmatch(part) for part in host.split(".")):
-            raise invalid(f"{sc.shown(n.value)}: {sc.shown(host)} is not an address or host name") from None  # fmt: skip
+            raise invalid(
+                f"{sc.shown(n.value)}: {sc.shown(host)} is not an address or host name"
+            ) from None
     if not port_text.isdigit() or not 1 <= int(port_text) <= 65535:
         raise invalid(f"{sc.shown(n.value)}: the port must be 1..65535")
     return host, int(port_text)
@@ -75,7 +77,11 @@ def parse_discovery(n: Node) -> DiscoveryConfig:
     domain = n.get("domain", _domain, None)
     m = n.mapping()
     raw = m.get("server")
-    nodes = n.list_at("server") if isinstance(raw, list) else ([n.child("server", raw)] if "server" in m else [])  # fmt: skip
+    nodes = (
+        n.list_at("server")
+        if isinstance(raw, list)
+        else ([n.child("server", raw)] if "server" in m else [])
+    )
     if len(nodes) > MAX_SERVERS:
         n.child("server", raw).error(f"at most {MAX_SERVERS} servers")
         nodes = nodes[:MAX_SERVERS]

@@ -217,6 +217,8 @@ class Durable:
             out.mach_speed = float(data.get("mach_speed", 0.0))
             out.producing = data.get("producing") is True
         except (TypeError, ValueError, KeyError) as exc:
-            problems.append(f"the stored admin data could not be restored ({one_line(exc)}): the unit starts without it")  # fmt: skip
+            problems.append(
+                f"the stored admin data could not be restored ({one_line(exc)}): the unit starts without it"
+            )
         self.alarms.take_changed()
         return out

@@ -95,7 +95,7 @@ class Equipment:
             for excuse in (False, True)
         }
 
-    # -- aggregation ---------------------------------------------------------------------------------
+    # -- aggregation -------------------------------------------------------------------------------
     def begin(self, state: State, sequence: int) -> bool:
         """The unit entered ``state`` with ``sequence``: who must report SC. True when State
         Complete is due at once (the state aggregates and nobody owes it)."""
@@ -167,7 +167,7 @@ class Equipment:
     def has_reported(self, em: EquipmentModule) -> bool:
         return em.last_report == (self.state, self.sequence)
 
-    # -- derived -------------------------------------------------------------------------------------
+    # -- derived -----------------------------------------------------------------------------------
     def active_count(self) -> int:
         return self.active
 

@@ -44,7 +44,7 @@ class InputDef:
     encode: Mapping[str, Callable[[Any], Any]] | None = None
 
 
-# -- values that are not plain JSON ---------------------------------------------------------------------
+# -- values that are not plain JSON ----------------------------------------------------------------
 def descriptor_to_dict(d: Descriptor) -> dict[str, Any]:
     return {"id": d.id, "name": d.name, "unit": d.unit, "value": d.value}
 
@@ -98,7 +98,7 @@ def _list_of(decode: Callable[[Any], Any]) -> Callable[[Any], Any]:
     return lambda values: [decode(v) for v in values]
 
 
-# -- schema 1 ------------------------------------------------------------------------------------------------
+# -- schema 1 --------------------------------------------------------------------------------------
 Codec = tuple[Callable[[Any], Any], Callable[[Any], Any]]  #: (encode, decode) of a field
 
 
@@ -171,7 +171,7 @@ def apply(unit: object, name: str, fields: Mapping[str, Any]) -> Answer | list[A
     return result
 
 
-# -- schema 0 ------------------------------------------------------------------------------------------------
+# -- schema 0 --------------------------------------------------------------------------------------
 #: Schema 0 name -> (schema 1 input, schema 0 field of each schema 1 field).
 _SCHEMA_0: Mapping[str, tuple[InputDef, tuple[str, ...]]] = {
     "command": (COMMAND, ("cmd", "source")),
@@ -224,7 +224,9 @@ def upgrade(name: str, fields: Mapping[str, Any], schema: int) -> tuple[str, dic
         requests = []
         for r in fields["requests"]:
             kind, renamed = _REQUEST_0[r["kind"]]
-            requests.append({"kind": kind, **{renamed.get(k, k): v for k, v in r.items() if k != "kind"}})  # fmt: skip
+            requests.append(
+                {"kind": kind, **{renamed.get(k, k): v for k, v in r.items() if k != "kind"}}
+            )
         out["requests"] = requests
     return d.name, out
 

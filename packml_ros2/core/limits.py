@@ -55,7 +55,7 @@ def text_problem(field: str, value: str, limit: int | None = None) -> str | None
     return None
 
 
-# -- machine speed ----------------------------------------------------------------------------------
+# -- machine speed ---------------------------------------------------------------------------------
 class SpeedConfig(Protocol):
     @property
     def name(self) -> str: ...
@@ -88,7 +88,7 @@ def speed_refusal(speed: float, config: SpeedConfig, limit: float | None = None,
     return f"machine speed {shown} refused: {config.name} takes 0 .. {limit:g} ({origin})"
 
 
-# -- log lines ----------------------------------------------------------------------------------------
+# -- log lines -------------------------------------------------------------------------------------
 #: Characters of a caller's text kept in one log line.
 MAX_LOGGED = 300
 

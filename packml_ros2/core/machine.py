@@ -255,9 +255,9 @@ class UnitMachine(ModeChanges):
         """``Admin.StopReason``: the first event of the last stop."""
         return self.stops.reason
 
-    # ================================================================================================
+    # ==============================================================================================
     # Inputs. Each advances to the clock first; ``on_input`` sees (time, name, arguments) for replay.
-    # ================================================================================================
+    # ==============================================================================================
     def _enter(self) -> None:
         pub = self.publication
         if pub.status_key[0] != self.sequence:  # a transition was published since the last key
@@ -378,7 +378,7 @@ class UnitMachine(ModeChanges):
                     answers[i] = self._apply_report(r.em, r.state, r.sequence)
             return answers
 
-    # -- equipment modules ------------------------------------------------------------------------------
+    # -- equipment modules -------------------------------------------------------------------------
     def em_complete(self, name: str, state: int, sequence: int) -> Answer:
         """State Complete from EM ``name`` for (``state``, ``sequence``)."""
         # (_enter, inline: every EM reports every acting state, so this runs most of all)
@@ -487,9 +487,9 @@ class UnitMachine(ModeChanges):
         self._fire()
         return True
 
-    # ================================================================================================
+    # ==============================================================================================
     # Outputs and views
-    # ================================================================================================
+    # ==============================================================================================
     def drain(self) -> Outputs:
         """Outputs since the last call, in order: ("transition", Transition), ("status",
         StatusMark), ("alarms", version), ("admin", AdminView), ("log", (level, text)).
@@ -528,7 +528,7 @@ class UnitMachine(ModeChanges):
         state = self.state if state is None else state
         return self.rules.settles_in(state)
 
-    # -- what the guards read (rules.Situation) ----------------------------------------------------------
+    # -- what the guards read (rules.Situation) ----------------------------------------------------
     def missing_names(self) -> list[str]:
         return [em.name for em in self.equipment.missing()]
 
@@ -541,9 +541,9 @@ class UnitMachine(ModeChanges):
     def interlock_reasons(self) -> list[str]:
         return self.interlocks.reasons()
 
-    # ================================================================================================
+    # ==============================================================================================
     # The state machine
-    # ================================================================================================
+    # ==============================================================================================
     def _check(self, cmd: int, source: str) -> Verdict:
         """Whether ``cmd`` from ``source`` is valid now (the checked path of the rule book)."""
         return self.rules.check(self, self.state, self.mode, cmd, source)
@@ -874,7 +874,7 @@ class UnitMachine(ModeChanges):
         self._status_now()
         return Answer.ok(f"mode change {self.mode_def.name} -> {target.name} accepted")
 
-    # -- alarms inside -------------------------------------------------------------------------------------
+    # -- alarms inside -----------------------------------------------------------------------------
     def _raise(
         self, d: AlarmDef, source: str, em: str = "", trigger: Trigger = Trigger.ALARM
     ) -> bool:
@@ -895,7 +895,7 @@ class UnitMachine(ModeChanges):
     def _lost_reaction(self, configured: int | None) -> int:
         return self.config.em_lost_reaction if configured is None else configured
 
-    # -- deadlines ----------------------------------------------------------------------------------------
+    # -- deadlines ---------------------------------------------------------------------------------
     def _every(self, kind: Due, period: float) -> None:
         self.deadlines.every(self._t, self._advance_to, kind, period)
 
@@ -913,7 +913,7 @@ class UnitMachine(ModeChanges):
             self._fire()
         self._t = max(self._t, now)
 
-    # -- publication ------------------------------------------------------------------------------------
+    # -- publication -------------------------------------------------------------------------------
     def _status_key(self) -> tuple[int, ...]:
         """What a status shows changed when this changed."""
         return (self.sequence, self._rev, self.equipment.version, self.alarms.version)
@@ -980,9 +980,15 @@ class UnitMachine(ModeChanges):
         sa = self.config.system_alarms
         was, self._not_durable = self._not_durable, why
         if why and not was:
-            self._log("warn", f"persistence failing: {why}; retrying (the admin data since is not durable)")  # fmt: skip
+            self._log(
+                "warn",
+                f"persistence failing: {why}; retrying (the admin data since is not durable)",
+            )
             message = f"persistence failing: {why}"[:240]
-            self._raise(AlarmDef(sa.persistence_failing, 1, message, sa.persistence_failing_category), source="unit")  # fmt: skip
+            self._raise(
+                AlarmDef(sa.persistence_failing, 1, message, sa.persistence_failing_category),
+                source="unit",
+            )
         elif not why:
             self._log("info", "persistence recovered: the admin data is on the disk again")
             self.alarms.clear(sa.persistence_failing, 1, self._t)
@@ -1005,7 +1011,9 @@ class UnitMachine(ModeChanges):
                 self.mach_speed = restored.mach_speed
             self._restart_detail = "unit restarted"
             gap = now - float(data.get("saved_at", now))
-            self.alarms.log_event(f"unit restarted (last saved {gap:.1f} s before)", now, source="unit")  # fmt: skip
+            self.alarms.log_event(
+                f"unit restarted (last saved {gap:.1f} s before)", now, source="unit"
+            )
             if restored.producing:  # it crashed: why it stopped is that, not the last stop
                 self.stops.set(self.stops.of_crash(
                     f"unit process ended without shutting down (crash or kill) while producing; "

@@ -314,7 +314,7 @@ def build_admin(unit: UnitView, at: float) -> AdminView:
     )
 
 
-# -- the flat view ------------------------------------------------------------------------------------------
+# -- the flat view ---------------------------------------------------------------------------------
 def _descriptor_tags(prefix: str, items: tuple[Descriptor, ...], out: dict[str, Any]) -> None:
     for i, d in enumerate(items):
         out[f"{prefix}[{i}].ID"] = d.id

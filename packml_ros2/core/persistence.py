@@ -171,7 +171,9 @@ class Store:
             raise self._cannot_open(exc) from None
         try:
             self._document, self._n = self._open()
-            self._journal = os.open(_journal(self.path), os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)  # fmt: skip
+            self._journal = os.open(
+                _journal(self.path), os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644
+            )
         except (OSError, ValueError, sqlite3.Error) as exc:
             os.close(self._lock)
             raise self._cannot_open(exc) from None
@@ -185,7 +187,7 @@ class Store:
             "(persistence.path of the cell file; persistence: false runs without one)"
         )
 
-    # -- reading -------------------------------------------------------------------------------------
+    # -- reading -----------------------------------------------------------------------------------
     @classmethod
     def read(cls, path: str | os.PathLike[str], unit: str) -> dict[str, Any] | None:
         """The document a unit opening the store would load, read-only and without the lock
@@ -284,7 +286,7 @@ class Store:
             self._db = db
         return self._db
 
-    # -- writing -------------------------------------------------------------------------------------
+    # -- writing -----------------------------------------------------------------------------------
     def append(self, records: Iterable[Mapping[str, Any]]) -> None:
         """Journal changes (each a record: ``{"set": {key: value}}`` or ``{"event": {...}}``),
         numbered, with one ``write()`` (see the module docstring for what that guarantees)."""
@@ -335,7 +337,7 @@ class Store:
         self._lock = -1
 
 
-# -- the files -------------------------------------------------------------------------------------------
+# -- the files -------------------------------------------------------------------------------------
 def _journal(path: Path) -> Path:
     return path.with_name(path.name + ".journal")
 
@@ -391,11 +393,17 @@ def _row(db: sqlite3.Connection, unit: str, where: str) -> dict[str, Any] | None
         return None
     schema, kind, size = row
     if schema != SCHEMA_VERSION:
-        raise ValueError(f"unit {unit!r} was saved with schema {schema}, this version reads {SCHEMA_VERSION}")  # fmt: skip
+        raise ValueError(
+            f"unit {unit!r} was saved with schema {schema}, this version reads {SCHEMA_VERSION}"
+        )
     if (
         kind != "text" or size > DOCUMENT_MAX
     ):  # (read only when it can be one: memory stays bounded)
-        what = f"{size} bytes, more than {DOCUMENT_MAX}" if kind == "text" else f"of SQLite type {kind}"  # fmt: skip
+        what = (
+            f"{size} bytes, more than {DOCUMENT_MAX}"
+            if kind == "text"
+            else f"of SQLite type {kind}"
+        )
         raise ValueError(f"the document of unit {unit!r} is {what}")
     text = db.execute(f"SELECT document FROM {TABLE} WHERE unit = ?", (unit,)).fetchone()[0]
     try:
@@ -488,7 +496,9 @@ def _replay(
             alarms = out.setdefault("alarms", {"history": [], "history_dropped": 0})
             history: list[dict[str, Any]] = alarms.setdefault("history", [])
             event = record["event"]
-            where = next((i for i, e in enumerate(history) if e.get("serial") == event["serial"]), None)  # fmt: skip
+            where = next(
+                (i for i, e in enumerate(history) if e.get("serial") == event["serial"]), None
+            )
             if where is None:
                 history.insert(0, event)
                 del history[int(record.get("keep", len(history))) :]  # the ring's capacity
@@ -501,7 +511,7 @@ def _replay(
     return out
 
 
-# -- what a document must look like ------------------------------------------------------------------------
+# -- what a document must look like ----------------------------------------------------------------
 _NUMBER = (int, float)
 _EVENT_TYPES: Mapping[str, tuple[type, ...]] = {
     "id": (int,), "value": (int,), "message": (str,), "category": (int,), "kind": (int,),

@@ -65,7 +65,7 @@ class Publication:
     def log(self, level: str, text: str) -> None:
         self._emit(("log", (level, text)))
 
-    # -- status --------------------------------------------------------------------------------------
+    # -- status ------------------------------------------------------------------------------------
     def status_now(self, time: float, state: int, sequence: int) -> None:
         """A status now (a mode event, the lamp): not coalesced."""
         self.status_key = self._status_key_of()
@@ -110,7 +110,7 @@ class Publication:
             self.alarms_seen = version
             self._emit(("alarms", version))
 
-    # -- admin ---------------------------------------------------------------------------------------
+    # -- admin -------------------------------------------------------------------------------------
     def admin(self, view: Any, coalesced: bool) -> None:
         """An admin view is published (periodic, or ``coalesced`` after discrete changes)."""
         if coalesced:

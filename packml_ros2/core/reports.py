@@ -80,7 +80,7 @@ def report_problem(msg: Any, sequence: int) -> str | None:
         return None  # two flags and a bit set: every value means something
     if kind == COUNT:
         if msg.counter >= len(COUNTER_KINDS):
-            return f"counter {msg.counter} is not 0 .. {len(COUNTER_KINDS) - 1} ({', '.join(COUNTER_KINDS)})"  # fmt: skip
+            return f"counter {msg.counter} is not 0 .. {len(COUNTER_KINDS) - 1} ({', '.join(COUNTER_KINDS)})"
         if msg.counter_index < 0 or msg.increment < 0:
             return f"count index {msg.counter_index} and increment {msg.increment} must be >= 0"
         return None
@@ -88,7 +88,9 @@ def report_problem(msg: Any, sequence: int) -> str | None:
         if msg.alarm_id <= 0:
             return f"alarm ID {msg.alarm_id} is not 1 .. 2^31-1"
         if not -1 <= msg.category < NUM_CATEGORIES:
-            return f"category {msg.category} is neither -1 (as configured) nor 0..{NUM_CATEGORIES - 1}"  # fmt: skip
+            return (
+                f"category {msg.category} is neither -1 (as configured) nor 0..{NUM_CATEGORIES - 1}"
+            )
         return text_problem("message", msg.message)
     return f"kind {kind} is not a report kind (0..{len(KINDS) - 1}: {', '.join(KINDS)})"
 

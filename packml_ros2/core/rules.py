@@ -802,7 +802,9 @@ class Rules:
                 if final in disabled:
                     refused[state][cmd] = (Reason.STATE_DISABLED, final, skipped)
                     continue
-                answer = Answer(True, Reason.ACCEPTED, f"{cmd.name} accepted: {state.name} -> {final.name}")  # fmt: skip
+                answer = Answer(
+                    True, Reason.ACCEPTED, f"{cmd.name} accepted: {state.name} -> {final.name}"
+                )
                 trigger = Trigger.SKIP if skipped else Trigger.COMMAND
                 accepted[state][cmd] = Accepted(final, skipped, answer, int(cmd), trigger,
                                                 self.watch[cmd], _entry_of(skipped, final))  # fmt: skip
@@ -848,7 +850,7 @@ class Rules:
         return Run(start, mode, accepted.final, accepted.skipped, accepted.answer, accepted.cmd,
                    accepted.trigger, tail, tuple(steps), tuple(between), state, entry)  # fmt: skip
 
-    # -- the table's verdict ------------------------------------------------------------------------
+    # -- the table's verdict -----------------------------------------------------------------------
     def table_verdict(self, state: State, mode: int, cmd: int) -> Verdict:
         """The table alone (no guard): accepted, not allowed, unknown command, target disabled."""
         if not 1 <= cmd <= 10:
@@ -892,7 +894,7 @@ class Rules:
             text = text.format(**fields)
         return f"{text} (valid now: {names_of(valid) or 'none'})"
 
-    # -- questions of faces --------------------------------------------------------------------------
+    # -- questions of faces ------------------------------------------------------------------------
     def available_states(self, mode: int) -> frozenset[State]:
         """The states the unit can be in in ``mode`` (OPC UA AvailableStates): all but the
         disabled ones."""

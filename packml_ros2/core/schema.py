@@ -142,7 +142,7 @@ class Node:
         return [self.child(i, v) for i, v in enumerate(self.value)]
 
 
-# -- leaf parsers ------------------------------------------------------------------------------------
+# -- leaf parsers ----------------------------------------------------------------------------------
 def boolean(n: Node) -> bool:
     if not isinstance(n.value, bool):
         raise invalid(f"expected true or false, got {shown(n.value)}")

@@ -113,7 +113,11 @@ def _url_credentials(value: Any, path: str = "") -> list[tuple[str, str]]:
                            "env:VARIABLE or file:PATH)")]  # fmt: skip
         return []
     if isinstance(value, Mapping):
-        return [p for k, v in value.items() for p in _url_credentials(v, f"{path}.{k}" if path else str(k))]  # fmt: skip
+        return [
+            p
+            for k, v in value.items()
+            for p in _url_credentials(v, f"{path}.{k}" if path else str(k))
+        ]
     if isinstance(value, list):
         return [p for i, v in enumerate(value) for p in _url_credentials(v, f"{path}[{i}]")]
     return []

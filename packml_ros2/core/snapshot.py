@@ -106,7 +106,7 @@ def _dense(data: Mapping[str, Any], size: int) -> list[float]:
     return out
 
 
-# -- capture ---------------------------------------------------------------------------------------------
+# -- capture ---------------------------------------------------------------------------------------
 def capture(unit: Unit) -> dict[str, Any]:
     """The engine state of ``unit`` between two inputs, as JSON values."""
     if unit._out or unit._internal:
@@ -240,7 +240,7 @@ _DEADLINE_DATA: Mapping[Due, Callable[[Any], Any]] = {
 }
 
 
-# -- restore ----------------------------------------------------------------------------------------------
+# -- restore ---------------------------------------------------------------------------------------
 def restore(config: UnitConfig, clock: Callable[[], float], document: Mapping[str, Any],
             store: StoreLike | None = None) -> Unit:  # fmt: skip
     """A unit in the state ``document`` describes, on ``clock``; its outputs drained (none
@@ -373,7 +373,9 @@ def _restore(unit: Unit, d: Mapping[str, Any]) -> None:
     eq.modules = {}
     for em in e["modules"]:
         last = em["last_report"]
-        eq.modules[str(em["name"])] = EquipmentModule(**{**em, "last_report": None if last is None else (int(last[0]), int(last[1]))})  # fmt: skip
+        eq.modules[str(em["name"])] = EquipmentModule(
+            **{**em, "last_report": None if last is None else (int(last[0]), int(last[1]))}
+        )
     bits, versions = unit.alert.bits, (e["version"], e["roster_version"])
     eq.changed_roster()  # (counts the active EMs and who owes State Complete)
     unit.alert.bits = bits

@@ -23,7 +23,7 @@ class TagInputs(UnitMachine):
 
     __slots__ = ()
 
-    # -- times, counters, speed, parameters --------------------------------------------------------------
+    # -- times, counters, speed, parameters --------------------------------------------------------
     def reset_times(self, all_times: bool = False, source: str = OPERATOR) -> Answer:
         """Reset the current mode's times (and its states'), or every time with ``all_times``."""
         source = source or OPERATOR

@@ -118,7 +118,7 @@ class ModeStateTimes:
         self._state = state
         self._planned = planned
 
-    # -- resets --------------------------------------------------------------------------------------
+    # -- resets ------------------------------------------------------------------------------------
     def reset_current_mode(self, now: float) -> None:
         """The current mode's times and the times of all its states."""
         self.resets += 1
@@ -146,7 +146,7 @@ class ModeStateTimes:
         self.acc_time_since_reset = 0.0
         self.planned_stop = 0.0
 
-    # -- reading -------------------------------------------------------------------------------------
+    # -- reading -----------------------------------------------------------------------------------
     def live(self, now: float) -> tuple[list[float], list[float], list[float], list[float], float]:
         """Float seconds as of ``now`` without changing anything."""
         dt = max(0.0, now - self._since)
@@ -196,7 +196,7 @@ class ModeStateTimes:
             rollover_warning=over,
         )
 
-    # -- persistence -----------------------------------------------------------------------------------
+    # -- persistence -------------------------------------------------------------------------------
     def to_dict(self, now: float) -> dict[str, Any]:
         """Sparse: only non-zero entries of the modes ever used, keyed by index. This runs at
         every transition (persistence), so it touches 18 entries per used mode, not 576."""

@@ -86,7 +86,7 @@ class ActionError(LookupError):
     """An unknown unit or action (the web server answers 404)."""
 
 
-# -- messages -> dicts -------------------------------------------------------------------------------------
+# -- messages -> dicts -----------------------------------------------------------------------------
 def _sec(t: Any) -> float:
     return float(t.sec + t.nanosec * 1e-9)
 
@@ -364,7 +364,7 @@ def presence_dict(seen: Seen) -> dict[str, Any]:
     return {"present": seen.present, "since": seen.since, "reason": seen.reason}
 
 
-# -- the bridge -------------------------------------------------------------------------------------------
+# -- the bridge ------------------------------------------------------------------------------------
 class Bridge:
     """The cell seen by the HMI. ``context``: an initialised rclpy Context (default: a new one,
     shut down by :meth:`close`). Spin the node with :meth:`spin_in_background`. ``token`` or
@@ -444,7 +444,7 @@ class Bridge:
         self._executor: SingleThreadedExecutor | None = None
         self._thread: threading.Thread | None = None
 
-    # -- running -------------------------------------------------------------------------------------
+    # -- running -----------------------------------------------------------------------------------
     def spin_in_background(self) -> Bridge:
         """Spin the node in a daemon thread (one thread: callbacks run in arrival order)."""
         self._executor = SingleThreadedExecutor(context=self.context)
@@ -470,7 +470,7 @@ class Bridge:
         if self._own_context:
             rclpy.try_shutdown(context=self.context)
 
-    # -- state ---------------------------------------------------------------------------------------
+    # -- state -------------------------------------------------------------------------------------
     def snapshot(self) -> dict[str, Any]:
         """Everything the page shows, as it is now."""
         with self._lock:
@@ -584,7 +584,7 @@ class Bridge:
         clock = time.strftime("%H:%M:%S", time.localtime(seen["since"]))
         return f"{what} is not reachable since {clock} ({seen['reason']})"
 
-    # -- actions -------------------------------------------------------------------------------------
+    # -- actions -----------------------------------------------------------------------------------
     def builder(self, unit: str | None, action: str) -> Builder:
         """The request builder of ``action`` on ``unit`` (None: the cell); raises
         :class:`ActionError` for an unknown unit or action."""
@@ -669,7 +669,7 @@ class Bridge:
         return call_future(self._coordinator[service], request, path)
 
 
-# -- request builders: (args from the page) -> (service, request fields) ------------------------------
+# -- request builders: (args from the page) -> (service, request fields) ---------------------------
 # Every argument is checked here, before anything is sent: only the keys the action takes, integers
 # within the range of their field (no wrap-around: 4294967298 is not mode 2), finite numbers,
 # short strings.

@@ -41,7 +41,7 @@ def _refusal(status: int, code: str, message: str) -> Refusal:
     return Refusal(status, reason, code, message)
 
 
-# -- answers -----------------------------------------------------------------------------------------
+# -- answers ---------------------------------------------------------------------------------------
 def finite(value: Any) -> Any:
     """``value`` with every non-finite float replaced by None (JSON has no NaN)."""
     if isinstance(value, float):
@@ -76,7 +76,7 @@ def refuse(refusal: Refusal) -> Json:
     return Json(refusal.body(), status_code=refusal.status, headers=headers)
 
 
-# -- Host and cross-site -----------------------------------------------------------------------------
+# -- Host and cross-site ---------------------------------------------------------------------------
 def _split_host(value: str) -> str | None:
     """The host part of a ``Host`` header (lower case), None when malformed."""
     value = value.strip().lower()
@@ -135,7 +135,7 @@ class HostGuard:
         return None
 
 
-# -- bodies ------------------------------------------------------------------------------------------
+# -- bodies ----------------------------------------------------------------------------------------
 def json_content(request: Request) -> Refusal | None:
     kind = request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
     if kind != "application/json":

@@ -358,7 +358,7 @@ def create_app(bridge: Bridge, allowed_hosts: Iterable[str] = ()) -> FastAPI:
     return app
 
 
-# -- serving ----------------------------------------------------------------------------------------------
+# -- serving ---------------------------------------------------------------------------------------
 def bind(host: str, port: int) -> socket.socket:
     """A listening socket (port 0: any free port; read it with ``getsockname()``)."""
     infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)

@@ -37,7 +37,11 @@ def unit_graph(config: UnitConfig, mode: int, state: int | None = None) -> Graph
     book's AvailableTransitions of the current state)."""
     rules = rules_of(config)
     known = mode in config.modes
-    states = rules.available_states(mode) if known else frozenset(s for s in State if s is not State.UNDEFINED)  # fmt: skip
+    states = (
+        rules.available_states(mode)
+        if known
+        else frozenset(s for s in State if s is not State.UNDEFINED)
+    )
     edges: dict[tuple[State, State], set[Cmd]] = {}
     now = None if state is None else State(state) if state in NUMBERS else State.UNDEFINED
     if known:

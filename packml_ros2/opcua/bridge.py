@@ -161,7 +161,7 @@ class RosSide:
         self.context.try_shutdown()
 
 
-# -- method arguments -------------------------------------------------------------------------------------
+# -- method arguments ------------------------------------------------------------------------------
 class BadArguments(Exception):
     def __init__(self, status: int, text: str, index: int | None = None) -> None:
         super().__init__(text)
@@ -240,7 +240,7 @@ def max_mach_speed(config: OpcUaConfig, unit: UnitConfig) -> float | None:
     return speed_limit(unit) if limit is None else limit
 
 
-# -- the methods of one unit ------------------------------------------------------------------------------
+# -- the methods of one unit -----------------------------------------------------------------------
 Callback = Callable[..., Awaitable[ua.CallMethodResult]]
 Steps = list[tuple[str, Mapping[str, Any]]]
 #: A handler gets the checked argument values and returns (what, service steps) or a refusal.

@@ -170,7 +170,9 @@ def parse_opcua(cell: CellConfig, base: Path | None = None) -> OpcUaConfig:
         for name, n in root.items_at(key):
             if not is_source_name(name) or name == ANONYMOUS:
                 why = "anonymous sessions' name" if name == ANONYMOUS else SOURCE_NAME_GRAMMAR
-                n.error(f"{sc.shown(name)} is not a user name ({why}: every action is recorded as opcua:<user>)")  # fmt: skip
+                n.error(
+                    f"{sc.shown(name)} is not a user name ({why}: every action is recorded as opcua:<user>)"
+                )
     policies = tuple(n.parse(_policy, "") for n in root.list_at("security_policies"))
     if "security_policies" in root.mapping() and not policies:
         root.child("security_policies", None).error("at least one policy is needed (e.g. None)")

@@ -77,8 +77,12 @@ class LineFace:
         waiting = ua.StatusCode(ua.StatusCodes.BadWaitingForInitialData)
         await face._variable(line, "Window", ua.VariantType.String, "", waiting)
         for name, (vtype, _) in LOSSES.items():
-            await face._variable(line, name, vtype, 0 if vtype == ua.VariantType.Int64 else 0.0, waiting)  # fmt: skip
-        episode = await line.add_object(ua.NodeId(f"{cell}.Line.CurrentEpisode", NS), ua.QualifiedName("CurrentEpisode", NS))  # fmt: skip
+            await face._variable(
+                line, name, vtype, 0 if vtype == ua.VariantType.Int64 else 0.0, waiting
+            )
+        episode = await line.add_object(
+            ua.NodeId(f"{cell}.Line.CurrentEpisode", NS), ua.QualifiedName("CurrentEpisode", NS)
+        )
         for name, vtype in EPISODE.items():
             default: Any = {ua.VariantType.Boolean: False, ua.VariantType.UInt32: 0,
                             ua.VariantType.Double: 0.0, ua.VariantType.DateTime: dt.datetime(1970, 1, 1, tzinfo=dt.UTC)}.get(vtype, "")  # fmt: skip
@@ -91,8 +95,12 @@ class LineFace:
                         status: ua.StatusCode, browse: str | None = None) -> None:  # fmt: skip
         name = browse or key
         variant = ua.Variant(value, vtype, is_array=isinstance(value, list))
-        node = await parent.add_variable(ua.NodeId(f"{self.cell}.Line.{key}", NS), ua.QualifiedName(name, NS), variant)  # fmt: skip
-        await self.server.write_attribute_value(node.nodeid, ua.DataValue(variant, StatusCode=status))  # fmt: skip
+        node = await parent.add_variable(
+            ua.NodeId(f"{self.cell}.Line.{key}", NS), ua.QualifiedName(name, NS), variant
+        )
+        await self.server.write_attribute_value(
+            node.nodeid, ua.DataValue(variant, StatusCode=status)
+        )
         self.nodes[key] = node
 
     def attach(self, node: Any, loop: asyncio.AbstractEventLoop) -> None:
@@ -104,7 +112,7 @@ class LineFace:
         self.loop = loop
         base = f"/{self.cell}/coordinator/line"
         node.create_subscription(LineLosses, f"{base}/losses", self._from_ros, qos.LINE_LOSSES)
-        node.create_subscription(LineEpisode, f"{base}/episodes", self._from_ros, qos.LINE_EPISODES)  # fmt: skip
+        node.create_subscription(LineEpisode, f"{base}/episodes", self._from_ros, qos.LINE_EPISODES)
 
     def _from_ros(self, msg: Any) -> None:
         if self.loop is not None:
@@ -125,7 +133,9 @@ class LineFace:
 
     async def _set(self, key: str, vtype: ua.VariantType, value: Any, when: dt.datetime) -> None:
         variant = ua.Variant(value, vtype, is_array=isinstance(value, list))
-        await self.server.write_attribute_value(self.nodes[key].nodeid, ua.DataValue(variant, SourceTimestamp=when))  # fmt: skip
+        await self.server.write_attribute_value(
+            self.nodes[key].nodeid, ua.DataValue(variant, SourceTimestamp=when)
+        )
 
     async def _losses(self, msg: Any) -> None:
         """Of each publication, the current shift (or the lifetime without shifts)."""

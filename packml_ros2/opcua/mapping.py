@@ -88,7 +88,7 @@ def utc(stamp: Any) -> dt.datetime:
     return dt.datetime.fromtimestamp(sec, tz=dt.UTC) + dt.timedelta(microseconds=nanosec // 1000)
 
 
-# -- structures ---------------------------------------------------------------------------------------------
+# -- structures ------------------------------------------------------------------------------------
 def descriptor(d: Any) -> Struct:
     return Struct(
         "PackMLDescriptorDataType",
@@ -164,7 +164,7 @@ def alarm(a: Any | None) -> Struct:
     )
 
 
-# -- the state machines -------------------------------------------------------------------------------------
+# -- the state machines ----------------------------------------------------------------------------
 def state_machine_values(model: PackMLModel, state: int, packml_ns: int) -> dict[str, Value]:
     """CurrentState (LocalizedText), its Id (the state object of the NodeSet's state machine type)
     and Number (its StateNumber) of the three nested state machines; a sub state machine that is
@@ -257,7 +257,7 @@ def version(model_name: str) -> str:
     return f"TR88.00.02-{model_name}"
 
 
-# -- whole messages -----------------------------------------------------------------------------------------
+# -- whole messages --------------------------------------------------------------------------------
 I32, F, B = ua.VariantType.Int32, ua.VariantType.Float, ua.VariantType.Boolean
 EO = ua.VariantType.ExtensionObject
 
@@ -327,7 +327,7 @@ def admin_values(msg: Any) -> dict[str, Value]:
     return out
 
 
-# -- a unit that is gone ----------------------------------------------------------------------------------
+# -- a unit that is gone ---------------------------------------------------------------------------
 LOST_STATUS = ua.StatusCodes.BadCommunicationError
 LOST_ADMIN = ua.StatusCodes.UncertainLastUsableValue
 NEVER_SEEN = ua.StatusCodes.BadWaitingForInitialData
@@ -345,7 +345,7 @@ def lost_status(path: str, known: bool = True) -> int:
     return LOST_STATUS
 
 
-# -- answers -----------------------------------------------------------------------------------------------
+# -- answers ---------------------------------------------------------------------------------------
 #: packml_interfaces/Result codes -> (name, OPC UA status code of a refused method call).
 _S = ua.StatusCodes
 RESULTS = {

@@ -103,7 +103,7 @@ class AddressSpace:
         self.p = (await self.server.get_namespace_array()).index(PACKML_URI)
         await self.server.load_data_type_definitions()
 
-    # -- low level ----------------------------------------------------------------------------------
+    # -- low level ---------------------------------------------------------------------------------
     async def _add(
         self,
         nodeclass: ua.NodeClass,
@@ -186,7 +186,7 @@ class AddressSpace:
         )  # fmt: skip
         return node.nodeid
 
-    # -- instantiation (OPC UA Part 3, 6.2.6) -------------------------------------------------------------
+    # -- instantiation (OPC UA Part 3, 6.2.6) ------------------------------------------------------
     async def declarations(
         self, decl: ua.NodeId, typedef: ua.NodeId
     ) -> list[ua.ReferenceDescription]:
@@ -266,7 +266,7 @@ class AddressSpace:
             await self.instantiate(nodes, child_path, node, ref.NodeId, ref.TypeDefinition,
                                    overrides, callbacks)  # fmt: skip
 
-    # -- units ----------------------------------------------------------------------------------------
+    # -- units -------------------------------------------------------------------------------------
     async def build_unit(
         self,
         unit: str,

@@ -203,7 +203,9 @@ def guard_writes(server: Any) -> None:
             return list(await write(params, user))
         refused = [write_refusal(aspace, item, user) for item in params.NodesToWrite]
         passing = [i for i, r in zip(params.NodesToWrite, refused, strict=True) if r is None]
-        written = iter(await write(ua.WriteParameters(NodesToWrite=passing), user) if passing else [])  # fmt: skip
+        written = iter(
+            await write(ua.WriteParameters(NodesToWrite=passing), user) if passing else []
+        )
         return [next(written) if r is None else ua.StatusCode(r) for r in refused]
 
     service.write = checked

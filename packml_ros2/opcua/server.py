@@ -114,7 +114,9 @@ async def own_certificate(folder: Path, app_uri: str, name: str, host: str) -> t
             ) and cert.not_valid_after_utc > dt.datetime.now(dt.UTC) + dt.timedelta(days=7):
                 return cert_file, key_file
         except (OSError, ValueError, TypeError, x509.ExtensionNotFound) as exc:
-            moved = [move_aside(f).name for f in (cert_file, key_file) if f.exists() or f.is_symlink()]  # fmt: skip
+            moved = [
+                move_aside(f).name for f in (cert_file, key_file) if f.exists() or f.is_symlink()
+            ]
             _logger.warning(
                 "%s: the certificate made before cannot be used (%s): moved aside (%s), a new "
                 "one is made", folder, one_line(os_reason(exc)), ", ".join(moved),
@@ -257,7 +259,7 @@ class PackMLServer:
         self.line.attach(self.ros.node, asyncio.get_running_loop())
         self.ros.start()
 
-    # -- ROS -> OPC UA ---------------------------------------------------------------------------------
+    # -- ROS -> OPC UA -----------------------------------------------------------------------------
     def _on_message(self, unit: str, topic: str, msg: Any) -> None:
         """In the loop: remember the newest message per (unit, topic), write them in order. The
         message's own stamp decides what is newest: one stamped before the message written last

@@ -557,7 +557,7 @@ def _events(values: Any, kind: Kind) -> list[AlarmEvent]:
     return [ev for v in values if (ev := alarm_event(v, kind)) is not None]
 
 
-# -- refusals of the PLC ------------------------------------------------------------------------------------
+# -- refusals of the PLC ---------------------------------------------------------------------------
 #: An OPC UA status code of a refused method call -> the reason code a unit gives (Result).
 REFUSALS: Mapping[str, Reason] = {
     "BadInvalidState": Reason.COMMAND_NOT_ALLOWED,

@@ -144,13 +144,13 @@ class PlcUnitNode(GuardedNode):
         details = ", ".join(f"{k} {v}" for k, v in describe(plc).items())
         self.get_logger().info(f"PLC unit {self.get_fully_qualified_name()} up: {details}")
 
-    # -- parameters -----------------------------------------------------------------------------------
+    # -- parameters --------------------------------------------------------------------------------
     def _on_remote_lock(self, enabled: bool) -> None:
         with self._lock:
             self.remote_enabled = enabled
             self._publish_status()
 
-    # -- the link (its loop thread) -------------------------------------------------------------------
+    # -- the link (its loop thread) ----------------------------------------------------------------
     def _on_connected(self, values: dict[str, Any], methods: frozenset[str], detail: str) -> None:
         with self._lock:
             if self._closed:
@@ -204,7 +204,7 @@ class PlcUnitNode(GuardedNode):
             why += f"; reconnecting: {self.retry_reason}"
         return f"the PLC of {self.config.name} ({self.plc.endpoint}) is not reachable since {clock} ({why})"
 
-    # -- publishers -----------------------------------------------------------------------------------
+    # -- publishers --------------------------------------------------------------------------------
     def _make_publishers(self) -> None:
         if self._unit_pubs:
             return
@@ -421,7 +421,7 @@ class PlcUnitNode(GuardedNode):
             header = Header(stamp=self.get_clock().now().to_msg())
             self.pub_diagnostics.publish(DiagnosticArray(header=header, status=[status]))
 
-    # -- timers ----------------------------------------------------------------------------------------
+    # -- timers ------------------------------------------------------------------------------------
     def _on_tick(self) -> None:
         with self._lock:
             if self._closed or self.lost_since is not None:
@@ -435,7 +435,7 @@ class PlcUnitNode(GuardedNode):
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
-    # -- services ---------------------------------------------------------------------------------------
+    # -- services ----------------------------------------------------------------------------------
     def _create_services(self) -> None:
         """Every service :mod:`..ros.interface` declares: the ones OPC 30050 lacks refused."""
         handlers: dict[str, Callable[[Any, Any], Any]] = {
@@ -677,7 +677,7 @@ class PlcUnitNode(GuardedNode):
         setattr(resp, "message_out" if hasattr(resp, "message_out") else "message", text)
         return resp
 
-    # -- interlocks --------------------------------------------------------------------------------------
+    # -- interlocks --------------------------------------------------------------------------------
     def _srv_set_interlock(
         self, req: SetInterlock.Request, resp: SetInterlock.Response
     ) -> SetInterlock.Response:
@@ -745,7 +745,7 @@ class PlcUnitNode(GuardedNode):
 
         threading.Thread(target=send, name="plc-interlock", daemon=True).start()
 
-    # -- shutdown ---------------------------------------------------------------------------------------
+    # -- shutdown ----------------------------------------------------------------------------------
     def close(self) -> None:
         with self._lock:
             if self._closed:
@@ -762,7 +762,7 @@ class PlcUnitNode(GuardedNode):
         super().destroy_node()
 
 
-# -- plain PLC values -> messages ----------------------------------------------------------------------------
+# -- plain PLC values -> messages ------------------------------------------------------------------
 def _list(value: Any) -> list[Any]:
     return value if isinstance(value, list) else []
 
@@ -862,7 +862,7 @@ def _ua_product(p: Any) -> Any:
     )
 
 
-# -- running -------------------------------------------------------------------------------------------------
+# -- running ---------------------------------------------------------------------------------------
 def make_node(
     cell: CellConfig, unit: str, source: str | None = None, **node_kwargs: Any
 ) -> PlcUnitNode:

@@ -67,7 +67,7 @@ def aggregate_state(states: Sequence[int]) -> int:
     return int(min(states, key=lambda s: _RANK.get(s, len(SEVERITY))))
 
 
-# -- what is read of messages ------------------------------------------------------------------------
+# -- what is read of messages ----------------------------------------------------------------------
 class EmLike(Protocol):
     name: str
     active: bool
@@ -113,7 +113,7 @@ def stamp_ns(stamp: Any) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
-# -- effects -------------------------------------------------------------------------------------------
+# -- effects ---------------------------------------------------------------------------------------
 def interlock_failure(want: bool, accepted: bool, result: int, message: str) -> str | None:
     """Why a unit's answer to set_interlock is a failure to retry (None: done). Clearing an
     interlock the unit does not hold from the coordinator (NOTHING_TO_DO) is done."""
@@ -148,7 +148,7 @@ class Resubscribe:
 Effect = Log | Call | Resubscribe
 
 
-# -- units -----------------------------------------------------------------------------------------------
+# -- units -----------------------------------------------------------------------------------------
 @dataclass
 class UnitView:
     """What the coordinator knows about one unit."""
@@ -243,14 +243,20 @@ class Cell:
         self.config = cell
         self.coordinator = cell.coordinator
         names = list(cell.units)
-        self.start_order = [*self.coordinator.start_order, *(n for n in names if n not in self.coordinator.start_order)]  # fmt: skip
-        self.stop_order = [*self.coordinator.stop_order, *(n for n in names if n not in self.coordinator.stop_order)]  # fmt: skip
+        self.start_order = [
+            *self.coordinator.start_order,
+            *(n for n in names if n not in self.coordinator.start_order),
+        ]
+        self.stop_order = [
+            *self.coordinator.stop_order,
+            *(n for n in names if n not in self.coordinator.stop_order),
+        ]
         self.started = now
         self.units: dict[str, UnitView] = {n: UnitView(n, cell.units[n], now) for n in names}
         self.hardware_ids = {f"{cell.cell}/{n}": n for n in names}
         self.closed = False
 
-    # -- what arrives ---------------------------------------------------------------------------------
+    # -- what arrives ------------------------------------------------------------------------------
     def on_message(self, name: str, topic: str, msg: Any, now: float) -> tuple[bool, list[Effect]]:
         """Something of unit ``name`` arrived on ``topic``: (whether it is news for the waits and
         the status, effects). A transition already held (the latched history delivered again)
@@ -308,7 +314,12 @@ class Cell:
                 unit.resubscribed = unit.resubscribe_due = True
             return
         unit.online, unit.resubscribed = True, False
-        effects.append(Log("info", f"unit {unit.name} online again" if unit.lost else f"unit {unit.name} online"))  # fmt: skip
+        effects.append(
+            Log(
+                "info",
+                f"unit {unit.name} online again" if unit.lost else f"unit {unit.name} online",
+            )
+        )
         unit.lost, unit.lost_reason = False, ""
 
     def lose(self, unit: UnitView, why: str, now: float) -> list[Effect]:
@@ -317,7 +328,9 @@ class Cell:
         unit.online, unit.lost, unit.lost_reason = False, True, why
         unit.interlock_sent = None  # unknown until it is back: send again
         last = unit.status.state_current_name if unit.status is not None else "no status"
-        effects: list[Effect] = [Log("warning", f"unit {unit.name} lost: {why} (last seen in {last})")]  # fmt: skip
+        effects: list[Effect] = [
+            Log("warning", f"unit {unit.name} lost: {why} (last seen in {last})")
+        ]
         reaction = self.coordinator.lost_unit_reaction
         if was_online and reaction:
             for other in self.units.values():
@@ -341,7 +354,12 @@ class Cell:
                 effects += self.lose(unit, f"no status or diagnostics for {lease:g} s", now)
             elif not unit.online and not unit.lost and now - self.started > lease:
                 unit.lost = True
-                effects.append(Log("warning", f"unit {unit.name} not seen within {lease:g} s of the coordinator's start"))  # fmt: skip
+                effects.append(
+                    Log(
+                        "warning",
+                        f"unit {unit.name} not seen within {lease:g} s of the coordinator's start",
+                    )
+                )
         return effects + self.reconcile_interlocks(now)
 
     def next_due(self, now: float) -> float:
@@ -370,7 +388,7 @@ class Cell:
     def newly_lost(self) -> list[str]:
         return [u.name for u in self.units.values() if u.lost]
 
-    # -- interlocks ------------------------------------------------------------------------------------
+    # -- interlocks --------------------------------------------------------------------------------
     def desired_interlocks(self) -> dict[str, list[str]]:
         desired: dict[str, list[str]] = {}
         for rule in self.coordinator.interlocks:
@@ -420,10 +438,17 @@ class Cell:
             unit.interlock_error = ""
             unit.interlock_sent, unit.interlock_reason = want, reason if want else ""
             if want or previous:
-                effects.append(Log("info", f"interlock set on {name}: {reason}" if want else f"interlock cleared on {name}"))  # fmt: skip
+                effects.append(
+                    Log(
+                        "info",
+                        f"interlock set on {name}: {reason}"
+                        if want
+                        else f"interlock cleared on {name}",
+                    )
+                )
         return effects + self.reconcile_interlocks(now)
 
-    # -- the cell status --------------------------------------------------------------------------------
+    # -- the cell status ---------------------------------------------------------------------------
     def summary(self, unit: UnitView) -> UnitSummaryView:
         s = unit.status
         ems = list(s.equipment_modules) if s is not None else []
@@ -435,7 +460,11 @@ class Cell:
             health = "alarm"
         else:
             health = "ok"
-        suspended = bool(unit.interlock_sent) and s is not None and s.state_current in (State.SUSPENDING, State.SUSPENDED)  # fmt: skip
+        suspended = (
+            bool(unit.interlock_sent)
+            and s is not None
+            and s.state_current in (State.SUSPENDING, State.SUSPENDED)
+        )
         return UnitSummaryView(unit.name, unit.online, s, len(ems), sum(1 for e in ems if e.online),
                                suspended, health)  # fmt: skip
 
@@ -471,7 +500,9 @@ class Cell:
         if not present:
             detail.append("no unit online")
         elif len({u.status.state_current for u in present}) > 1:
-            detail.append("mixed: " + ", ".join(f"{u.name} {u.status.state_current_name}" for u in present))  # fmt: skip
+            detail.append(
+                "mixed: " + ", ".join(f"{u.name} {u.status.state_current_name}" for u in present)
+            )
         if lost:
             detail.append(f"lost: {', '.join(why)}")
         held = [f"{u.name} ({u.interlock_reason})" for u in units if u.interlock_sent]
@@ -492,7 +523,7 @@ class Cell:
             commands_valid=self.cell_commands_valid(),
         )
 
-    # -- questions of sequences -------------------------------------------------------------------------
+    # -- questions of sequences --------------------------------------------------------------------
     def offline_text(self, unit: UnitView, now: float) -> str:
         return f"{unit.name} is offline (no status or diagnostics for {now - unit.last_seen:.1f} s)"
 
@@ -507,14 +538,29 @@ class Cell:
             unit = self.units[name]
             status = unit.status
             if not unit.online or status is None:
-                out.append((Reason.UNIT_UNAVAILABLE, f"{name} is offline (nothing from it for {now - unit.last_seen:.1f} s)"))  # fmt: skip
+                out.append(
+                    (
+                        Reason.UNIT_UNAVAILABLE,
+                        f"{name} is offline (nothing from it for {now - unit.last_seen:.1f} s)",
+                    )
+                )
             elif status.state_requested == unit.target(cmd):
                 continue
             elif not status.remote_commands_enabled:
-                out.append((Reason.REMOTE_DISABLED, f"{name} does not take remote commands (remote_commands_enabled is false)"))  # fmt: skip
+                out.append(
+                    (
+                        Reason.REMOTE_DISABLED,
+                        f"{name} does not take remote commands (remote_commands_enabled is false)",
+                    )
+                )
             elif cmd not in unit.valid_commands():
                 valid = names_of([int(c) for c in unit.valid_commands()]) or "none"
-                out.append((Reason.COMMAND_NOT_ALLOWED, f"{name} cannot take {cmd.name} in {status.state_current_name} (valid now: {valid})"))  # fmt: skip
+                out.append(
+                    (
+                        Reason.COMMAND_NOT_ALLOWED,
+                        f"{name} cannot take {cmd.name} in {status.state_current_name} (valid now: {valid})",
+                    )
+                )
         return out
 
     def mode_refusals(self, mode: int, mode_name: str) -> tuple[list[tuple[int, str]], int]:
@@ -535,13 +581,25 @@ class Cell:
             if not unit.online or status is None:
                 out.append((Reason.UNIT_UNAVAILABLE, f"{name} is offline"))
             elif not status.remote_commands_enabled:
-                out.append((Reason.REMOTE_DISABLED, f"{name} does not take remote commands (remote_commands_enabled is false)"))  # fmt: skip
+                out.append(
+                    (
+                        Reason.REMOTE_DISABLED,
+                        f"{name} does not take remote commands (remote_commands_enabled is false)",
+                    )
+                )
             elif status.unit_mode_change_in_process:
                 out.append((Reason.MODE_CHANGE_IN_PROCESS, f"{name} is changing its mode already"))
             elif status.unit_mode_current != target.number:
-                why = unit.rules.mode_change_refusal(status.unit_mode_current, target.number, State(status.state_current))  # fmt: skip
+                why = unit.rules.mode_change_refusal(
+                    status.unit_mode_current, target.number, State(status.state_current)
+                )
                 if why is not None:
-                    out.append((Reason.MODE_CHANGE_NOT_ALLOWED, f"{name} in {status.state_current_name}: {why}"))  # fmt: skip
+                    out.append(
+                        (
+                            Reason.MODE_CHANGE_NOT_ALLOWED,
+                            f"{name} in {status.state_current_name}: {why}",
+                        )
+                    )
         return out, number
 
     @staticmethod

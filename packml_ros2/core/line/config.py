@@ -176,7 +176,9 @@ def parse_line(n: Node, cell: str, units: Sequence[str], rules: Sequence[Interlo
         try:
             ZoneInfo(text)
         except (ZoneInfoNotFoundError, ValueError):
-            raise invalid(f"{sc.shown(text)} is not a time zone (an IANA name: UTC, Europe/Berlin)") from None  # fmt: skip
+            raise invalid(
+                f"{sc.shown(text)} is not a time zone (an IANA name: UTC, Europe/Berlin)"
+            ) from None
         return text
 
     timezone = n.get("timezone", zone, "UTC")

@@ -42,7 +42,7 @@ def ns(stamp: Any) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
-# -- from messages (read by attribute: rclpy messages, or anything alike) ----------------------------
+# -- from messages (read by attribute: rclpy messages, or anything alike) --------------------------
 def status_fields(unit: str, s: Any) -> dict[str, Any]:
     ems = [e for e in s.equipment_modules if e.active]
     return {
@@ -77,7 +77,7 @@ def admin_fields(unit: str, a: Any) -> dict[str, Any]:
     }  # fmt: skip
 
 
-# -- applying --------------------------------------------------------------------------------------------
+# -- applying --------------------------------------------------------------------------------------
 def _status(p: Performance, t: int, f: Mapping[str, Any]) -> None:
     p.status(t, f["unit"], StatusSnap(int(f["sequence"]), int(f["time"]), int(f["state"]),
                                       int(f["mode"]), int(f["stop_reason_id"]),
@@ -92,7 +92,9 @@ def _transition(p: Performance, t: int, f: Mapping[str, Any]) -> None:
 
 
 def _admin(p: Performance, t: int, f: Mapping[str, Any]) -> None:
-    p.admin(t, f["unit"], int(f["time"]), int(f["processed"]), int(f["defective"]), f.get("stop_reason"))  # fmt: skip
+    p.admin(
+        t, f["unit"], int(f["time"]), int(f["processed"]), int(f["defective"]), f.get("stop_reason")
+    )
 
 
 APPLY: Mapping[str, Callable[[Performance, int, Mapping[str, Any]], None]] = {

@@ -49,7 +49,16 @@ class Count:
     shift: str = ""
 
     def to_list(self) -> list[Any]:
-        return ["c", self.scope, self.t, self.processed, self.defective, self.net, self.good, self.shift]  # fmt: skip
+        return [
+            "c",
+            self.scope,
+            self.t,
+            self.processed,
+            self.defective,
+            self.net,
+            self.good,
+            self.shift,
+        ]
 
 
 Fact = Segment | Count

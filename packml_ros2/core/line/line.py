@@ -174,9 +174,9 @@ class Line:
     def calendar(self) -> Any:
         return self.perf.calendar
 
-    # ================================================================================================
+    # ==============================================================================================
     # What arrives
-    # ================================================================================================
+    # ==============================================================================================
     def on_unit(self, name: str, topic: str, msg: Any) -> tuple[bool, list[Effect]]:
         """A message of unit ``name`` on ``topic`` (status, transitions, admin, alarms)."""
         news, effects = self.cell.on_message(name, topic, msg, self.monotonic())
@@ -249,9 +249,9 @@ class Line:
         """The since-reset window begins now."""
         self._input(inputs.RESET, "", {})
 
-    # ================================================================================================
+    # ==============================================================================================
     # Cell commands and mode changes
-    # ================================================================================================
+    # ==============================================================================================
     def begin_command(self, cmd: Cmd, caller: str, asked: float | None = None) -> tuple[int, Run] | Outcome | StopWaits:  # fmt: skip
         """A run for cell command ``cmd`` (registered), or why not. ABORT cancels what runs and
         begins at once; STOP cancels the sequence that runs and waits for it to end
@@ -267,7 +267,9 @@ class Line:
                 if cmd in INTERRUPTS_A_SEQUENCE:  # (ABORT: above)
                     joined = self.runs.running_stop()
                     if joined is not None:
-                        return Outcome(True, Reason.ACCEPTED, f"STOP joined the STOP in progress ({joined})")  # fmt: skip
+                        return Outcome(
+                            True, Reason.ACCEPTED, f"STOP joined the STOP in progress ({joined})"
+                        )
                     now = self.monotonic()
                     since = now if asked is None else asked
                     if now < since + self.config.coordinator.step_timeout + STOP_GIVE_UP:
@@ -328,9 +330,9 @@ class Line:
             view = dataclasses.replace(view, commands_valid=valid)
         return view
 
-    # ================================================================================================
+    # ==============================================================================================
     # Performance
-    # ================================================================================================
+    # ==============================================================================================
     def _changed_input(self, name: str, unit: str, fields: dict[str, Any], ignore: Sequence[str]) -> None:  # fmt: skip
         digest = tuple(v for k, v in sorted(fields.items()) if k not in ignore)
         key = (name, unit)
@@ -390,7 +392,11 @@ class Line:
         now = self.wall()
         window = window.strip() or "shift"
         if window in {"shift", "shift:current", "shift:previous"}:
-            inst = self.calendar.instance_at(now) if window != "shift:previous" else self.calendar.previous(now)  # fmt: skip
+            inst = (
+                self.calendar.instance_at(now)
+                if window != "shift:previous"
+                else self.calendar.previous(now)
+            )
             if inst is None:
                 return [], self._no_shift(now)
             window = f"shift:{inst.key}"
@@ -415,7 +421,11 @@ class Line:
             found: list[LossesView] = []
             inst = self.calendar.instance_at(now) or self.calendar.previous(now)
             while inst is not None and len(found) < n:
-                found.append(self.window(f"shift:{inst.key}", now) if inst.key in self.perf.ledger.shifts or self.store is None else self._stored_shift(inst.key))  # fmt: skip
+                found.append(
+                    self.window(f"shift:{inst.key}", now)
+                    if inst.key in self.perf.ledger.shifts or self.store is None
+                    else self._stored_shift(inst.key)
+                )
                 inst = self.calendar.previous(inst.start)
             if not found:
                 return [], self._no_shift(now)
@@ -427,10 +437,16 @@ class Line:
             width = int(step * NS)
             end = until if until > 0 else now
             try:
-                return [self.span(end - (n - i) * width, end - (n - i - 1) * width, "trend") for i in range(n)], ""  # fmt: skip
+                return [
+                    self.span(end - (n - i) * width, end - (n - i - 1) * width, "trend")
+                    for i in range(n)
+                ], ""
             except LookupError as exc:
                 return [], str(exc)
-        return [], f"unknown window {window[:40]!r} (shift, shift:<YYYY-MM-DD name>, shift:previous, 15min, 1h, reset, lifetime, since, shifts, trend)"  # fmt: skip
+        return (
+            [],
+            f"unknown window {window[:40]!r} (shift, shift:<YYYY-MM-DD name>, shift:previous, 15min, 1h, reset, lifetime, since, shifts, trend)",
+        )
 
     def _no_shift(self, now: int) -> str:
         if not self.calendar:
@@ -445,7 +461,9 @@ class Line:
         for f in self.perf.open_parts(self.wall()):
             if f.shift == key:
                 add_clipped(out, f, None, None)
-        return LossesView(f"shift:{key}", inst.start if inst else 0, inst.end if inst else 0, self._summaries(out))  # fmt: skip
+        return LossesView(
+            f"shift:{key}", inst.start if inst else 0, inst.end if inst else 0, self._summaries(out)
+        )
 
     def episode_filter_problem(self, since: int, until: int, unit: str, bucket: str) -> str:
         """Why a QueryEpisodes filter cannot match anything by construction ('' when it can): a

@@ -138,7 +138,9 @@ class Tracker:
 
     def producing(self) -> bool:
         s = self.step
-        return self.online and s is not None and s.mode == Mode.PRODUCTION and s.state == State.EXECUTE  # fmt: skip
+        return (
+            self.online and s is not None and s.mode == Mode.PRODUCTION and s.state == State.EXECUTE
+        )
 
     def to_dict(self) -> dict[str, Any]:
         d = {
@@ -215,9 +217,9 @@ class Performance:
         self._episodes: dict[int, Episode] = {}  # changed since the last take()
         self._departed: list[Departure] = []
 
-    # ================================================================================================
+    # ==============================================================================================
     # Inputs
-    # ================================================================================================
+    # ==============================================================================================
     def status(self, now: int, unit: str, s: StatusSnap) -> None:
         tr = self.trackers[unit]
         self._alive(now, tr)
@@ -233,7 +235,9 @@ class Performance:
         elif s.sequence < step.sequence and s.time > step.time:
             # restarted without its admin data: its sequence numbers begin again
             tr.ahead = None
-            self._step(now, tr, Step(s.sequence, s.time, s.state, s.mode, reason_id=s.stop_reason_id))  # fmt: skip
+            self._step(
+                now, tr, Step(s.sequence, s.time, s.state, s.mode, reason_id=s.stop_reason_id)
+            )
         elif s.sequence > step.sequence:
             tr.ahead = (s, now)  # its transitions are on their way (else: tick applies it)
 
@@ -340,9 +344,9 @@ class Performance:
                     self._step(now, tr, Step(s.sequence, s.time, s.state, s.mode,
                                              reason_id=s.stop_reason_id))  # fmt: skip
 
-    # ================================================================================================
+    # ==============================================================================================
     # Outputs
-    # ================================================================================================
+    # ==============================================================================================
     def take(self) -> tuple[list[Fact], list[Episode]]:
         """The facts closed and the episodes changed since the last call (copies)."""
         facts, self._facts = self._facts, []
@@ -372,9 +376,9 @@ class Performance:
     def design(self, scope: str) -> float:
         return self.trackers[self.output if scope == LINE else scope].design
 
-    # ================================================================================================
+    # ==============================================================================================
     # Classification
-    # ================================================================================================
+    # ==============================================================================================
     def unit_class(self, tr: Tracker) -> tuple[str, str]:
         """(bucket, reason) of the unit's open segment, as things stand."""
         s = tr.step
@@ -386,7 +390,11 @@ class Performance:
         if s.state == State.EXECUTE:
             return RUNNING, ""
         cause = tr.cause
-        reason = cause.label if cause is not None and cause.label else step_label(s, self._mode_names(tr))  # fmt: skip
+        reason = (
+            cause.label
+            if cause is not None and cause.label
+            else step_label(s, self._mode_names(tr))
+        )
         return self._bucket(tr, s, cause), reason
 
     def _bucket(self, tr: Tracker, s: Step, cause: Departure | None) -> str:
@@ -469,9 +477,9 @@ class Performance:
             return holder == INTERLOCK_SOURCE
         return s.source == INTERLOCK_SOURCE or s.detail in self.sent.get(tr.name, ())
 
-    # ================================================================================================
+    # ==============================================================================================
     # Inside
-    # ================================================================================================
+    # ==============================================================================================
     def _alive(self, now: int, tr: Tracker) -> None:
         tr.last_alive = now
         self.now = max(self.now, now)
@@ -501,10 +509,20 @@ class Performance:
         tr.step = step
         if step.state != State.EXECUTE:
             # why it is not in Execute: its last departure from it, else how it began
-            left = [t for t in history if t.sequence <= s.sequence and t.from_state == State.EXECUTE]  # fmt: skip
-            first = left[-1] if left else next((t for t in history if t.sequence <= s.sequence), None)  # fmt: skip
+            left = [
+                t for t in history if t.sequence <= s.sequence and t.from_state == State.EXECUTE
+            ]
+            first = (
+                left[-1] if left else next((t for t in history if t.sequence <= s.sequence), None)
+            )
             if first is not None:
-                old = Step(first.sequence, first.time, first.to_state, first.to_mode, reason_id=s.stop_reason_id)  # fmt: skip
+                old = Step(
+                    first.sequence,
+                    first.time,
+                    first.to_state,
+                    first.to_mode,
+                    reason_id=s.stop_reason_id,
+                )
                 self._describe(old, first)
             else:
                 old = step
@@ -636,9 +654,9 @@ class Performance:
             self.ledger.add(facts)
             self._facts.extend(facts)
 
-    # ================================================================================================
+    # ==============================================================================================
     # Persistence
-    # ================================================================================================
+    # ==============================================================================================
     def document(self) -> dict[str, Any]:
         """The open state (what the facts do not hold): trackers, the line, the open episode."""
         return {

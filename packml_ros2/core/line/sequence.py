@@ -129,7 +129,7 @@ class Run:
     def answer(self, unit: str, service: str, answer: Answer) -> None:
         raise NotImplementedError
 
-    # -- pieces ----------------------------------------------------------------------------------------
+    # -- pieces ------------------------------------------------------------------------------------
     def _check(self, unit: UnitView, now: float, cancellable: bool = True) -> None:
         if cancellable and self.cancelled_by is not None:
             raise Failed(Reason.SUPERSEDED, f"cancelled at {unit.name} by {self.cancelled_by}")
@@ -149,7 +149,10 @@ class Run:
             out.append(UnitCall(call.unit, call.service, call.fields))
         if now >= call.deadline:
             what = "did not answer" if call.sent else "is not available"
-            raise Failed(Reason.UNIT_UNAVAILABLE, f"{call.unit}/{call.service} {what} within {self.timeout:g} s")  # fmt: skip
+            raise Failed(
+                Reason.UNIT_UNAVAILABLE,
+                f"{call.unit}/{call.service} {what} within {self.timeout:g} s",
+            )
         return POLL if call.sent else SERVICE_POLL
 
     def _poll_wait(self, w: _Wait, now: float, cancellable: bool = True) -> float | None:
@@ -159,13 +162,22 @@ class Run:
         if progress == "reached":
             return None
         if progress:
-            raise Failed(Reason.COMMAND_NOT_ALLOWED, f"{unit.name} went to {progress} instead of {state_name(w.target)}")  # fmt: skip
+            raise Failed(
+                Reason.COMMAND_NOT_ALLOWED,
+                f"{unit.name} went to {progress} instead of {state_name(w.target)}",
+            )
         self._check(unit, now, cancellable)
         if not unit.online:
-            raise Failed(Reason.UNIT_UNAVAILABLE, f"{unit.name} was lost while going to {state_name(w.target)}")  # fmt: skip
+            raise Failed(
+                Reason.UNIT_UNAVAILABLE,
+                f"{unit.name} was lost while going to {state_name(w.target)}",
+            )
         if now >= w.deadline:
             current = unit.status.state_current_name if unit.status is not None else "no status"
-            raise Failed(Reason.UNIT_UNAVAILABLE, f"{unit.name} did not reach {state_name(w.target)} within {self.timeout:g} s (step_timeout; now {current})")  # fmt: skip
+            raise Failed(
+                Reason.UNIT_UNAVAILABLE,
+                f"{unit.name} did not reach {state_name(w.target)} within {self.timeout:g} s (step_timeout; now {current})",
+            )
         return min(w.deadline - now, POLL)
 
 
@@ -248,7 +260,9 @@ class CommandRun(Run):
                 return None
             else:
                 self.step = f"{self._label()}: sending {self.name}"
-                self.call = _Call(unit.name, "command", {"command": int(self.cmd), "source": SOURCE}, deadline)  # fmt: skip
+                self.call = _Call(
+                    unit.name, "command", {"command": int(self.cmd), "source": SOURCE}, deadline
+                )
                 self.seq0 = seq0
         if self.call is not None:
             a = self.call.answer
@@ -320,7 +334,9 @@ class AbortRun(Run):
     def __init__(self, cell: Cell, now: float) -> None:
         super().__init__(cell, "ABORT")
         self.deadline = now + self.timeout
-        self.target = next((t for u in cell.units.values() if (t := u.target(Cmd.ABORT))), State.ABORTED)  # fmt: skip
+        self.target = next(
+            (t for u in cell.units.values() if (t := u.target(Cmd.ABORT))), State.ABORTED
+        )
         self.results: dict[str, str] = {}
         self.failed: list[tuple[int, str]] = []
         self.calls: dict[str, tuple[int, Answer | None]] = {}  # unit -> (seq0, answer)
@@ -339,7 +355,11 @@ class AbortRun(Run):
                     self._failed(unit.name, Reason.UNIT_UNAVAILABLE, f"{unit.name} unreachable")
                 else:
                     self.calls[unit.name] = (unit.sequence(), None)
-                    out.append(UnitCall(unit.name, "command", {"command": int(Cmd.ABORT), "source": SOURCE}))  # fmt: skip
+                    out.append(
+                        UnitCall(
+                            unit.name, "command", {"command": int(Cmd.ABORT), "source": SOURCE}
+                        )
+                    )
             self.step = f"ABORT: waiting for {', '.join(self.calls) or 'nobody'}"
         for name, (seq0, a) in list(self.calls.items()):
             if a is None:
@@ -368,9 +388,15 @@ class AbortRun(Run):
             return out, min(POLL, max(0.0, self.deadline - now))
         listed = "; ".join(self.results[n] for n in self.cell.units if n in self.results)
         if self.failed:
-            self.outcome = Outcome(False, self.failed[0][0], f"ABORT sent to every unit at once, not all aborted: {listed}")  # fmt: skip
+            self.outcome = Outcome(
+                False,
+                self.failed[0][0],
+                f"ABORT sent to every unit at once, not all aborted: {listed}",
+            )
         else:
-            self.outcome = Outcome(True, Reason.ACCEPTED, f"ABORT sent to every unit at once: {listed}")  # fmt: skip
+            self.outcome = Outcome(
+                True, Reason.ACCEPTED, f"ABORT sent to every unit at once: {listed}"
+            )
         return self.outcome
 
     def _failed(self, unit: str, result: int, text: str) -> None:
@@ -399,7 +425,9 @@ class ModeRun(Run):
         super().__init__(cell, f"SET_MODE {wanted}")
         self.wanted = wanted
         self.mode, self.mode_name = mode, mode_name
-        self.before = {n: u.status.unit_mode_current for n, u in cell.units.items() if u.status is not None}  # fmt: skip
+        self.before = {
+            n: u.status.unit_mode_current for n, u in cell.units.items() if u.status is not None
+        }
         modes = set(self.before.values())
         self.old = next(iter(modes)) if len(modes) == 1 else 0
         self.number = mode
@@ -416,7 +444,9 @@ class ModeRun(Run):
         refusals, self.number = self.cell.mode_refusals(self.mode, self.mode_name)
         if not refusals:
             return None
-        message = f"mode {self.wanted} refused, no unit changed: " + "; ".join(t for _, t in refusals)  # fmt: skip
+        message = f"mode {self.wanted} refused, no unit changed: " + "; ".join(
+            t for _, t in refusals
+        )
         return Outcome(False, refusals[0][0], message, self.old)
 
     def next(self, now: float, ready: Ready) -> tuple[list[UnitCall], float] | Outcome:
@@ -466,7 +496,12 @@ class ModeRun(Run):
                 status = unit.status
                 if status is not None and (status.unit_mode_change_in_process or status.unit_mode_current != self.number) and now < b.deadline:  # fmt: skip
                     return min(POLL, b.deadline - now)
-                b.call = _Call(b.unit, "set_mode", {"mode": self.before[b.unit], "mode_name": "", "source": SOURCE}, b.deadline)  # fmt: skip
+                b.call = _Call(
+                    b.unit,
+                    "set_mode",
+                    {"mode": self.before[b.unit], "mode_name": "", "source": SOURCE},
+                    b.deadline,
+                )
             a = b.call.answer
             if a is None:
                 try:

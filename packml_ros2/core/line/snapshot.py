@@ -63,7 +63,9 @@ def restore(config: LineConfig, units: Mapping[str, UnitLike], document: Any) ->
         state = document["state"]
         unknown = set(state.get("trackers", {})) - set(perf.trackers)
         if unknown:
-            raise SnapshotError(f"the line snapshot has units {sorted(unknown)} the configuration has not")  # fmt: skip
+            raise SnapshotError(
+                f"the line snapshot has units {sorted(unknown)} the configuration has not"
+            )
         perf.restore(state)
         for name, w in document.get("waiting", {}).items():
             tr = perf.trackers[name]

@@ -83,7 +83,9 @@ class LineStore:
         #: why the store cannot be written now ('' = it can): what the line committed since is
         #: held in :attr:`pending` (bounded) and written with the next commit that succeeds
         self.failing = ""
-        self.pending: list[tuple[Sequence[Fact], Sequence[tuple[Episode, str, str, str]], Mapping[str, Any] | None]] = []  # fmt: skip
+        self.pending: list[
+            tuple[Sequence[Fact], Sequence[tuple[Episode, str, str, str]], Mapping[str, Any] | None]
+        ] = []
         self.pending_dropped = 0
         self._read_only = False
         try:
@@ -148,7 +150,9 @@ class LineStore:
 
     def _aside(self, why: str) -> sqlite3.Connection:
         aside = move_aside(self.path, "-wal", "-shm")
-        self.problems.append(f"{self.path.name} {why}: moved aside to {aside.name}; the line starts with an empty one")  # fmt: skip
+        self.problems.append(
+            f"{self.path.name} {why}: moved aside to {aside.name}; the line starts with an empty one"
+        )
         return sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
 
     def start_over(self, why: str) -> None:
@@ -159,7 +163,7 @@ class LineStore:
         self.db.close()
         self.db = self._open()
 
-    # -- writing --------------------------------------------------------------------------------------
+    # -- writing -----------------------------------------------------------------------------------
     def commit(self, facts: Sequence[Fact], episodes: Sequence[tuple[Episode, str, str, str]],
                state: Mapping[str, Any] | None) -> None:  # fmt: skip
         """One input's facts, episodes ((episode, root unit, bucket, reason)) and open state, in
@@ -214,17 +218,27 @@ class LineStore:
         db = self.db
         db.execute("BEGIN")
         try:
-            segs = [(f.scope, f.start, f.end, f.bucket, f.reason, f.shift) for f in facts if isinstance(f, Segment)]  # fmt: skip
+            segs = [
+                (f.scope, f.start, f.end, f.bucket, f.reason, f.shift)
+                for f in facts
+                if isinstance(f, Segment)
+            ]
             if segs:
                 db.executemany("INSERT INTO segments VALUES (?, ?, ?, ?, ?, ?)", segs)
-            counts = [(f.scope, f.t, f.processed, f.defective, f.net, f.good, f.shift) for f in facts if isinstance(f, Count)]  # fmt: skip
+            counts = [
+                (f.scope, f.t, f.processed, f.defective, f.net, f.good, f.shift)
+                for f in facts
+                if isinstance(f, Count)
+            ]
             if counts:
                 db.executemany("INSERT INTO counts VALUES (?, ?, ?, ?, ?, ?, ?)", counts)
             for ep, unit, bucket, reason in episodes:
                 db.execute("INSERT OR REPLACE INTO episodes VALUES (?, ?, ?, ?, ?, ?, ?)",
                            (ep.id, ep.start, ep.end, unit, bucket, reason, json.dumps(ep.to_dict())))  # fmt: skip
             if state is not None:
-                db.execute("INSERT OR REPLACE INTO state VALUES ('performance', ?)", (json.dumps(state),))  # fmt: skip
+                db.execute(
+                    "INSERT OR REPLACE INTO state VALUES ('performance', ?)", (json.dumps(state),)
+                )
             db.execute("COMMIT")
         except BaseException:
             with contextlib.suppress(sqlite3.Error):
@@ -253,7 +267,7 @@ class LineStore:
         doc = _document(row[0]) if row is not None else None
         return doc if isinstance(doc, dict) else None
 
-    # -- reading --------------------------------------------------------------------------------------
+    # -- reading -----------------------------------------------------------------------------------
     def state(self) -> dict[str, Any] | None:
         """The open state; ValueError when it is not one (the line moves the store aside)."""
         row = self.db.execute("SELECT document FROM state WHERE key = 'performance'").fetchone()
@@ -291,19 +305,29 @@ class LineStore:
             "SELECT shift, scope, SUM(processed), SUM(defective), SUM(net), SUM(good) FROM counts"
             " WHERE shift != '' GROUP BY shift, scope"):  # fmt: skip
             if wanted is None or shift in wanted:
-                out.setdefault(shift, {}).setdefault(scope, Totals()).add_count(int(p), int(d), int(net), int(good))  # fmt: skip
+                out.setdefault(shift, {}).setdefault(scope, Totals()).add_count(
+                    int(p), int(d), int(net), int(good)
+                )
         return out
 
     def shift_keys(self) -> list[str]:
-        rows = self.db.execute("SELECT shift, MIN(start) FROM segments WHERE shift != '' GROUP BY shift ORDER BY 2")  # fmt: skip
+        rows = self.db.execute(
+            "SELECT shift, MIN(start) FROM segments WHERE shift != '' GROUP BY shift ORDER BY 2"
+        )
         return [r[0] for r in rows]
 
     def restore_ledger(self, ledger: Ledger, reset_at: int | None) -> None:
         """The ledger's running windows as the facts give them."""
-        latest = self.db.execute("SELECT MAX(m) FROM (SELECT MAX(end) AS m FROM segments UNION ALL SELECT MAX(t) FROM counts)").fetchone()[0]  # fmt: skip
+        latest = self.db.execute(
+            "SELECT MAX(m) FROM (SELECT MAX(end) AS m FROM segments UNION ALL SELECT MAX(t) FROM counts)"
+        ).fetchone()[0]
         ledger.lifetime = self.totals(None, None)
         ledger.reset_at = reset_at
-        ledger.reset = self.totals(reset_at, None) if reset_at is not None else {s: t.copy() for s, t in ledger.lifetime.items()}  # fmt: skip
+        ledger.reset = (
+            self.totals(reset_at, None)
+            if reset_at is not None
+            else {s: t.copy() for s, t in ledger.lifetime.items()}
+        )
         ledger.shifts = self.shift_totals()
         ledger.latest = int(latest or 0)
         horizon = ledger.latest - RECENT
@@ -339,11 +363,16 @@ class LineStore:
             where.append("end IS NULL")
         clause = f" WHERE {' AND '.join(where)}" if where else ""
         total = int(self.db.execute(f"SELECT COUNT(*) FROM episodes{clause}", args).fetchone()[0])
-        rows = self.db.execute(f"SELECT document FROM episodes{clause} ORDER BY start DESC, id DESC LIMIT ?", [*args, limit])  # fmt: skip
+        rows = self.db.execute(
+            f"SELECT document FROM episodes{clause} ORDER BY start DESC, id DESC LIMIT ?",
+            [*args, limit],
+        )
         return _episodes(rows), total
 
     def recent_episodes(self, n: int) -> list[Episode]:
-        rows = self.db.execute("SELECT document FROM episodes WHERE end IS NOT NULL ORDER BY id DESC LIMIT ?", (n,))  # fmt: skip
+        rows = self.db.execute(
+            "SELECT document FROM episodes WHERE end IS NOT NULL ORDER BY id DESC LIMIT ?", (n,)
+        )
         return _episodes(rows)[::-1]
 
     def close(self) -> None:
@@ -360,7 +389,9 @@ def _prepare(db: sqlite3.Connection) -> None:
     db.execute("PRAGMA synchronous=NORMAL")
     for statement in _SCHEMA:
         db.execute(statement)
-    db.execute("INSERT OR IGNORE INTO meta (key, value) VALUES ('schema', ?)", (str(SCHEMA_VERSION),))  # fmt: skip
+    db.execute(
+        "INSERT OR IGNORE INTO meta (key, value) VALUES ('schema', ?)", (str(SCHEMA_VERSION),)
+    )
 
 
 def _tables(db: sqlite3.Connection) -> set[str]:
@@ -428,7 +459,9 @@ def _foreign(db: sqlite3.Connection) -> str:
         return f"it holds the tables {', '.join(sorted(tables))}"
     row = db.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone()
     if row is None or row[0] != str(SCHEMA_VERSION):
-        return f"schema {str(row[0])[:20] if row else 'unknown'}, this version reads {SCHEMA_VERSION}"  # fmt: skip
+        return (
+            f"schema {str(row[0])[:20] if row else 'unknown'}, this version reads {SCHEMA_VERSION}"
+        )
     for table in sorted(tables):
         columns = [(c[1], c[2], c[3]) for c in db.execute(f"PRAGMA table_info({table})")]
         if columns != _COLUMNS[table]:
