@@ -99,16 +99,6 @@ def profile_xml(interfaces: Sequence[str]) -> str:
         <useBuiltinTransports>false</useBuiltinTransports>
       </rtps>
     </participant>
-    <data_writer profile_name="service">
-      <!-- a service's (and an action's) answer: rmw_fastrtps waits this long for a new client's
-           response reader to be discovered, and drops the answer after it (default 100 ms, too
-           short on a loaded host: the client waits for an answer that never comes) -->
-      <qos>
-        <reliability>
-          <max_blocking_time><sec>1</sec><nanosec>0</nanosec></max_blocking_time>
-        </reliability>
-      </qos>
-    </data_writer>
   </profiles>
 </dds>
 """

@@ -7,7 +7,10 @@ Usage: ``python fake_servers.py <action name> <service name> [step seconds]``.
 The move: a goal of ``order`` n runs n steps of ``step`` seconds, a feedback message per step
 (the sequence so far), and succeeds with the first n Fibonacci numbers (mod 1000); order < 0 is rejected;
 order >= 1000 aborts after its first step; a cancel request ends it at the next step (canceled).
-Each goal's end is printed (``goal <n> succeeded|canceled|aborted``).
+Each goal's end is printed (``goal <n> succeeded|canceled|aborted``), and ``client seen`` once this
+process has discovered the reply readers of an action client's goal and result requests: a plain
+rclpy server drops its answer to a client it has not discovered yet (Fast DDS waits 100 ms), so a
+test that restarts the servers under a running EM waits for that line before the EM's next goal.
 The gripper: ``data: true`` succeeds; ``data: false`` answers ``success: false`` ("jaws jammed").
 """
 
@@ -16,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import signal
 import sys
+import threading
 import time
 
 import rclpy
@@ -76,6 +80,19 @@ def main() -> int:
     executor = MultiThreadedExecutor(num_threads=4)
     executor.add_node(node)
     print("drivers ready", flush=True)
+
+    def watch_clients() -> None:
+        replies = [f"rr{node.resolve_topic_name(action)}/_action/{s}Reply" for s in ("send_goal", "get_result")]  # fmt: skip
+        while rclpy.ok():
+            try:
+                if all(node.get_subscriptions_info_by_topic(r, no_mangle=True) for r in replies):
+                    print("client seen", flush=True)
+                    return
+            except Exception:  # the node shut down meanwhile
+                return
+            time.sleep(0.05)
+
+    threading.Thread(target=watch_clients, daemon=True).start()
     with contextlib.suppress(KeyboardInterrupt):
         executor.spin()
     executor.shutdown(timeout_sec=2)

@@ -53,7 +53,9 @@ def wait_ready(servers, node: InterfaceEm, prime: bool = True) -> None:  # type:
     client = node._action or node._service
     ready = getattr(client, "server_is_ready", None) or client.service_is_ready
     wait_until(ready, 30, what="the EM seeing its server")
-    if not prime:
+    if not prime:  # (a restarted server: the EM's client is there already; the server sees it)
+        if node._action is not None:
+            wait_until(lambda: "client seen" in servers.output(), 30, what="the servers seeing the EM's client")  # fmt: skip
         return
     if node._action is not None:
         from test_msgs.action import Fibonacci
