@@ -134,12 +134,14 @@ def test_line_services_answer_filters_refuse_nonsense_and_survive_a_killed_coord
     ]
 
     # -- episode 1: a jam at the filler; the packer runs dry ------------------------------------------
-    ros.call(SetBool, f"/{cell}/filler/feeder/fault/jam", SetBool.Request(data=True))
+    # (30 s: a simulated EM resends an answer its client was not yet discovered for, under a
+    # loaded CI the fault switch once took longer than the default 10 s)
+    ros.call(SetBool, f"/{cell}/filler/feeder/fault/jam", SetBool.Request(data=True), 30)
     line.episodes.wait_for(lambda e: e.id == 1 and {(d.unit, d.how) for d in e.affected} == {("filler", "internal"), ("packer", "starved")},
                            20, "the packer starved in episode 1")  # fmt: skip
     # filler Stopped, packer Suspended: STOP (the filler is there already) and ABORT, not RESET
     line.status.wait_for(lambda m: list(m.commands_valid_names) == ["STOP", "ABORT"], 10, "STOP, ABORT valid")  # fmt: skip
-    ros.call(SetBool, f"/{cell}/filler/feeder/fault/jam", SetBool.Request(data=False))
+    ros.call(SetBool, f"/{cell}/filler/feeder/fault/jam", SetBool.Request(data=False), 30)
     for name, then in (("reset", "IDLE"), ("start", "EXECUTE")):
         answer = filler.trigger(name)
         assert answer.success, answer.message
@@ -147,11 +149,11 @@ def test_line_services_answer_filters_refuse_nonsense_and_survive_a_killed_coord
     line.episodes.wait_for(lambda e: e.id == 1 and not e.open, 20, "episode 1 closed")
     line.running("running again")
     # -- episode 2: the packer full; the coordinator suspends the filler -------------------------------
-    ros.call(SetBool, f"/{cell}/packer/loader/fault/full", SetBool.Request(data=True))
+    ros.call(SetBool, f"/{cell}/packer/loader/fault/full", SetBool.Request(data=True), 30)
     filler.wait_status(lambda m: m.state_current_name == "SUSPENDED", 20, "the filler suspended")
     now_open = line.query_episodes(open_only=True)
     assert summary(now_open) == [(2, "packer", "blocked")] and now_open.episodes[0].open
-    ros.call(SetBool, f"/{cell}/packer/loader/fault/full", SetBool.Request(data=False))
+    ros.call(SetBool, f"/{cell}/packer/loader/fault/full", SetBool.Request(data=False), 30)
     line.episodes.wait_for(lambda e: e.id == 2 and not e.open, 20, "episode 2 closed")
 
     # -- query_episodes and its filters -----------------------------------------------------------------
@@ -252,8 +254,8 @@ def test_line_services_answer_filters_refuse_nonsense_and_survive_a_killed_coord
     assert restored.blocked_ns == lifetime.scopes[0].blocked_ns  # no new stop meanwhile
     assert line.query_losses(window="reset").windows[0].start == since_reset.start
     # the line runs on: a new episode continues the numbering
-    ros.call(SetBool, f"/{cell}/packer/loader/fault/full", SetBool.Request(data=True))
+    ros.call(SetBool, f"/{cell}/packer/loader/fault/full", SetBool.Request(data=True), 30)
     three = line.episodes.wait_for(lambda e: e.id == 3, 20, "episode 3 after the restart")
     assert (three.root_unit, three.bucket) == ("packer", "blocked"), three
-    ros.call(SetBool, f"/{cell}/packer/loader/fault/full", SetBool.Request(data=False))
+    ros.call(SetBool, f"/{cell}/packer/loader/fault/full", SetBool.Request(data=False), 30)
     line.episodes.wait_for(lambda e: e.id == 3 and not e.open, 20, "episode 3 closed")
