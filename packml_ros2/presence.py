@@ -33,7 +33,6 @@ to your own loop (``loop.call_soon_threadsafe``).
 
 from __future__ import annotations
 
-import functools
 import inspect
 import threading
 import time
@@ -94,8 +93,8 @@ class Presence:
         for path in paths:
             self._seen[path], self._none[path] = Seen(None, started), 0
             events = SubscriptionEventCallbacks(
-                liveliness=functools.partial(self._on_liveliness_event, path),
-                incompatible_qos=functools.partial(self._on_incompatible_event, path),
+                liveliness=lambda e, p=path: self._on_liveliness(p, e.alive_count),  # type: ignore[misc]
+                incompatible_qos=lambda e, p=path: self._on_incompatible(p),  # type: ignore[misc]
             )
             self._subs.append(
                 node.create_subscription(
@@ -132,12 +131,6 @@ class Presence:
             self._lock.notify_all()
         if self.on_change is not None:
             self.on_change(path, seen)
-
-    def _on_liveliness_event(self, path: str, event: Any) -> None:
-        self._on_liveliness(path, event.alive_count)
-
-    def _on_incompatible_event(self, path: str, event: Any) -> None:
-        self._on_incompatible(path)
 
     def _on_liveliness(self, path: str, alive_count: int) -> None:
         none = self._none[path] = min(self._none[path], alive_count)  # (module docstring)

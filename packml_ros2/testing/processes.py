@@ -114,3 +114,21 @@ def wait_until(
         if time.monotonic() > deadline:
             raise TimeoutError(f"timed out after {timeout:g} s waiting for {what}")
         time.sleep(interval)
+
+
+def kill_environ_holders(marker: str) -> list[int]:
+    """SIGKILL every process of this user whose environment holds ``marker`` (but this one): what
+    a test started, its children and theirs, though a SIGKILLed parent left them orphaned (a node
+    the launcher started in a session of its own). Returns their pids."""
+    needle, killed = marker.encode(), []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            if needle not in (entry / "environ").read_bytes():
+                continue
+            os.kill(int(entry.name), signal.SIGKILL)
+        except OSError:  # gone meanwhile, or not ours
+            continue
+        killed.append(int(entry.name))
+    return killed

@@ -19,6 +19,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+from packml_ros2.testing.processes import kill_environ_holders
+
 from .test_launcher_cli import FAST, Launched
 from .test_multihost import Network, _ns_environment, network  # noqa: F401 (a fixture)
 
@@ -228,15 +230,22 @@ def run_through_the_states(tmp_path: Path, host: Host = HERE) -> None:
 
 
 @pytest.fixture
-def cleanup() -> Iterator[list[object]]:
+def cleanup(tmp_path: Path) -> Iterator[list[object]]:
     started: list[object] = []
     yield started
     for thing in reversed(started):
         if isinstance(thing, Camera | Servers):
             thing.stop()
         elif isinstance(thing, Launched) and thing.proc.poll() is None:
-            thing.proc.kill()
-            thing.proc.wait()
+            thing.proc.send_signal(signal.SIGINT)  # the launcher stops what it started
+            try:
+                thing.proc.wait(20)
+            except subprocess.TimeoutExpired:
+                thing.proc.kill()
+                thing.proc.wait()
+    # whatever is left of a failed test (its nodes are in sessions of their own): a node left
+    # running would be a second unit 'press' in the next test's domain
+    kill_environ_holders(f"EMS_TRACE={tmp_path / 'trace.txt'}")
 
 
 #: the camera as a program the launcher starts (run: a function, with a placeholder argument)
