@@ -228,8 +228,9 @@ class GuardedNode(Node):
         return super().create_timer(timer_period_sec, callback, *args, **kwargs)
 
     def uses_sim_time(self) -> bool:
-        """Whether the node's clock follows ``/clock`` (parameter ``use_sim_time``)."""
-        return self.has_parameter("use_sim_time") and bool(self.get_parameter("use_sim_time").value)
+        """Whether the node's clock follows ``/clock`` (parameter ``use_sim_time``, which rclpy's
+        time source applies to the clock: one attribute read, on the path of every EM report)."""
+        return bool(getattr(self.get_clock(), "ros_time_is_active", False))
 
     def steady(self) -> float:
         """Seconds on the clock of the node's own leases and waits: monotonic (it never steps
