@@ -22,6 +22,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from .children import spawn
+
 #: Seconds the server has to say it runs.
 START_TIMEOUT = 15.0
 STARTED = b"Server started"
@@ -70,8 +72,7 @@ class HostedServer:
         argv, env = server_command(host, port)
         self.address = f"{host}:{port}"
         self._out = tempfile.TemporaryFile()  # noqa: SIM115 - what it says; closed by stop()
-        self.proc = subprocess.Popen(argv, stdout=self._out, stderr=subprocess.STDOUT, env=env,
-                                     start_new_session=True)  # fmt: skip
+        self.proc = spawn(argv, stdout=self._out, stderr=subprocess.STDOUT, env=env)
         deadline = time.monotonic() + timeout
         while STARTED not in self.output():
             if time.monotonic() > deadline or self.proc.poll() is not None:

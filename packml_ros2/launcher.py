@@ -27,6 +27,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from . import dds_profile, run
+from .children import spawn
 from .core import CellConfig, ConfigError, load_cell
 from .em_launch import EmRun, groups, host_arguments, program_env, resolve
 from .ros import interface
@@ -356,8 +357,8 @@ def commands(p: Plan) -> list[tuple[str, list[str]]]:
 def _popen(spec: NodeSpec, out: Any = None) -> subprocess.Popen[bytes]:
     # Own process group: Ctrl-C reaches the launcher only, which stops the children in order.
     env = {**os.environ, **dict(spec.env)} if spec.env else None
-    return subprocess.Popen(argv_of(spec), stdout=out, stderr=subprocess.STDOUT if out else None,
-                            start_new_session=True, env=env)  # fmt: skip
+    # (children.spawn: a launcher killed outright takes its nodes with it)
+    return spawn(argv_of(spec), stdout=out, stderr=subprocess.STDOUT if out else None, env=env)
 
 
 def start_programs(p: Plan) -> list[tuple[str, subprocess.Popen[bytes]]]:

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from ..children import spawn
 from ..core import ConfigError, StoreError
 from .main import EXIT_USAGE
 
@@ -135,7 +136,7 @@ def _start_server(verb: str, cell_file: Path, port: int) -> subprocess.Popen[byt
     argv = [sys.executable, "-m", "packml_ros2.cli.main", verb, str(cell_file)]
     if port >= 0:
         argv += ["--port", str(port)]
-    return subprocess.Popen(argv, start_new_session=True)
+    return spawn(argv)
 
 
 def _ready(text: str) -> None:

@@ -236,6 +236,36 @@ def test_launch_one_process_per_node_and_ctrl_c(tmp_path: Path) -> None:
         subprocess.run(["pkill", "-9", "-f", f"{name}.yaml"], check=False)
 
 
+def _running(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie nobody reaped yet has ended)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def test_a_launcher_killed_outright_takes_its_nodes_with_it(tmp_path: Path) -> None:
+    """SIGKILL leaves the launcher no time to stop its nodes: each node, in a session of its own,
+    gets SIGINT from Linux when the launcher dies (packml_ros2.children) and stops cleanly."""
+    name = f"orph{os.getpid()}"
+    launch = Launched(["--processes", str(cell_file(tmp_path, name))], tmp_path / "launch.log")
+    try:
+        launch.wait_ready()
+        nodes = [int(c) for c in subprocess.run(["pgrep", "-f", f"{name}.yaml"], check=False,
+                 capture_output=True, text=True).stdout.split() if int(c) != launch.proc.pid]  # fmt: skip
+        assert len(nodes) == 6
+        launch.proc.kill()
+        launch.proc.wait()
+        deadline = time.monotonic() + 30  # (a node ends itself within run.TEARDOWN_LIMIT)
+        while time.monotonic() < deadline and any(_running(pid) for pid in nodes):
+            time.sleep(0.1)
+        left = [pid for pid in nodes if _running(pid)]
+        assert not left, f"nodes left behind by a killed launcher: {left}"
+    finally:
+        subprocess.run(["pkill", "-9", "-f", f"{name}.yaml"], check=False)
+
+
 def test_bad_configuration_fails_at_start_naming_the_key(tmp_path: Path) -> None:
     path = tmp_path / "bad.yaml"
     path.write_text(
