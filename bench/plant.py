@@ -1,7 +1,8 @@
 """A plant, measured: N cells over several hosts in three discovery setups. Prints JSON.
 
     sudo .venv/bin/python bench/plant.py [--cells 20] [--hosts 5] [--window 60] [--idle 20]
-        [--setups simple,server,domains] [--processes] [--cycles 10] [--lease 3]
+        [--setups simple,server,domains] [--processes] [--cycles 10] [--lease 3] [--em-lease 2]
+        [--keep DIR]
 
 Each cell is one unit with 8 simulated EMs (``--ems``), started by ``packml launch`` of a
 generated cell file: in one process (the default), or with ``--processes`` one process per node
@@ -42,6 +43,7 @@ import argparse
 import contextlib
 import json
 import os
+import shutil
 import signal
 import statistics
 import sys
@@ -140,6 +142,11 @@ def ns_environment(domain: int, setup: str, server: str, super_client: bool = Fa
     return env
 
 
+#: s the observer has to answer a line-wide call (its own limit is 60 s, plus the discovery of
+#: every unit's services before the first call)
+ANSWER_WAIT = 130.0
+
+
 class Observer(NsProcess):
     """The measuring client (this file run as ``observe``): one JSON request per line on its
     stdin, one JSON answer per line on its stdout."""
@@ -153,15 +160,16 @@ class Observer(NsProcess):
 # The plant
 # ====================================================================================================
 def cell_doc(name: str, ems: int, lease: float, workdir: Path,
-             discovery: dict[str, Any]) -> dict[str, Any]:  # fmt: skip
+             discovery: dict[str, Any], em_lease: float = 2.0) -> dict[str, Any]:  # fmt: skip
     """A cell of one unit with ``ems`` simulated EMs; ``discovery``: its discovery block (the
     domain, the server), as an integrator names it."""
-    sim = {"cycle_time": 0.5, "counter": "processed"}
+    sim = {"cycle_time": 0.5, "counter": "processed", "lease": em_lease}
     return {
         "cell": name,
         "discovery": discovery,
         "units": {
             "unit": {
+                "em_lease": em_lease,
                 "equipment_modules": {f"em{i}": {"sim": sim} for i in range(ems)},
                 "persistence": {"path": str(workdir / f"{name}.sqlite3")},
             }
@@ -236,7 +244,8 @@ class Plant:
             discovery: dict[str, Any] = {"domain": self.domain_of[c]}
             if self.setup == "server":
                 discovery["server"] = f"{self.server}:{DS_PORT}"
-            doc = cell_doc(c, self.args.ems, self.args.lease, self.workdir, discovery)
+            doc = cell_doc(c, self.args.ems, self.args.lease, self.workdir, discovery,
+                           self.args.em_lease)  # fmt: skip
             path.write_text(yaml.safe_dump(doc, sort_keys=False))
             cmd = [sys.executable, "-m", "packml_ros2.cli.main", "launch", str(path)]
             if self.args.processes:
@@ -289,8 +298,12 @@ class Plant:
             if ready_at is not None and first is not None:
                 return ready_at, first
             if now > deadline:
+                times = self.observer.ask("ready")
+                late = [c for c in self.cells if times.get(f"/{c}/unit") is None]
+                tails = "\n".join(f"-- {c} on {self.host_of[c]}:\n"
+                                  + self.cell_procs[c].output()[-600:] for c in late[:3])  # fmt: skip
                 raise TimeoutError(f"{self.setup}: not every unit ready in {timeout:g} s: "
-                                   f"{self.observer.ask('ready')}")  # fmt: skip
+                                   f"not ready: {', '.join(late)}\n{tails}")  # fmt: skip
             if self.dead():
                 raise RuntimeError(f"{self.setup}: exited: {self.dead()}\n"
                                    + self.cell_procs[self.cells[0]].output()[-2000:])  # fmt: skip
@@ -334,13 +347,13 @@ class Plant:
         warmup = 1
         for i in range(self.args.cycles + warmup):
             for verb, state in (("reset", "IDLE"), ("start", "EXECUTE")):
-                took = self.observer.ask("line", verb=verb, state=state)
-                floor = self.observer.ask("floor")
+                took = self.observer.ask("line", ANSWER_WAIT, verb=verb, state=state)
+                floor = self.observer.ask("floor", ANSWER_WAIT)
                 if i >= warmup:
                     samples[verb].append(took)
                     samples["floor"].append(floor)
             if i < self.args.cycles + warmup - 1:
-                self.observer.ask("line", verb="stop", state="STOPPED")
+                self.observer.ask("line", ANSWER_WAIT, verb="stop", state="STOPPED")
         out = {k: summary_ms(v) for k, v in samples.items()}
         for verb in ("reset", "start"):
             out[f"{verb}_p50_over_floor"] = round(out[verb]["p50_ms"] / out["floor"]["p50_ms"], 2)
@@ -410,8 +423,10 @@ def run_setup(args: argparse.Namespace, net: Network, setup: str, domains: list[
               workdir: Path) -> dict[str, Any]:  # fmt: skip
     plant = Plant(args, net, setup, domains, workdir)
     result: dict[str, Any] = {"setup": setup}
+    stage = "start"
     try:
         launched, counters = plant.start()
+        stage = "ready"
         ready, result["traffic_first_window"] = plant.wait_ready(
             launched, counters, args.ready_timeout
         )
@@ -419,10 +434,16 @@ def run_setup(args: argparse.Namespace, net: Network, setup: str, domains: list[
         # the spread: a slow start of every cell, or a few cells that discover late
         result["ready_spread_s"] = {"first": round(ready[0], 3),
                                     "median": round(statistics.median(ready), 3)}  # fmt: skip
+        stage = "rest_stopped"
         result["rest_stopped"] = plant.at_rest(args.window)
+        stage = "line"
         result["line"] = plant.line()
+        stage = "rest_execute"
         result["rest_execute"] = plant.at_rest(args.idle)
+        stage = "host_cut"
         result["host_cut"] = plant.cut()
+    except (TimeoutError, RuntimeError) as exc:  # what was measured stays, beside where it stopped
+        result["error"] = f"at {stage}: {exc}"[:4000]
     finally:
         failures = plant.stop()
         if failures:
@@ -467,7 +488,11 @@ def main() -> int:
     parser.add_argument("--idle", type=float, default=20.0, help="s: the rest in Execute")
     parser.add_argument("--cycles", type=int, default=10, help="line-wide reset/start cycles")
     parser.add_argument("--lease", type=float, default=3.0, help="s: the units' unit_lease")
+    parser.add_argument("--em-lease", type=float, default=2.0,
+                        help="s: the EMs' lease (their heartbeats: 4 reports and 10 beats a lease)")  # fmt: skip
     parser.add_argument("--ready-timeout", type=float, default=180.0)
+    parser.add_argument("--keep", type=Path, default=None,
+                        help="a directory to copy every process's log and cell file into")  # fmt: skip
     args = parser.parse_args()
     setups = [s.strip() for s in args.setups.split(",") if s.strip()]
     unknown = sorted(set(setups) - set(SETUPS))
@@ -499,6 +524,7 @@ def main() -> int:
         "processes_per_node": args.processes,
         "window_s": args.window,
         "idle_s": args.idle,
+        "em_lease_s": args.em_lease,
         "goals_for_20_cells": GOALS,
         # CPU figures grow with the machine's load (other work on the same cores): beside them
         "load_average_at_start": os.getloadavg(),
@@ -512,6 +538,8 @@ def main() -> int:
                     result["setups"][setup] = run_setup(args, net, setup, domains, Path(tmp))
                 except (RuntimeError, TimeoutError) as exc:
                     result["setups"][setup] = {"setup": setup, "error": str(exc)[-3000:]}
+            if args.keep is not None:
+                shutil.copytree(tmp, args.keep, dirs_exist_ok=True)
     except KeyboardInterrupt:
         print(
             "plant: interrupted; its processes are stopped, its namespaces removed", file=sys.stderr
@@ -536,9 +564,8 @@ def table(setups: dict[str, dict[str, Any]]) -> list[str]:
            f"{'cut s':>6} {'back s':>7}"  # fmt: skip
     lines = [head]
     for name, s in setups.items():
-        if "error" in s:
-            lines.append(f"{name:<8} error: {s['error'].splitlines()[0][:100]}")
-            continue
+        if "error" in s:  # (what was measured before it, on its own line below)
+            lines.append(f"{name:<8} error {s['error'].splitlines()[0][:100]}")
 
         def get(*keys: str, s: dict[str, Any] = s) -> Any:
             v: Any = s

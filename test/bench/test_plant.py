@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
+import yaml
 
 from packml_ros2.testing.netns import ip, why_no_namespaces
 
@@ -35,10 +36,11 @@ def namespaces_of(pid: int) -> list[str]:
     return [n for n in names if n.startswith(f"pl{pid % 100000}")]
 
 
-def test_plant_json_has_every_figure_beside_its_goal() -> None:
+def test_plant_json_has_every_figure_beside_its_goal(tmp_path: Path) -> None:
+    kept = tmp_path / "kept"
     proc = subprocess.Popen(
         [*PLANT, "--cells", "2", "--hosts", "2", "--window", "3", "--idle", "2", "--cycles", "2",
-         "--lease", "2", "--setups", "simple"],
+         "--lease", "2", "--setups", "simple", "--em-lease", "3", "--keep", str(kept)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
     )  # fmt: skip
     out, err = proc.communicate(timeout=100)
@@ -72,6 +74,27 @@ def test_plant_json_has_every_figure_beside_its_goal() -> None:
             assert g["ratio_to_goal"] == pytest.approx(g["value"] / g["goal"], abs=1e-3)
             assert g["met"] == (g["value"] <= g["goal"]) and ("missed_by" in g) != g["met"]
     assert "simple" in "\n".join(result["table"]) and "simple" in err
+    assert namespaces_of(proc.pid) == []
+    # --em-lease reaches the cell files; --keep kept them beside every process's log
+    assert result["em_lease_s"] == 3
+    assert yaml.safe_load((kept / "simple/c0.yaml").read_text())["units"]["unit"]["em_lease"] == 3
+    assert "PackML unit /c0/unit up" in (kept / "simple/c0.log").read_text()
+    assert (kept / "simple/observer.log").exists()
+
+
+def test_a_stage_that_fails_keeps_what_was_measured_before_it() -> None:
+    proc = subprocess.Popen(
+        [*PLANT, "--cells", "1", "--hosts", "1", "--window", "1", "--setups", "domains",
+         "--ready-timeout", "0.5"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
+    )  # fmt: skip
+    out, err = proc.communicate(timeout=100)
+    assert proc.returncode == 1, err[-3000:]
+    s = json.loads(out)["setups"]["domains"]
+    assert s["error"].startswith("at ready: domains: not every unit ready in 0.5 s: not ready: c0")
+    assert "-- c0 on h0:" in s["error"]  # the late cell's last words
+    assert "goals" in s and s["goals"]["ready_s"]["met"] is False
+    assert "domains  error at ready" in err and "Traceback" not in err
     assert namespaces_of(proc.pid) == []
 
 
