@@ -59,6 +59,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from ros_latency import percentile, rss_mb
 from scale import cpu_seconds
 
+from packml_ros2.core.config import UnitConfig
 from packml_ros2.testing.netns import Network, NsProcess, answer_requests, why_no_namespaces
 
 REPO = Path(__file__).resolve().parents[1]
@@ -160,7 +161,7 @@ class Observer(NsProcess):
 # The plant
 # ====================================================================================================
 def cell_doc(name: str, ems: int, lease: float, workdir: Path,
-             discovery: dict[str, Any], em_lease: float = 2.0) -> dict[str, Any]:  # fmt: skip
+             discovery: dict[str, Any], em_lease: float) -> dict[str, Any]:  # fmt: skip
     """A cell of one unit with ``ems`` simulated EMs; ``discovery``: its discovery block (the
     domain, the server), as an integrator names it."""
     sim = {"cycle_time": 0.5, "counter": "processed", "lease": em_lease}
@@ -488,7 +489,7 @@ def main() -> int:
     parser.add_argument("--idle", type=float, default=20.0, help="s: the rest in Execute")
     parser.add_argument("--cycles", type=int, default=10, help="line-wide reset/start cycles")
     parser.add_argument("--lease", type=float, default=3.0, help="s: the units' unit_lease")
-    parser.add_argument("--em-lease", type=float, default=2.0,
+    parser.add_argument("--em-lease", type=float, default=UnitConfig.em_lease,
                         help="s: the EMs' lease (their heartbeats: 4 reports and 10 beats a lease)")  # fmt: skip
     parser.add_argument("--ready-timeout", type=float, default=180.0)
     parser.add_argument("--keep", type=Path, default=None,

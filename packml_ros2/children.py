@@ -14,6 +14,7 @@ which lives as long as the process, asks for it.
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import signal
 import subprocess
@@ -27,12 +28,10 @@ PR_SET_PDEATHSIG = 1
 PARENT_DEATH_SIGNAL = signal.SIGINT
 
 
-def _guard(parent: int) -> Callable[[], None] | None:
-    """The function the child runs between fork and exec (None where Linux has no prctl)."""
-    if (
-        not sys.platform.startswith("linux")
-        or threading.current_thread() is not threading.main_thread()
-    ):
+@functools.cache
+def _prctl() -> Any:
+    """libc's prctl, looked up once (None where there is none: not Linux)."""
+    if not sys.platform.startswith("linux"):
         return None
     try:
         prctl = ctypes.CDLL(None, use_errno=True).prctl
@@ -40,6 +39,14 @@ def _guard(parent: int) -> Callable[[], None] | None:
         return None
     prctl.argtypes = [ctypes.c_int, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong]
     prctl.restype = ctypes.c_int
+    return prctl
+
+
+def _guard(parent: int) -> Callable[[], None] | None:
+    """The function the child runs between fork and exec (None where Linux has no prctl)."""
+    prctl = _prctl()
+    if prctl is None or threading.current_thread() is not threading.main_thread():
+        return None
     signum = int(PARENT_DEATH_SIGNAL)
 
     def in_child() -> None:  # (after fork: no allocation, no lock, nothing imported)

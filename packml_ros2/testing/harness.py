@@ -75,6 +75,23 @@ class Collector(Generic[M]):
             self.messages.clear()
 
 
+def servers_of(node: Node, service: str) -> int:
+    """How many servers of ``service`` (a full name: ``/cell/unit/reset``, an action's
+    ``.../_action/send_goal``) ``node``'s graph holds: their request readers. A SIGKILLed server
+    stays there for its participant's lease; a client sees it as ready meanwhile, and a request
+    sent then can miss the server started in its place."""
+    return len(node.get_subscriptions_info_by_topic(f"rq{service}Request", no_mangle=True))
+
+
+def wait_server_gone(node: Node, service: str, timeout: float = 30.0) -> None:
+    """Until no server of ``service`` is left in ``node``'s graph (one that was killed)."""
+    deadline = time.monotonic() + timeout
+    while servers_of(node, service):
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"a server of {service} still in the graph after {timeout:g} s")
+        time.sleep(0.05)
+
+
 class RosHarness:
     """Nodes of one test on their own Context (domain ``domain``)."""
 

@@ -22,7 +22,8 @@ from std_srvs.srv import SetBool, Trigger
 
 from packml_ros2 import line_msgs, qos
 from packml_ros2.core import Cmd
-from packml_ros2.testing.processes import Processes, wait_until
+from packml_ros2.testing.harness import servers_of, wait_server_gone
+from packml_ros2.testing.processes import Processes
 from test.ros.cells import UnitClient, start_em_process, start_unit_process, write_cell
 
 pytestmark = pytest.mark.ros
@@ -237,15 +238,14 @@ def test_line_services_answer_filters_refuse_nonsense_and_survive_a_killed_coord
     assert since_reset.scopes[0].unplanned_stop_ns == 0 < lifetime.scopes[0].unplanned_stop_ns
 
     # -- the coordinator killed at once, and started again: nothing of the line is lost ---------------
-    requests = f"rq{line.base}/line/query_episodesRequest"
-    assert len(ros.node.get_subscriptions_info_by_topic(requests, no_mangle=True)) == 1
+    episodes = f"{line.base}/line/query_episodes"
+    assert servers_of(ros.node, episodes) == 1
     coordinator.kill()
     line.status.clear()
     line.losses.clear()
     # the dead coordinator gone from our graph first: while DDS still counts it (its participant
     # lease), our client looks ready and a query sent then can miss the new server
-    wait_until(lambda: not ros.node.get_subscriptions_info_by_topic(requests, no_mangle=True), 30,
-               what="the killed coordinator gone from the graph")  # fmt: skip
+    wait_server_gone(ros.node, episodes)
     processes.module("coordinator_again", "packml_ros2.coordinator_node", str(path))
     # wait for the new one's publications (its services exist before it spins)
     line.status.wait_for(lambda m: m.all_online, 30, "the restarted coordinator's status")

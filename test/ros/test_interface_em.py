@@ -14,6 +14,7 @@ from packml_ros2.core import load_cell
 from packml_ros2.core.schema import ConfigError
 from packml_ros2.interface_em import Failure, InterfaceEm, create, parse_interface
 from packml_ros2.testing.em_harness import EmTestUnit
+from packml_ros2.testing.harness import wait_server_gone
 from packml_ros2.testing.processes import wait_until
 
 SERVERS = Path(__file__).with_name("fake_servers.py")
@@ -159,9 +160,7 @@ def test_a_server_that_dies_mid_goal_raises_the_alarm_and_the_cell_recovers_when
     base = f"/{unit.cell}/{unit.unit}"
     # the dead server gone from the EM's graph first: while DDS still counts it (its lease), the
     # EM's client looks ready and a goal sent then can go to it instead of the new server
-    requests = f"rq{base}/move/_action/send_goalRequest"
-    wait_until(lambda: not node.get_subscriptions_info_by_topic(requests, no_mangle=True), 30,
-               what="the dead server gone from the EM's graph")  # fmt: skip
+    wait_server_gone(node, f"{base}/move/_action/send_goal")
     again = processes.start("servers2", str(SERVERS), f"{base}/move", f"{base}/grip", "0.01")
     wait_ready(again, node, prime=False)  # (a restarted server: as a cell sees it)
     unit.command_to("reset", "IDLE", timeout=15)

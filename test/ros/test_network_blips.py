@@ -93,7 +93,8 @@ def test_cuts_shorter_than_the_em_lease_never_abort(network: Network, tmp_path: 
                 assert s["state_current_name"] == "EXECUTE", (cut, s, _logs(logs))
                 assert all(e["online"] for e in s["equipment_modules"]), (cut, s, _logs(logs))
                 time.sleep(0.1)
-            observer.wait_cell(online, 2 * 3.0, f"the unit and its EM online after a {cut} s cut")
+            observer.wait_cell(online, 2 * doc["coordinator"]["unit_lease"],
+                               f"the unit and its EM online after a {cut} s cut")  # fmt: skip
         assert unit.stop() == 0, unit.output()[-3000:]
     finally:
         for proc in reversed(started):
