@@ -159,6 +159,29 @@ class RosHarness:
             raise TimeoutError(f"service {name} did not answer within {timeout:g} s")
         return future.result()
 
+    def ask(
+        self,
+        srv_type: Any,
+        name: str,
+        request: Any = None,
+        timeout: float = 10.0,
+        every: float = 2.0,
+    ) -> Any:
+        """Like :meth:`call`, for a request that may be sent again (a query): sent once more every
+        ``every`` seconds until one answer comes, within ``timeout``. A server started a moment ago
+        (a restart) is in the graph before this client's request writer has matched it, and a
+        request written then is lost: DDS services are volatile."""
+        deadline = time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            try:
+                return self.call(srv_type, name, request, min(every, max(left, 0.1)))
+            except TimeoutError:
+                if time.monotonic() + 0.1 >= deadline:
+                    raise TimeoutError(
+                        f"service {name} did not answer within {timeout:g} s"
+                    ) from None
+
     def wait_for_service(self, srv_type: Any, name: str, timeout: float = 10.0) -> None:
         client: Any = self.node.create_client(srv_type, name)
         try:

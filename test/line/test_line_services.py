@@ -81,10 +81,10 @@ class LineClient:
         return self.ros.call(Command, f"{self.base}/command", Command.Request(command=int(cmd), source="operator"), 30)  # fmt: skip
 
     def query_episodes(self, **fields: Any) -> QueryEpisodes.Response:
-        return self.ros.call(QueryEpisodes, f"{self.base}/line/query_episodes", QueryEpisodes.Request(**fields), 10)  # fmt: skip
+        return self.ros.ask(QueryEpisodes, f"{self.base}/line/query_episodes", QueryEpisodes.Request(**fields), 10)  # fmt: skip
 
     def query_losses(self, **fields: Any) -> QueryLosses.Response:
-        return self.ros.call(QueryLosses, f"{self.base}/line/query_losses", QueryLosses.Request(**fields), 10)  # fmt: skip
+        return self.ros.ask(QueryLosses, f"{self.base}/line/query_losses", QueryLosses.Request(**fields), 10)  # fmt: skip
 
     def running(self, what: str) -> None:
         self.status.wait_for(
