@@ -27,8 +27,11 @@ setup(
         "fastapi>=0.110",  # packml hmi
         "uvicorn>=0.30",
         "asyncua>=1.1",  # packml opcua
+        "paho-mqtt>=1.6,<2",  # packml mqtt
         "cryptography",
     ],
+    # what only the tests use besides the dev tools: the MQTT tests' independent Sparkplug decoder
+    extras_require={"test": ["pysparkplug>=0.6"]},
     zip_safe=False,
     entry_points={
         "console_scripts": [

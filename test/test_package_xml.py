@@ -27,10 +27,11 @@ ROSDEP = {
     "hypothesis": "python3-hypothesis",
     "httpx": "python3-httpx",
     "catkin_pkg": "python3-catkin-pkg",
+    "paho": "python3-paho-mqtt",
 }
 #: Modules without a rosdep key: installed with pip (setup.py's install_requires; the README's
 #: workspace section says so).
-PIP_ONLY = {"asyncua": "asyncua"}
+PIP_ONLY = {"asyncua": "asyncua", "pysparkplug": "pysparkplug"}  # (the second: tests only)
 LOCAL = {"packml_ros2", "test"}
 
 

@@ -8,8 +8,9 @@
 #   3. the packml_interfaces wheel, built from msg_defs/ once and kept in .cache/wheels/;
 #   4. packml_ros2 itself, editable, and the venv made an ament prefix (tools/ament_prefix.py:
 #      lib/packml_ros2/<executable>, share/packml_ros2/...), so `ros2 run` / `ros2 launch` find it;
-#   5. with --test: what only the tests need (Debian's chromium for the HMI browser tests, the npm
-#      packages of the independent OPC UA client in test/opcua_client/);
+#   5. with --test: what only the tests need (Debian's chromium for the HMI browser tests, Debian's
+#      mosquitto broker and clients for the MQTT tests, the npm packages of the independent OPC UA
+#      client in test/opcua_client/);
 #   6. with --test, when ../shared/vendor/ros2-tools exists: the real ROS 2 command line (ros2),
 #      launch and launch_ros built from its sources (composition_interfaces like msg_defs/); the
 #      wheels are kept in .cache/wheels/. Like packml_interfaces and packml_ros2 they are built here
@@ -37,6 +38,8 @@ if ((for_tests)); then
   command -v node >/dev/null || missing+=(nodejs)
   command -v npm >/dev/null || missing+=(npm)
   command -v faketime >/dev/null || missing+=(faketime)  # wall-clock steps (test_clock_steps)
+  [ -x /usr/sbin/mosquitto ] || missing+=(mosquitto)  # the MQTT broker of the Sparkplug tests
+  command -v mosquitto_sub >/dev/null || missing+=(mosquitto-clients)
 fi
 if command -v "$PYTHON" >/dev/null; then
   "$PYTHON" - <<'PY' || missing+=(python3-dev)

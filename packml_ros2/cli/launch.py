@@ -63,6 +63,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         help="also serve the units over OPC UA (packml opcua), on PORT or the cell file's "
         "opcua.port (default 4840)",
     )
+    p.add_argument(
+        "--mqtt",
+        action="store_true",
+        help="also publish the units to the MQTT broker of the cell file's mqtt: block (packml "
+        "mqtt: a Sparkplug B edge node)",
+    )
     p.set_defaults(func=launch)
 
 
@@ -71,6 +77,7 @@ def launch(args: argparse.Namespace) -> int:
 
     hmi = getattr(args, "hmi", None)
     opcua = getattr(args, "opcua", None)
+    mqtt = getattr(args, "mqtt", False)
     exposure = None
     try:
         plan = launcher.plan(args.cell_file, simulate=getattr(args, "sim", False))
@@ -84,6 +91,10 @@ def launch(args: argparse.Namespace) -> int:
             from ..opcua import parse_opcua
 
             parse_opcua(plan.cell)
+        if mqtt:
+            from ..mqtt import parse_mqtt
+
+            parse_mqtt(plan.cell)
     except ConfigError as exc:
         print(exc.prefixed("packml launch"), file=sys.stderr)
         return EXIT_USAGE
@@ -112,6 +123,7 @@ def launch(args: argparse.Namespace) -> int:
         )
     server = _start_server("hmi", args.cell_file, hmi) if hmi is not None else None
     opcua_server = _start_server("opcua", args.cell_file, opcua) if opcua is not None else None
+    edge_node = _start_server("mqtt", args.cell_file, -1) if mqtt else None
     try:
         if args.processes:
             if args.logs:
@@ -126,12 +138,14 @@ def launch(args: argparse.Namespace) -> int:
             launcher._stop_children([("hmi", server)])
         if opcua_server is not None:
             launcher._stop_children([("opcua", opcua_server)])
+        if edge_node is not None:
+            launcher._stop_children([("mqtt", edge_node)])
         if hosted is not None:  # last: the nodes said goodbye through it
             hosted.stop()
 
 
 def _start_server(verb: str, cell_file: Path, port: int) -> subprocess.Popen[bytes]:
-    """``packml hmi`` or ``packml opcua`` as a child process (own session: Ctrl-C reaches the
+    """``packml hmi``, ``packml opcua`` or ``packml mqtt`` as a child process (own session: Ctrl-C reaches the
     launcher, which stops it last); it prints its address itself. ``port`` < 0: its default."""
     argv = [sys.executable, "-m", "packml_ros2.cli.main", verb, str(cell_file)]
     if port >= 0:

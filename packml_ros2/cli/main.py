@@ -10,6 +10,7 @@
     packml record / replay                   rosbag2 recordings as regression tests
     packml hmi <cell.yaml>                   the operator HMI in a browser
     packml opcua <cell.yaml>                 the cell as OPC UA (OPC 30050) objects
+    packml mqtt <cell.yaml>                  the cell as a Sparkplug B edge node on a broker
     packml policy <cell.yaml>                the SROS2 permission policy of the cell
     packml report [cell]                     the line's losses, OEE and stop episodes
     packml doctor [cell.yaml]                check this host's DDS setup, say what to change
@@ -37,6 +38,7 @@ VERB_MODULES = {
     "bag": ("record", "replay"),
     "hmi": ("hmi",),
     "opcua": ("opcua",),
+    "mqtt": ("mqtt",),
     "policy": ("policy",),
     "report": ("report",),
     "doctor": ("doctor",),

@@ -59,6 +59,12 @@ class Session:
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
         self._thread.join(2)
+        # a callback that ran into the node's destruction leaves its task failed; rclpy prints
+        # "The following exception was never retrieved" when such a task is collected: shutdown
+        # noise on the user's terminal, not a result of the verb. Fetch it here.
+        for task, *_ in list(getattr(self.executor, "_tasks", ())):
+            if task.done() and not task.cancelled():
+                task.exception()
 
     # -- finding things ----------------------------------------------------------------------------
     def graph(self) -> dict[str, list[str]]:

@@ -212,6 +212,8 @@ class CellConfig:
     #: ``hmi:`` and ``opcua:`` blocks, validated by packml_ros2.hmi / packml_ros2.opcua
     hmi: Mapping[str, Any] = field(default_factory=dict)
     opcua: Mapping[str, Any] = field(default_factory=dict)
+    #: ``mqtt:``: the Sparkplug B edge node (validated by packml_ros2.mqtt)
+    mqtt: Mapping[str, Any] = field(default_factory=dict)
     #: ``line:``: the units' order on the line, its output, shifts, the store of its losses
     line: LineConfig = field(default_factory=LineConfig)
     #: ``discovery:``: the cell's domain and Discovery Server (core/discovery.py)
@@ -641,7 +643,7 @@ def _coordinator(n: Node, units: Mapping[str, UnitConfig]) -> CoordinatorConfig:
 
 #: The top-level keys of a cell file (config/reference_cell.yaml shows each).
 CELL_KEYS = (
-    "cell", "defaults", "units", "coordinator", "line", "hmi", "opcua", "discovery", "dds",
+    "cell", "defaults", "units", "coordinator", "line", "hmi", "opcua", "mqtt", "discovery", "dds",
 )  # fmt: skip
 MAX_DDS_INTERFACES = 16
 _INTERFACE_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.:@-]{0,14}")  # Linux: 15 characters
@@ -711,7 +713,9 @@ def parse_cell(data: Any, file: str = "<memory>", base_dir: Path | None = None) 
     root.problems.extend(plain_secrets(data))
     if root.problems:
         raise ConfigError(file, root.problems)
-    extras = {k: dict(root.child(k, root.mapping().get(k)).mapping()) for k in ("hmi", "opcua")}
+    extras = {
+        k: dict(root.child(k, root.mapping().get(k)).mapping()) for k in ("hmi", "opcua", "mqtt")
+    }
     if root.problems:
         raise ConfigError(file, root.problems)
     return CellConfig(cell, units, coord, file, **extras, line=line, discovery=discovery,

@@ -255,6 +255,7 @@ SOURCE_KINDS: Mapping[str, SourceKind] = {
         SourceKind("operator", False, True, "a person at the machine (ros2 service call, packml)"),
         SourceKind("hmi", True, True, "the browser HMI, hmi:<user>"),
         SourceKind("opcua", True, True, "the OPC UA server, opcua:<user>"),
+        SourceKind("mqtt", True, True, "the MQTT Sparkplug B edge node, mqtt:<client id>"),
         SourceKind("coordinator", True, True, "the cell coordinator's interlocks"),
         SourceKind("remote", True, True, "a line controller, MES or script, remote:<who>"),
         SourceKind("em", False, False, "an EM's command request or alarm, em:<name>"),

@@ -6,8 +6,9 @@ from __future__ import annotations
 import difflib
 import math
 import reprlib
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, TypeVar
 
 T = TypeVar("T")
@@ -228,3 +229,28 @@ def via(fn: Callable[[Any], T]) -> Callable[[Node], T]:
             raise invalid(text) from None
 
     return parse
+
+
+def file_under(base: Path, must_exist: bool = False) -> Callable[[Node], Path]:
+    """A path relative to ``base`` (the cell file's folder), ``~`` expanded; with ``must_exist``,
+    of a file that is there."""
+
+    def parse(n: Node) -> Path:
+        p = Path(text(n)).expanduser()
+        p = p if p.is_absolute() else base / p
+        if must_exist and not p.is_file():
+            raise invalid(f"no such file: {p}")
+        return p
+
+    return parse
+
+
+def units_of(root: Node, cell_units: Sequence[str]) -> tuple[str, ...]:
+    """A face's ``units`` list (default: every unit of the cell), each one of ``cell_units``."""
+    units = tuple(n.parse(name, "") for n in root.list_at("units")) or tuple(cell_units)
+    for i, u in enumerate(units):
+        if u and u not in cell_units:
+            root.child("units", None).child(i, u).error(
+                f"unknown unit {u!r}; the cell has {', '.join(cell_units)}"
+            )
+    return units

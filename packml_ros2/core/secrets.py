@@ -1,7 +1,7 @@
 """Secrets of a cell file: never written in it, only pointed to.
 
 Every secret key (:data:`SECRET_KEYS`: the HMI access token, the HMI and OPC UA users'
-passwords, the PLC units' passwords) takes one of:
+passwords, the PLC units' passwords, the MQTT broker password) takes one of:
 
 - ``env:VARIABLE``: the value of an environment variable of the process that needs it;
 - ``file:PATH``: the contents of a file (relative to the cell file, ``~`` expanded; one trailing
@@ -46,6 +46,7 @@ SECRET_KEYS: tuple[tuple[str, ...], ...] = (
     ("hmi", "users", "*", "password"),
     ("opcua", "users", "*"),
     ("units", "*", "plc", "password"),
+    ("mqtt", "password"),
 )
 #: Secret keys that may also hold a one-way hash (passwords a program only checks) -> the
 #: command that makes one.

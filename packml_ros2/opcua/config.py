@@ -148,22 +148,8 @@ def parse_opcua(cell: CellConfig, base: Path | None = None) -> OpcUaConfig:
     root = Node(dict(cell.opcua), "opcua")
     root.check_keys(KEYS)
 
-    def path(n: Node) -> Path:
-        p = Path(sc.text(n)).expanduser()
-        return p if p.is_absolute() else base / p
-
-    def existing(n: Node) -> Path:
-        p = path(n)
-        if not p.is_file():
-            raise invalid(f"no such file: {p}")
-        return p
-
-    units = tuple(n.parse(sc.name, "") for n in root.list_at("units")) or tuple(cell.units)
-    for i, u in enumerate(units):
-        if u and u not in cell.units:
-            root.child("units", None).child(i, u).error(
-                f"unknown unit {u!r}; the cell has {', '.join(cell.units)}"
-            )
+    path, existing = sc.file_under(base), sc.file_under(base, must_exist=True)
+    units = sc.units_of(root, tuple(cell.units))
     users = {name: n.parse(lambda x: _password(x, base), "") for name, n in root.items_at("users")}
     certs = {name: n.parse(existing, Path()) for name, n in root.items_at("user_certificates")}
     for key in ("users", "user_certificates"):  # each is the source opcua:<user> as it is

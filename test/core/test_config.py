@@ -343,6 +343,8 @@ def test_reference_cell_shows_every_top_level_key_and_valid_hmi_and_opcua_blocks
     where it needs a file of the user's or excludes another, in a commented example."""
     from packml_ros2.hmi.settings import KEYS as HMI_KEYS
     from packml_ros2.hmi.settings import hmi_settings
+    from packml_ros2.mqtt.config import KEYS as MQTT_KEYS
+    from packml_ros2.mqtt.config import parse_mqtt
     from packml_ros2.opcua.config import KEYS as OPCUA_KEYS
     from packml_ros2.opcua.config import parse_opcua
 
@@ -351,7 +353,7 @@ def test_reference_cell_shows_every_top_level_key_and_valid_hmi_and_opcua_blocks
     assert list(doc) == list(CELL_KEYS)
     for key in CELL_KEYS:
         documented(lines, next(i for i, x in enumerate(lines) if x.startswith(f"{key}:")), key)
-    for block, keys in (("hmi", HMI_KEYS), ("opcua", OPCUA_KEYS)):
+    for block, keys in (("hmi", HMI_KEYS), ("opcua", OPCUA_KEYS), ("mqtt", MQTT_KEYS)):
         start = lines.index(f"{block}:")
         end = next(
             (i for i in range(start + 1, len(lines)) if re.match(r"\S", lines[i])), len(lines)
@@ -366,7 +368,8 @@ def test_reference_cell_shows_every_top_level_key_and_valid_hmi_and_opcua_blocks
         for i in range(start + 1, end):
             if lines[i] in own and not lines[i].lstrip().startswith("#"):
                 documented(lines, i, f"{block}.{lines[i].split(':')[0].strip()}")
-    for variable in ("REFERENCE_HMI_ANNA_PW", "REFERENCE_HMI_BEN_PW", "REFERENCE_OPCUA_SCADA_PW"):
+    for variable in ("REFERENCE_HMI_ANNA_PW", "REFERENCE_HMI_BEN_PW", "REFERENCE_OPCUA_SCADA_PW",
+                     "REFERENCE_MQTT_PW"):  # fmt: skip
         monkeypatch.setenv(variable, "a password of the reference cell")
     cell = load_cell(REFERENCE)
     hmi = hmi_settings(cell)
@@ -374,6 +377,8 @@ def test_reference_cell_shows_every_top_level_key_and_valid_hmi_and_opcua_blocks
     opcua = parse_opcua(cell)
     assert opcua.units == ("filler", "capper", "wrapper") and set(opcua.users) == {"scada"}
     assert opcua.max_mach_speed == {"filler": 120, "capper": 120}
+    mqtt = parse_mqtt(cell)
+    assert mqtt.units == ("filler", "capper", "wrapper") and mqtt.uns_prefix.startswith("acme/")
 
 
 def documented(lines: list[str], i: int, key: str) -> None:
