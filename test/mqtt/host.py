@@ -9,9 +9,11 @@ aliases of each birth, as a Sparkplug host application does.
 
 from __future__ import annotations
 
+import getpass
 import json
 import shutil
 import socket
+import ssl
 import subprocess
 import threading
 import time
@@ -35,7 +37,9 @@ def free_port() -> int:
 class Broker:
     """mosquitto on 127.0.0.1:``port`` (a free one by default), its log in ``directory``."""
 
-    def __init__(self, directory: Path, port: int | None = None) -> None:
+    def __init__(
+        self, directory: Path, port: int | None = None, settings: str = "allow_anonymous true\n"
+    ) -> None:
         if not Path(MOSQUITTO).exists():
             raise RuntimeError(
                 f"{MOSQUITTO} is missing: tools/setup.sh --test installs Debian's mosquitto"
@@ -44,8 +48,10 @@ class Broker:
         self.directory = directory
         self.conf = directory / "mosquitto.conf"
         self.conf.write_text(
-            f"listener {self.port} 127.0.0.1\nallow_anonymous true\n"
-            "persistence false\nlog_dest stderr\n"
+            # (user: started as root, mosquitto would switch to its own user, who cannot read
+            # the test's files; started as anyone else it stays who it is)
+            f"listener {self.port} 127.0.0.1\n{settings}persistence false\nlog_dest stderr\n"
+            f"user {getpass.getuser()}\n"
         )
         self.proc: subprocess.Popen[bytes] | None = None
         self.start()
@@ -124,7 +130,14 @@ def metric_value(m: Any) -> Any:
 class Host:
     """A host application: subscribes ``spBv1.0/<group>/#`` and ``extra`` topics, decodes."""
 
-    def __init__(self, port: int, group: str, extra: tuple[str, ...] = ()) -> None:
+    def __init__(
+        self,
+        port: int,
+        group: str,
+        extra: tuple[str, ...] = (),
+        login: tuple[str, str] | None = None,
+        ca_file: Path | None = None,
+    ) -> None:
         self.group = group
         self.seen: list[Seen] = []
         self.aliases: dict[tuple[str, int], str] = {}  # (device, alias) -> name
@@ -132,6 +145,10 @@ class Host:
         self.cond = threading.Condition()
         self.client = paho.Client(client_id=f"host-{port}", clean_session=True)
         self.client.on_message = self._on_message
+        if login:
+            self.client.username_pw_set(*login)
+        if ca_file:
+            self.client.tls_set(ca_certs=str(ca_file), tls_version=ssl.PROTOCOL_TLS_CLIENT)
         subscribed = threading.Event()
         self.client.on_connect = lambda c, *_: (
             c.subscribe([(f"spBv1.0/{group}/#", 1), *((t, 1) for t in extra)]),
@@ -225,3 +242,45 @@ class Host:
     def close(self) -> None:
         self.client.loop_stop()
         self.client.disconnect()
+
+
+def tls_files(folder: Path) -> tuple[Path, Path, Path]:
+    """A CA and a server certificate for 127.0.0.1 signed by it (PEM): (ca, cert, key)."""
+    import datetime as dt
+    import ipaddress
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    now = dt.datetime.now(dt.timezone.utc)
+    ca_key, key = ec.generate_private_key(ec.SECP256R1()), ec.generate_private_key(ec.SECP256R1())
+    ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "test broker CA")])
+    ca = (x509.CertificateBuilder().subject_name(ca_name).issuer_name(ca_name)
+          .public_key(ca_key.public_key()).serial_number(1)
+          .not_valid_before(now - dt.timedelta(minutes=5)).not_valid_after(now + dt.timedelta(days=1))
+          .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
+          .sign(ca_key, hashes.SHA256()))  # fmt: skip
+    cert = (x509.CertificateBuilder()
+            .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "127.0.0.1")]))
+            .issuer_name(ca_name).public_key(key.public_key()).serial_number(2)
+            .not_valid_before(now - dt.timedelta(minutes=5)).not_valid_after(now + dt.timedelta(days=1))
+            .add_extension(x509.SubjectAlternativeName([x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]), critical=False)
+            .sign(ca_key, hashes.SHA256()))  # fmt: skip
+    files = folder / "ca.pem", folder / "server.pem", folder / "server.key"
+    files[0].write_bytes(ca.public_bytes(serialization.Encoding.PEM))
+    files[1].write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    files[2].write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                           serialization.NoEncryption()))  # fmt: skip
+    return files
+
+
+def password_file(folder: Path, users: dict[str, str]) -> Path:
+    """A mosquitto password file (Debian's mosquitto_passwd)."""
+    path = folder / "passwords"
+    path.touch()
+    for user, password in users.items():
+        subprocess.run(["mosquitto_passwd", "-b", str(path), user, password], check=True,
+                       capture_output=True, timeout=30)  # fmt: skip
+    return path

@@ -438,3 +438,42 @@ def test_the_reference_cell_shows_every_mqtt_option(monkeypatch: pytest.MonkeyPa
     block = text[text.index("\nmqtt:\n") :]
     for key in KEYS:
         assert f"\n  {key}:" in block or f"#   {key}:" in block, key
+
+
+def test_over_tls_with_a_login_and_a_wrong_password_refused_without_showing_it(
+    tmp_path: Path,
+) -> None:
+    from test.mqtt.host import password_file, tls_files
+
+    ca, cert, key = tls_files(tmp_path)
+    logins = password_file(tmp_path, {"edge": "edge-secret-1", "scada": "scada-secret-2"})
+    settings = (f"cafile {ca}\ncertfile {cert}\nkeyfile {key}\nallow_anonymous false\n"
+                f"password_file {logins}\n")  # fmt: skip
+    broker = Broker(tmp_path, settings=settings)
+    path, _ = write_cell(tmp_path, {"filler": {}}, coordinator={"enabled": False})
+    doc = yaml.safe_load(path.read_text())
+    doc["mqtt"] = {"port": broker.port, "username": "edge", "password": "env:PACKML_TEST_MQTT_PW",
+                   "tls": {"ca_file": "ca.pem"}, "keepalive": 2}  # fmt: skip
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    procs = Processes(tmp_path)
+    host = Host(broker.port, "packml", login=("scada", "scada-secret-2"), ca_file=ca)
+    try:
+        start_unit_process(procs, path, "filler")
+        edge = procs.module("mqtt", "packml_ros2.cli.main", "mqtt", str(path),
+                            env={"PACKML_TEST_MQTT_PW": "edge-secret-1"})  # fmt: skip
+        host.wait(lambda s: s.kind == "DBIRTH" and s.device == "filler", 60, "the DBIRTH over TLS")
+        # the same edge node with a wrong password: refused by the broker, said, never shown
+        wrong = procs.module("mqtt_wrong", "packml_ros2.cli.main", "mqtt", str(path), "--port", str(broker.port),
+                             env={"PACKML_TEST_MQTT_PW": "not-the-password"})  # fmt: skip
+        deadline = time.monotonic() + 30
+        while "refused the connection" not in wrong.output() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert "refused the connection" in wrong.output(), wrong.output()
+        assert "not-the-password" not in wrong.output() and "Traceback" not in wrong.output()
+        assert edge.running() and "edge-secret-1" not in edge.output()
+        assert host.errors == []
+    finally:
+        host.close()
+        failures = procs.close()
+        broker.kill()
+    assert not failures, failures
