@@ -7,8 +7,9 @@ Debian's mosquitto on a free 127.0.0.1 port. This process commands Hold / Unhold
 takes the time each status reaches its own ROS subscription and the time the DDATA carrying that
 state reaches its own MQTT subscriber. The edge node receives the same status at the same moment
 (one DDS hop both), so the difference is what the edge adds plus one broker hop: that is set
-against the floor, a payload of the same size published by this process to itself through the same
-broker. ``unit_to_ddata`` is the whole path from the unit's status stamp. Prints JSON.
+against the floor, a payload of a DDATA's size published by this process to itself through the
+same broker after each change (interleaved: under the same load). ``unit_to_ddata`` is the
+whole path from the unit's status stamp. Prints JSON.
 
     python bench/mqtt.py [--changes 200] [--rest 10]
 
@@ -124,7 +125,7 @@ def main() -> None:
         pub.loop_start()
         try:
             procs.module("unit", "packml_ros2.unit_node", str(path), "filler")
-            edge = procs.module("mqtt", "packml_ros2.cli.main", "mqtt", str(path))
+            procs.module("mqtt", "packml_ros2.cli.main", "mqtt", str(path))
             wait(lock, lambda: any(s == 2 for s, _ in mqtt_at), 60, "the unit born, Stopped")
 
             def command(cmd: Cmd, state: int) -> None:
@@ -137,9 +138,22 @@ def main() -> None:
             command(Cmd.RESET, 4)
             command(Cmd.START, 6)
             first = (len(ros_at), len(mqtt_at))
+            floor: list[float] = []
+
+            def bare_publish() -> None:
+                """The floor, interleaved with the changes (the same load around it): a payload
+                of a DDATA's size, this process to itself through the same broker."""
+                i = len(floor)
+                sent = time.time()
+                pub.publish("bench/floor", i.to_bytes(4, "little") + b"x" * 120, qos=0)
+                wait(lock, lambda: i in floor_at, 10, "the floor message")
+                floor.append((floor_at[i] - sent) * 1000)
+
             for _ in range(args.changes // 2):
                 command(Cmd.HOLD, 11)
+                bare_publish()
                 command(Cmd.UNHOLD, 6)
+                bare_publish()
             # at rest: Stopped, nothing commanded
             command(Cmd.STOP, 2)
             time.sleep(2.0)  # let the stop's own messages pass before counting
@@ -147,14 +161,6 @@ def main() -> None:
             time.sleep(args.rest)  # counting what arrives in a fixed window is the measurement
             with lock:
                 at_rest = sum(1 for t in messages if t >= rest_from) / args.rest
-            # the floor: the same broker, this process to itself, one message at a time
-            size = max(len(edge.output()) and 120, 120)
-            floor = []
-            for i in range(args.changes):
-                sent = time.time()
-                pub.publish("bench/floor", i.to_bytes(4, "little") + b"x" * size, qos=0)
-                wait(lock, lambda i=i: i in floor_at, 10, "the floor message")
-                floor.append((floor_at[i] - sent) * 1000)
         finally:
             sub.loop_stop()
             pub.loop_stop()
