@@ -284,3 +284,11 @@ def password_file(folder: Path, users: dict[str, str]) -> Path:
         subprocess.run(["mosquitto_passwd", "-b", str(path), user, password], check=True,
                        capture_output=True, timeout=30)  # fmt: skip
     return path
+
+
+def close_all(host: Host, procs: Any, broker: Broker) -> str:
+    """The end of an MQTT test: the host, the processes (their failures returned), the broker."""
+    host.close()
+    failures: str = procs.close()
+    broker.kill()
+    return failures

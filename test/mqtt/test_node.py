@@ -24,7 +24,7 @@ from packml_interfaces.srv import SetAlarm
 
 from packml_ros2.testing.processes import Processes
 from packml_ros2.testing.unit_client import UnitClient
-from test.mqtt.host import Broker, Host, Seen
+from test.mqtt.host import Broker, Host, Seen, close_all
 from test.ros.cells import start_em_process, start_unit_process, write_cell
 
 pytestmark = pytest.mark.ros
@@ -102,10 +102,7 @@ class Face:
         )
 
     def close(self) -> str:
-        self.host.close()
-        failures = self.procs.close()
-        self.broker.kill()
-        return failures
+        return close_all(self.host, self.procs, self.broker)
 
 
 @pytest.fixture
@@ -473,7 +470,5 @@ def test_over_tls_with_a_login_and_a_wrong_password_refused_without_showing_it(
         assert edge.running() and "edge-secret-1" not in edge.output()
         assert host.errors == []
     finally:
-        host.close()
-        failures = procs.close()
-        broker.kill()
+        failures = close_all(host, procs, broker)
     assert not failures, failures

@@ -79,7 +79,7 @@ def test_the_readme_acl_lets_the_edge_node_and_scada_do_their_part_and_no_more(
     import yaml
 
     from packml_ros2.testing.processes import Processes
-    from test.mqtt.host import Broker, Host, password_file
+    from test.mqtt.host import Broker, Host, close_all, password_file
 
     acl = tmp_path / "acl"
     acl.write_text(readme_acl())
@@ -117,7 +117,5 @@ def test_the_readme_acl_lets_the_edge_node_and_scada_do_their_part_and_no_more(
         assert not [s for s in host.since(0) if s.metrics.get("State/CurrentName") == "FORGED"]
         assert host.errors == []
     finally:
-        host.close()
-        failures = procs.close()
-        broker.kill()
+        failures = close_all(host, procs, broker)
     assert not failures, failures
