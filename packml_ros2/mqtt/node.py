@@ -27,7 +27,7 @@ import paho.mqtt.client as paho
 from ..client import Unavailable
 from ..core.config import CellConfig
 from ..core.rules import source_of
-from ..opcua.bridge import RosSide
+from ..opcua.bridge import FOLLOWED, RosSide
 from ..presence import Seen
 from .config import MqttConfig
 from .edge import INVALID_ARGUMENT, UNIT_UNAVAILABLE, Edge, Message, Refused, Request
@@ -51,7 +51,7 @@ class _RosSide(RosSide):
     itself (the edge is changed under its lock): one thread hop less on the way to a DDATA."""
 
     def _changed(self, path: str, topic: str, msg: Any) -> None:
-        if topic in ("status", "admin"):
+        if topic in FOLLOWED:
             self._on_message(path.rsplit("/", 1)[-1], topic, msg)
 
 

@@ -2,8 +2,7 @@
 
 :class:`RosSide` runs an rclpy node (its own Context) in a thread: a
 :class:`~packml_ros2.client.CellProxy` subscribes to every exposed unit's latched ``status``,
-``admin`` topics (the proxy also subscribes ``alarms``; the Admin message carries the same lists)
-and hands each status and admin message to the asyncio loop with ``call_soon_threadsafe`` (values
+``admin`` topics (no more: the Admin message carries the alarm lists too) and hands each status and admin message to the asyncio loop with ``call_soon_threadsafe`` (values
 follow the topics: no polling). A :class:`~packml_ros2.presence.Presence` follows each unit's
 liveliness (lease ``unit_lease``); its changes reach the loop the same way. Service calls go the
 other way: the proxy's concurrent future is awaited with ``asyncio.wrap_future`` and abandoned
@@ -40,6 +39,8 @@ from .security import command_source, may_call, refuse
 
 #: The unit services the methods use (clients are created before spinning starts).
 USED_SERVICES = ("command", "set_mode", "set_mach_speed", "set_unit_parameters", "set_product")
+#: The unit topics followed: the Admin message carries the alarm lists too.
+FOLLOWED = ("status", "admin")
 S = ua.StatusCodes
 INSTANCE_NS = 1  # the units' objects live in the server's own namespace (see .model)
 
@@ -74,7 +75,9 @@ class RosSide:
             context=self.context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO
         )
         self.node = Node("packml_opcua", namespace=f"/{cell}", context=self.context)
-        self.cell = CellProxy(self.node, cell, units, on_change=self._changed)
+        # only what is handed on (status, admin): a unit's alarm list and transition events would
+        # be deserialized for nothing, in the thread a status waits in
+        self.cell = CellProxy(self.node, cell, units, on_change=self._changed, topics=FOLLOWED)
         for proxy in self.cell.units.values():
             for service in USED_SERVICES:
                 proxy.client(service)
@@ -97,7 +100,7 @@ class RosSide:
             self.executor.spin_once(timeout_sec=0.1)
 
     def _changed(self, path: str, topic: str, msg: Any) -> None:
-        if topic not in ("status", "admin"):
+        if topic not in FOLLOWED:
             return
         unit = path.rsplit("/", 1)[-1]
         with contextlib.suppress(RuntimeError):  # the loop is closed: shutting down
