@@ -10,26 +10,49 @@ SHM = Path("/dev/shm")
 PATTERNS = ("fastdds_*", "fastrtps_*", "sem.fastdds_*", "sem.fastrtps_*")
 
 
+class _Unreadable(Exception):
+    """A live process whose open files could not all be read."""
+
+
 def _in_use() -> set[str]:
+    """Every /dev/shm file some process has mapped or open. Raises :class:`_Unreadable` when a
+    live process could not be read whole: a file of it might be missed, and a live participant's
+    port whose lock file is deleted is taken over by the next participant that starts (its
+    senders then reach nobody: a restarted node that nobody hears)."""
     used: set[str] = set()
     for proc in Path("/proc").iterdir():
         if not proc.name.isdigit():
             continue
         try:
-            for line in (proc / "maps").read_text().splitlines():
-                if "/dev/shm/" in line:
-                    used.add(line[line.index("/dev/shm/") :].split(" (deleted)")[0])
-            for fd in (proc / "fd").iterdir():
+            maps = (proc / "maps").read_text()
+            fds = list((proc / "fd").iterdir())
+        except (FileNotFoundError, ProcessLookupError):
+            continue  # the process has ended: its files are not in use
+        except PermissionError:
+            continue  # not this user's to read at all (a sandbox's init): not a node it started
+        except OSError as exc:
+            raise _Unreadable(f"{proc}: {exc}") from None
+        for line in maps.splitlines():
+            if "/dev/shm/" in line:
+                used.add(line[line.index("/dev/shm/") :].split(" (deleted)")[0])
+        for fd in fds:
+            try:
                 target = os.readlink(fd)
-                if target.startswith("/dev/shm/"):
-                    used.add(target)
-        except OSError:
-            continue
+            except FileNotFoundError:
+                continue  # closed meanwhile: that one file is no longer held through it
+            except OSError as exc:
+                raise _Unreadable(f"{fd}: {exc}") from None
+            if target.startswith("/dev/shm/"):
+                used.add(target)
     return used
 
 
 def stale_files() -> list[Path]:
-    used = _in_use()
+    """The Fast DDS files no process holds; none when that cannot be known for sure."""
+    try:
+        used = _in_use()
+    except _Unreadable:
+        return []
     return [p for pattern in PATTERNS for p in SHM.glob(pattern) if str(p) not in used]
 
 

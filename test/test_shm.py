@@ -1,0 +1,68 @@
+"""packml_ros2.testing.shm: a Fast DDS file a live process holds is never removed, also when
+that process closes another file while it is being looked at, and nothing is removed when a live
+process can only be read in part. (Before: an fd closed during the scan ended the scan of its process, its
+later files counted as stale and were deleted: a live participant's port lock, which the next
+participant to start then took over, so nobody heard it.)"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from packml_ros2.testing import shm
+
+
+@pytest.fixture
+def held() -> Iterator[tuple[Path, int]]:
+    path = Path(f"/dev/shm/fastdds_packml_test_{os.getpid()}")
+    path.write_bytes(b"x")
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        yield path, fd
+    finally:
+        os.close(fd)
+        path.unlink(missing_ok=True)
+
+
+def test_a_file_held_open_survives_an_fd_closed_during_the_scan(
+    held: tuple[Path, int], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path, fd = held
+    real = os.readlink
+
+    def readlink(link: os.PathLike[str] | str) -> str:
+        name = Path(link)
+        if (
+            name.parent.name == "fd"
+            and name.parent.parent.name == str(os.getpid())
+            and int(name.name) < fd
+        ):
+            raise FileNotFoundError(link)  # every earlier fd of ours "closed" meanwhile
+        return real(link)
+
+    monkeypatch.setattr(shm.os, "readlink", readlink)
+    assert path not in shm.stale_files()
+    assert shm.cleanup() >= 0 and path.exists()
+
+
+def test_nothing_is_removed_when_a_live_process_is_read_in_part(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    stale = Path(f"/dev/shm/fastdds_packml_stale_{os.getpid()}")
+    stale.write_bytes(b"x")
+    try:
+        assert stale in shm.stale_files()  # held by nobody
+        real = os.readlink
+
+        def readlink(link: os.PathLike[str] | str) -> str:
+            if Path(link).parent.parent.name == str(os.getpid()):
+                raise OSError(5, "Input/output error", str(link))  # a process half read
+            return real(link)
+
+        monkeypatch.setattr(shm.os, "readlink", readlink)
+        assert shm.stale_files() == [] and shm.cleanup() == 0 and stale.exists()
+    finally:
+        stale.unlink(missing_ok=True)
