@@ -128,6 +128,11 @@ class UnitProxy:
             if old is not None:
                 self.node.destroy_subscription(old)
 
+    def publishers(self, topic: str) -> int:
+        """How many writers of a followed ``topic`` this proxy's subscription has matched."""
+        sub = self._subs.get(topic)
+        return 0 if sub is None else int(sub.get_publisher_count())
+
     # -- topics ------------------------------------------------------------------------------------
     def _on_status(self, msg: Status) -> None:
         with self._cond:

@@ -11,6 +11,7 @@
     packml hmi <cell.yaml>                   the operator HMI in a browser
     packml opcua <cell.yaml>                 the cell as OPC UA (OPC 30050) objects
     packml mqtt <cell.yaml>                  the cell as a Sparkplug B edge node on a broker
+    packml conform </cell/unit|opc.tcp://..>  certify a unit or an OPC 30050 PLC against the standard
     packml policy <cell.yaml>                the SROS2 permission policy of the cell
     packml report [cell]                     the line's losses, OEE and stop episodes
     packml doctor [cell.yaml]                check this host's DDS setup, say what to change
@@ -39,6 +40,7 @@ VERB_MODULES = {
     "hmi": ("hmi",),
     "opcua": ("opcua",),
     "mqtt": ("mqtt",),
+    "conform": ("conform",),
     "policy": ("policy",),
     "report": ("report",),
     "doctor": ("doctor",),

@@ -124,6 +124,12 @@ def method_paths() -> tuple[str, ...]:
     return tuple(out)
 
 
+def command_arguments(start: bool) -> list[ua.Variant]:
+    """The input arguments of a state command's method: OPC 30050's Start takes the parameters
+    of the run (an array of PackMLDescriptorDataType), sent empty; the others take none."""
+    return [ua.Variant([], ua.VariantType.ExtensionObject, is_array=True)] if start else []
+
+
 @dataclass(frozen=True)
 class Outcome:
     """The answer to a method call: its status code, the code's name and the PLC's reason."""

@@ -76,7 +76,7 @@ from ..opcua.nodeset import load
 from ..remote_lock import RemoteLock
 from ..ros import interface
 from .config import PlcConfig, describe, parse_plc
-from .link import Link, NotConnected, Outcome
+from .link import Link, NotConnected, Outcome, command_arguments
 from .mirror import Mirror, PlcSituation, plc_refusal
 
 TICK = 0.1  # s: held-back state changes, the mode-change lamp, admin period
@@ -512,12 +512,7 @@ class PlcUnitNode(GuardedNode):
                 )
             frm, chain = m.state, m.reach(m.state, command)
             entry = m.expect(command, source, self._now(), trigger, detail)
-        args = (
-            [ua.Variant([], ua.VariantType.ExtensionObject, is_array=True)]
-            if command is Cmd.START
-            else []
-        )
-        outcome = self._call(method, args)
+        outcome = self._call(method, command_arguments(command is Cmd.START))
         with self._lock:
             m = self.mirror
             if not outcome.good:

@@ -37,7 +37,7 @@ from packml_interfaces.srv import ResetAlarms, SetAlarm, SetMode, SetRemoteComma
 from packml_ros2.core import Cmd
 from packml_ros2.opcua.config import hash_password
 from packml_ros2.opcua.nodeset import NODESET
-from packml_ros2.testing.processes import Processes, wait_until
+from packml_ros2.testing.processes import NodeProcess, Processes, wait_until
 from test.ros.cells import UnitClient, start_em_process, start_unit_process, write_cell
 
 pytestmark = pytest.mark.ros
@@ -75,6 +75,19 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def start_face(procs: Processes, path: Path, name: str = "opcua") -> NodeProcess:
+    """``packml opcua <path>`` as a process of ``procs``, once its server listens."""
+    server = procs.module(name, "packml_ros2.cli.main", "opcua", str(path))
+    wait_until(
+        lambda: "OPC UA server for cell" in server.output() or not server.running(),
+        60,
+        0.05,
+        "the OPC UA server",
+    )
+    assert server.running(), server.output()
+    return server
 
 
 class NodeClient:
@@ -218,15 +231,8 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cell]:
         for unit in ("filler", "capper"):
             start_unit_process(procs, path, unit)
         start_em_process(procs, path, "filler", "nozzle")
-        server = procs.module("opcua", "packml_ros2.cli.main", "opcua", str(path))
         client.wait_ready()
-        wait_until(
-            lambda: "OPC UA server for cell" in server.output() or not server.running(),
-            60,
-            0.05,
-            "the OPC UA server",
-        )
-        assert server.running(), server.output()
+        start_face(procs, path)
         yield Cell(name, f"opc.tcp://127.0.0.1:{port}/", client, cert, key, path, procs)
     finally:
         client.close()
@@ -886,10 +892,7 @@ def test_values_are_waiting_for_initial_data_until_a_unit_has_published(
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     procs = Processes(tmp_path)
     try:
-        server = procs.module("opcua_early", "packml_ros2.cli.main", "opcua", str(path))
-        wait_until(lambda: "OPC UA server for cell" in server.output() or not server.running(),
-                   60, 0.05, "the OPC UA server")  # fmt: skip
-        assert server.running(), server.output()
+        start_face(procs, path, "opcua_early")
         url = f"opc.tcp://127.0.0.1:{port}/"
         unit, line = "P:PackMLObjects/U:filler", f"U:Lines/U:{name}"
         paths = [f"{unit}/P:Status/U:StateCurrent", f"{unit}/P:Status/P:UnitModeCurrent",

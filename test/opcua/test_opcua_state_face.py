@@ -28,7 +28,17 @@ from packml_ros2 import qos
 from packml_ros2.core import Cmd
 from packml_ros2.testing.processes import Processes, wait_until
 from test.opcua import test_opcua
-from test.opcua.test_opcua import ES, EXECUTE_2022, MS, SM, UNIT, Cell, _official, free_port
+from test.opcua.test_opcua import (
+    ES,
+    EXECUTE_2022,
+    MS,
+    SM,
+    UNIT,
+    Cell,
+    _official,
+    free_port,
+    start_face,
+)
 from test.ros.cells import UnitClient, write_cell
 
 pytestmark = pytest.mark.ros
@@ -132,10 +142,7 @@ def test_admin_waits_for_initial_data_and_never_runs_backwards(
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     procs = Processes(tmp_path)
     try:
-        server = procs.module("opcua_early", "packml_ros2.cli.main", "opcua", str(path))
-        wait_until(lambda: "OPC UA server for cell" in server.output() or not server.running(),
-                   60, 0.05, "the OPC UA server")  # fmt: skip
-        assert server.running(), server.output()
+        start_face(procs, path, "opcua_early")
         url = f"opc.tcp://127.0.0.1:{port}/"
         admin = f"{UNIT}/P:Admin"
         # the unit never came: once its lease passed it is lost, its Status values Bad; its

@@ -8,7 +8,29 @@
 // options: {"port": 4850, "unit": "wrapper", "dwell": 150 (ms in each acting state),
 //           "users": {"name": "password"} (then anonymous sessions are refused),
 //           "secure": false (true: Basic256Sha256 Sign/SignAndEncrypt only), "pki": "<folder>",
-//           "rate": 10 (pieces per second in Execute)}
+//           "rate": 10 (pieces per second in Execute),
+//           "model": "2022" | "2015" (2015: Hold only from EXECUTE; ToComplete only from EXECUTE),
+//           "modes": {"1": [], "2": ["SUSPENDING", "SUSPENDED", "UNSUSPENDING"]} (the unit modes there
+//               are, each with the states it disables; default {"1": [], "2": [], "3": []}; modes
+//               1..31; EXECUTE cannot be disabled),
+//           "times": false (true: Admin.StateCurrentTime, StateCumulativeTime [32,18] (index mode*18
+//               + state), ModeCurrentTime, ModeCumulativeTime [32], AccTimeSinceReset, whole seconds,
+//               refreshed every 250 ms and on every transition),
+//           "faults": [names] (deliberate violations of the standard, below)}
+// modes: a command whose first target is an acting state disabled in the current mode passes
+// through it to its State-Complete successor (while that is a disabled acting state; a skipped state
+// is never shown); a command that would settle in a disabled wait state is refused
+// (BadInvalidState); SetUnitMode: BadOutOfRange for a mode not in "modes", BadInvalidState unless in
+// STOPPED, IDLE or ABORTED and the current state is enabled in the target mode.
+// faults: "missing_transition" (Unsuspend in SUSPENDED refused), "skip_acting" (Reset goes straight
+// to IDLE), "wrong_target" (Hold in EXECUTE leads to SUSPENDING), "invalid_accepted" (Start accepted
+// in STOPPED), "refused_moves" (Start in STOPPED refused, 100 ms later RESETTING anyway), "stuck"
+// (COMPLETING never completes), "disabled_entered" (Hold in EXECUTE goes HOLDING -> HELD even where
+// the mode disables them), "mode_matrix" (SetUnitMode accepted in EXECUTE too), "mode_not_shown"
+// (SetUnitMode Good but Status.UnitModeCurrent keeps the old mode), "times_frozen"
+// (StateCurrentTime all 0), "cumulative_lost" (StateCumulativeTime = the current or last stay only),
+// "mode_time_frozen" (ModeCurrentTime all 0); the last three imply "times": true. An unknown
+// option value or fault name: a message on stderr and exit code 2.
 // stdout: one JSON line {"ready": true, "endpoint": "..."} once the server listens, then one JSON
 // line per transition {"state": N, "name": "EXECUTE", "cause": "Start"}.
 // stdin, one JSON object per line:
@@ -37,6 +59,10 @@ const { OPCUACertificateManager } = await import("node-opcua-certificate-manager
 const options = JSON.parse(process.argv[2] ?? "{}");
 const PACKML_URI = "http://opcfoundation.org/UA/PackML/";
 const dwell = options.dwell ?? 150;
+const die = (message) => {
+    process.stderr.write(`plc.mjs: ${message}\n`);
+    process.exit(2);
+};
 
 // TR88 state numbers and the TR88-2022 table
 const N = { CLEARING: 1, STOPPED: 2, STARTING: 3, IDLE: 4, SUSPENDED: 5, EXECUTE: 6, STOPPING: 7, ABORTING: 8,
@@ -47,18 +73,39 @@ const SC = { [N.RESETTING]: N.IDLE, [N.STARTING]: N.EXECUTE, [N.COMPLETING]: N.C
              [N.UNHOLDING]: N.EXECUTE, [N.SUSPENDING]: N.SUSPENDED, [N.UNSUSPENDING]: N.EXECUTE,
              [N.STOPPING]: N.STOPPED, [N.ABORTING]: N.ABORTED, [N.CLEARING]: N.STOPPED };
 const ALL = Object.values(N);
+const model = options.model ?? "2022";
+if (!["2022", "2015"].includes(model)) die(`unknown model ${JSON.stringify(model)}`);
 const COMMANDS = {
     Reset: [[N.STOPPED, N.COMPLETE], N.RESETTING],
     Start: [[N.IDLE], N.STARTING],
     Stop: [ALL.filter((s) => ![N.STOPPING, N.STOPPED, N.ABORTING, N.ABORTED, N.CLEARING].includes(s)), N.STOPPING],
     Abort: [ALL.filter((s) => ![N.ABORTING, N.ABORTED].includes(s)), N.ABORTING],
     Clear: [[N.ABORTED], N.CLEARING],
-    Hold: [[N.EXECUTE, N.SUSPENDED], N.HOLDING],
+    Hold: [model === "2015" ? [N.EXECUTE] : [N.EXECUTE, N.SUSPENDED], N.HOLDING],
     Unhold: [[N.HELD], N.UNHOLDING],
     Suspend: [[N.EXECUTE], N.SUSPENDING],
     Unsuspend: [[N.SUSPENDED], N.UNSUSPENDING],
-    ToComplete: [[N.EXECUTE, N.HELD, N.SUSPENDED], N.COMPLETING],
+    ToComplete: [model === "2015" ? [N.EXECUTE] : [N.EXECUTE, N.HELD, N.SUSPENDED], N.COMPLETING],
 };
+// the unit modes: mode number -> the states it disables
+const MODES = new Map(Object.entries(options.modes ?? { 1: [], 2: [], 3: [] }).map(([key, names]) => {
+    const m = Number(key);
+    if (!Number.isInteger(m) || m < 1 || m > 31) die(`mode ${JSON.stringify(key)} is not 1..31`);
+    if (!Array.isArray(names)) die(`mode ${m}: expected a list of state names`);
+    for (const name of names) {
+        if (!N[name]) die(`mode ${m}: unknown state ${JSON.stringify(name)}`);
+        if (name === "EXECUTE") die(`mode ${m}: EXECUTE cannot be disabled`);
+    }
+    return [m, new Set(names.map((name) => N[name]))];
+}));
+if (!MODES.size) die("no mode in \"modes\"");
+const FAULT_NAMES = ["missing_transition", "skip_acting", "wrong_target", "invalid_accepted", "refused_moves", "stuck",
+                     "disabled_entered", "mode_matrix", "mode_not_shown", "times_frozen", "cumulative_lost", "mode_time_frozen"];
+const faults = new Set(options.faults ?? []);
+for (const name of faults) if (!FAULT_NAMES.includes(name)) die(`unknown fault ${JSON.stringify(name)}`);
+const times = options.times === true || ["times_frozen", "cumulative_lost", "mode_time_frozen"].some((f) => faults.has(f));
+const MODE_DIM = 32;
+const STATE_DIM = 18; // TR88 state numbers 0..17
 // where each state sits in the three nested machines of OPC 30050
 const BASE = { [N.ABORTING]: "Aborting", [N.ABORTED]: "Aborted" };
 const MACHINE = { [N.CLEARING]: "Clearing", [N.STOPPED]: "Stopped", [N.STOPPING]: "Stopping" };
@@ -97,7 +144,9 @@ const unit = as.findObjectType("PackMLBaseObjectType", p).instantiate({
     browseName: { name: options.unit ?? "wrapper", namespaceIndex: own.index },
     organizedBy: folder,
     optionals: ["Status.StateRequested", "Status.StateChangeInProcess", "Admin.StopReason", "Admin.Alarm",
-                "Admin.ProdProcessedCount", "Admin.ProdDefectiveCount", ...methods],
+                "Admin.ProdProcessedCount", "Admin.ProdDefectiveCount", ...methods,
+                ...(times ? ["Admin.StateCurrentTime", "Admin.StateCumulativeTime", "Admin.ModeCurrentTime",
+                             "Admin.ModeCumulativeTime", "Admin.AccTimeSinceReset"] : [])],
 });
 const child = (node, ...names) => names.reduce((n, name) => n.getChildByName(name, name === "CurrentState" || name === "Id" ? 0 : p), node);
 const base = child(unit, "BaseStateMachine");
@@ -109,10 +158,16 @@ const machines = [
 const status = (name) => child(unit, "Status", name);
 const admin = (name) => child(unit, "Admin", name);
 const structure = (name) => as.findDataType(name, p);
+if (times) {
+    // the type says [0,0] / [0] (any length); this instance's arrays have fixed lengths
+    for (const name of ["StateCurrentTime", "StateCumulativeTime"]) admin(name).arrayDimensions = [MODE_DIM, STATE_DIM];
+    for (const name of ["ModeCurrentTime", "ModeCumulativeTime"]) admin(name).arrayDimensions = [MODE_DIM];
+}
 
 // -- the machine ------------------------------------------------------------------------------------------
 let state = N.STOPPED;
-let mode = 1;
+let mode = MODES.has(1) ? 1 : Math.min(...MODES.keys());
+let shownMode = mode; // Status.UnitModeCurrent (differs from mode only with the fault "mode_not_shown")
 let speed = 0;
 let fault = null; // the active or latched alarm
 let stopReason = null;
@@ -153,12 +208,13 @@ function publish() {
     const requested = SC[state] && state !== N.EXECUTE ? settle(state) : state;
     write(status("StateRequested"), DataType.Int32, requested);
     write(status("StateChangeInProcess"), DataType.Boolean, Boolean(SC[state]) && state !== N.EXECUTE);
-    write(status("UnitModeCurrent"), DataType.Int32, mode);
+    write(status("UnitModeCurrent"), DataType.Int32, shownMode);
     write(status("MachSpeed"), DataType.Float, speed);
     write(status("CurMachSpeed"), DataType.Float, state === N.EXECUTE ? speed : 0);
     admin("StopReason").setValueFromSource(new Variant({ dataType: DataType.ExtensionObject, value: alarmValue(stopReason) }));
     admin("Alarm").setValueFromSource(new Variant({ dataType: DataType.ExtensionObject, arrayType: VariantArrayType.Array, value: fault ? [alarmValue(fault)] : [] }));
     counts();
+    if (times) publishTimes();
 }
 
 function counts() {
@@ -171,26 +227,126 @@ function settle(s) {
     return s;
 }
 
-function go(to, cause) {
+const disabled = (s, m = mode) => MODES.get(m).has(s);
+
+// the state a move to `to` shows first: disabled acting states are passed through to their State
+// Complete successor; null when the move would settle in a disabled wait state
+function route(to) {
+    let s = to;
+    while (SC[s] && disabled(s)) s = SC[s];
+    return disabled(settle(s)) ? null : s;
+}
+
+// force: the disabled states of the mode are ignored on the way (the fault "disabled_entered")
+function go(to, cause, force = false) {
     clearTimeout(timer);
+    if (times) leave(now());
     state = to;
     if (state === N.EXECUTE) stopReason = null; // producing again: the next stop has its own reason
     publish();
     out({ state, name: NAME[state], cause });
-    if (SC[state] && state !== N.EXECUTE) timer = setTimeout(() => go(SC[state], "SC"), dwell);
+    if (SC[state] && state !== N.EXECUTE && !(faults.has("stuck") && state === N.COMPLETING)) {
+        timer = setTimeout(() => {
+            let next = SC[state];
+            while (!force && SC[next] && disabled(next)) next = SC[next];
+            go(next, "SC", force);
+        }, dwell);
+    }
 }
 
 function command(name) {
-    const [from, to] = COMMANDS[name];
+    let [from, to] = COMMANDS[name];
+    let force = false;
+    if (faults.has("missing_transition") && name === "Unsuspend" && state === N.SUSPENDED) return StatusCodes.BadInvalidState;
+    if (faults.has("refused_moves") && name === "Start" && state === N.STOPPED) {
+        setTimeout(() => {
+            const first = route(N.RESETTING);
+            if (state === N.STOPPED && first !== null) go(first, "Start");
+        }, 100);
+        return StatusCodes.BadInvalidState;
+    }
+    if (faults.has("invalid_accepted") && name === "Start" && state === N.STOPPED) from = [N.STOPPED];
     if (!from.includes(state)) return StatusCodes.BadInvalidState;
     if ((name === "Reset" || name === "Clear") && fault && fault.active) return StatusCodes.BadInvalidState;
+    if (name === "Hold" && state === N.EXECUTE) {
+        if (faults.has("wrong_target")) to = N.SUSPENDING;
+        if (faults.has("disabled_entered")) force = true;
+    }
+    let first = force ? to : route(to);
+    if (first === null) return StatusCodes.BadInvalidState;
+    if (faults.has("skip_acting") && name === "Reset") first = N.IDLE;
     if ((name === "Reset" || name === "Clear") && fault) fault = null; // a reset clears latched alarms
     if (state === N.EXECUTE && !stopReason && ["Stop", "Abort", "Hold", "Suspend"].includes(name)) {
         stopReason = { id: 1, message: `${name} command`, category: 0, at: new Date(), active: false };
     }
-    go(to, name);
+    go(first, name, force);
     return StatusCodes.Good;
 }
+
+// -- Admin times: milliseconds (high resolution, monotonic) kept, whole seconds shown --------------------
+const now = () => performance.now();
+const startedAt = now();
+let stateSince = startedAt; // the current (mode, state) entered
+let modeSince = startedAt;
+const stateMs = new Float64Array(MODE_DIM * STATE_DIM); // the ended stays, summed
+const lastStayMs = new Float64Array(MODE_DIM * STATE_DIM); // the last ended stay (the fault "cumulative_lost")
+const modeMs = new Float64Array(MODE_DIM);
+const shown = {};
+
+function leave(t) { // the current (mode, state) stay ends at t
+    const i = mode * STATE_DIM + state;
+    stateMs[i] += t - stateSince;
+    lastStayMs[i] = t - stateSince;
+    stateSince = t;
+}
+
+function changeMode(to) {
+    if (to === mode) return;
+    const t = now();
+    if (times) {
+        leave(t);
+        modeMs[mode] += t - modeSince;
+        modeSince = t;
+    }
+    mode = to;
+}
+
+function publishTimes() {
+    const t = now();
+    const sec = (ms) => Math.floor(ms / 1000);
+    const here = mode * STATE_DIM + state;
+    const stateCurrent = new Int32Array(MODE_DIM * STATE_DIM);
+    const stateCumulative = new Int32Array(MODE_DIM * STATE_DIM);
+    const modeCurrent = new Int32Array(MODE_DIM);
+    const modeCumulative = new Int32Array(MODE_DIM);
+    if (!faults.has("times_frozen")) stateCurrent[here] = sec(t - stateSince);
+    for (let i = 0; i < stateCumulative.length; i++) {
+        if (faults.has("cumulative_lost")) stateCumulative[i] = sec(i === here ? t - stateSince : lastStayMs[i]);
+        else stateCumulative[i] = sec(stateMs[i] + (i === here ? t - stateSince : 0));
+    }
+    if (!faults.has("mode_time_frozen")) modeCurrent[mode] = sec(t - modeSince);
+    for (let m = 0; m < MODE_DIM; m++) modeCumulative[m] = sec(modeMs[m] + (m === mode ? t - modeSince : 0));
+    const values = { StateCurrentTime: stateCurrent, StateCumulativeTime: stateCumulative,
+                     ModeCurrentTime: modeCurrent, ModeCumulativeTime: modeCumulative };
+    for (const [name, value] of Object.entries(values)) {
+        if (shown[name] && shown[name].every((x, i) => x === value[i])) continue;
+        shown[name] = value;
+        const matrix = name.startsWith("State");
+        admin(name).setValueFromSource(new Variant({
+            dataType: DataType.Int32, value,
+            arrayType: matrix ? VariantArrayType.Matrix : VariantArrayType.Array,
+            dimensions: matrix ? [MODE_DIM, STATE_DIM] : undefined,
+        }));
+    }
+    const acc = sec(t - startedAt);
+    if (shown.AccTimeSinceReset !== acc) write(admin("AccTimeSinceReset"), DataType.Int32, (shown.AccTimeSinceReset = acc));
+    // besides every 250 ms: again just after the next whole second of any of the running times
+    const running = [t - stateSince, stateMs[here] + t - stateSince, t - modeSince, modeMs[mode] + t - modeSince, t - startedAt];
+    clearTimeout(timesTimer);
+    timesTimer = setTimeout(publishTimes, Math.min(...running.map((ms) => 1000 - (ms % 1000))) + 1);
+}
+let timesTimer = null;
+if (times) setInterval(publishTimes, 250);
 
 setInterval(() => {
     if (state === N.EXECUTE) {
@@ -209,9 +365,11 @@ for (const path of methods) {
 }
 child(unit, "SetUnitMode").bindMethod((inputArguments, context, callback) => {
     const requested = inputArguments[0].value;
-    if (![1, 2, 3].includes(requested)) return callback(null, { statusCode: StatusCodes.BadOutOfRange });
-    if (![N.STOPPED, N.IDLE, N.ABORTED].includes(state)) return callback(null, { statusCode: StatusCodes.BadInvalidState });
-    mode = requested;
+    if (!MODES.has(requested)) return callback(null, { statusCode: StatusCodes.BadOutOfRange });
+    const from = [N.STOPPED, N.IDLE, N.ABORTED, ...(faults.has("mode_matrix") ? [N.EXECUTE] : [])];
+    if (!from.includes(state) || disabled(state, requested)) return callback(null, { statusCode: StatusCodes.BadInvalidState });
+    changeMode(requested);
+    if (!faults.has("mode_not_shown")) shownMode = mode;
     publish();
     callback(null, { statusCode: StatusCodes.Good });
 });
@@ -233,8 +391,9 @@ readline.createInterface({ input: process.stdin }).on("line", (line) => {
     if (msg.fault) {
         fault = { ...msg.fault, at: new Date(), active: true };
         if (!stopReason && state !== N.STOPPED && state !== N.ABORTED) stopReason = { ...fault };
-        const reaction = msg.fault.reaction === "abort" ? "Abort" : "Stop";
-        if (COMMANDS[reaction][0].includes(state)) go(COMMANDS[reaction][1], `alarm ${fault.id}`);
+        const [from, to] = COMMANDS[msg.fault.reaction === "abort" ? "Abort" : "Stop"];
+        const first = from.includes(state) ? route(to) : null;
+        if (first !== null) go(first, `alarm ${fault.id}`);
         else publish();
     }
     if (msg.clear && fault) {

@@ -42,7 +42,7 @@ from packml_ros2.hmi.bridge import Bridge
 from packml_ros2.opcua.config import hash_password
 from packml_ros2.presence import Presence
 from packml_ros2.testing.processes import Processes, wait_until
-from test.opcua.test_opcua import CLIENT_DIR, free_port
+from test.opcua.test_opcua import CLIENT_DIR, free_port, start_face
 from test.ros.cells import UnitClient, start_em_process, start_unit_process, write_cell
 from test.test_replay import PACKML, ROOT, Output, packml
 
@@ -411,9 +411,7 @@ def test_the_bridge_drives_this_projects_own_opcua_face_with_a_secured_user_sess
         coordinator={"enabled": False, "unit_lease": LEASE},
     )  # fmt: skip
     start_unit_process(processes, remote_path, "filler")
-    server = processes.module("opcua", "packml_ros2.cli.main", "opcua", str(remote_path))
-    wait_until(lambda: "OPC UA server for cell" in server.output() or not server.running(), 60,
-               0.05, "the OPC UA server")  # fmt: skip
+    start_face(processes, remote_path)
     processes.module("plc_filler", PLC_MODULE, str(line_path), "filler",
                      env={**os.environ, "TEST_PLC_PASSWORD": "op-secret-1"})  # fmt: skip
     target = UnitClient(ros, remote, "filler")
