@@ -372,7 +372,9 @@ def _conform(args: argparse.Namespace) -> int:
 
 
 def _model_text(config: Any) -> str:
+    from ..core.numbers import Cmd
+
     table = config.table
-    hold = ",".join(sorted(s.name for (s, c), _ in table.commands.items() if c == 4))
-    complete = ",".join(sorted(s.name for (s, c), _ in table.commands.items() if c == 10))
+    hold = ",".join(sorted(s.name for (s, c), _ in table.commands.items() if c == Cmd.HOLD))
+    complete = ",".join(sorted(s.name for (s, c), _ in table.commands.items() if c == Cmd.COMPLETE))
     return f"{table.model} (Hold from {hold}; Complete from {complete})"

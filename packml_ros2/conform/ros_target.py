@@ -20,6 +20,7 @@ from packml_interfaces.msg import Admin, Status, TransitionEvent
 
 from ..cli.session import Session
 from ..client import Unavailable, UnitProxy
+from ..convert import seconds
 from ..core.numbers import State
 from ..core.reasons import Reason
 from .target import AdminView, History, Reply, Tags, Unreachable
@@ -167,7 +168,7 @@ class RosTarget:
             )
         ]
         return AdminView(
-            _seconds(msg),
+            seconds(msg.stamp),
             received,
             list(msg.state_current_time),
             list(msg.state_cumulative_time),
@@ -195,7 +196,3 @@ class RosTarget:
         if not self._proxy.client("reset_counters").wait_for_service(timeout_sec=min(timeout, 2.0)):
             return None
         return self._call("reset_counters", timeout, source=SOURCE)
-
-
-def _seconds(msg: Admin) -> float:
-    return float(msg.stamp.sec) + float(msg.stamp.nanosec) * 1e-9

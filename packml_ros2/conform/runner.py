@@ -404,7 +404,7 @@ class Runner:
                 return tags
             history.wait_change(history.mark(), 0.05)
 
-    def _judge_tags(self, state: State, mode: int, before: object, moved: bool) -> list[str]:
+    def _judge_tags(self, state: State, mode: int, before: Tags | None, moved: bool) -> list[str]:
         """What the Status tags say against where the target is (waiting briefly for them to
         catch up with the transitions)."""
         tags = self._tags_now()
@@ -432,14 +432,14 @@ class Runner:
                 f"the commands valid now are shown as {names_of(tags.commands_valid) or 'none'}; "
                 f"the standard says {names_of(valid) or 'none'}"
             )
-        old = getattr(before, "sequence", None)
+        old = None if before is None else before.sequence
         if moved and tags.sequence is not None and old is not None and tags.sequence == old:
             self._sequence_stuck = True  # (no more waiting for it to catch up)
             out.append(f"the transition sequence number stayed {old}")
         return out
 
     def _refused(
-        self, case: Case, reply: Reply, reason: Reason, what: str, mark: int, before: object
+        self, case: Case, reply: Reply, reason: Reason, what: str, mark: int, before: Tags | None
     ) -> Result:
         """Judge a request the standard refuses."""
         history = self.target.shown()
@@ -475,7 +475,7 @@ class Runner:
             problems.append(f"it still changed: {shown} within {self.options.quiet:g} s")
         else:
             tags = self.target.tags()
-            old = getattr(before, "sequence", None)
+            old = None if before is None else before.sequence
             if (
                 tags is not None
                 and tags.sequence is not None
