@@ -20,13 +20,19 @@ from packml_interfaces.msg import (
     Ingredient,
     Oee,
     Product,
+    Recipe,
+    RecipeIngredient,
+    RecipeOrder,
+    RecipeParameter,
     RemoteInterface,
+    StackLight,
     Status,
     TransitionEvent,
 )
 from packml_interfaces.srv import QueryAlarms
 
 from .core import config as cfg
+from .core import recipes
 from .core.alarms import AlarmEvent, AlarmManager
 from .core.counters import Counter
 from .core.numbers import NUM_MODES, NUM_STATES, state_name
@@ -103,6 +109,61 @@ def product_in(p: Product) -> cfg.Product:
     )
 
 
+# -- recipes ---------------------------------------------------------------------------------------
+def recipe_parameter(p: recipes.Param) -> RecipeParameter:
+    return RecipeParameter(
+        id=p.id, name=p.name, unit=p.unit, type=int(p.type), value=float(p.value), text=p.text
+    )
+
+
+def recipe(r: recipes.Recipe) -> Recipe:
+    """``Recipe`` of a recipe (core/recipes.py)."""
+    return Recipe(
+        id=r.id,
+        name=r.name,
+        unit=r.unit,
+        primary_qty=float(r.primary_qty),
+        process_variables=[recipe_parameter(p) for p in r.process_variables],
+        ingredients=[
+            RecipeIngredient(
+                ingredient_id=i.ingredient_id,
+                parameters=[recipe_parameter(p) for p in i.parameters],
+            )
+            for i in r.ingredients
+        ],
+    )
+
+
+def recipe_in(m: Recipe) -> recipes.Recipe:
+    """The recipe a ``Recipe`` message carries (an EM reads its order so)."""
+
+    def param(p: RecipeParameter) -> recipes.Param:
+        kind = recipes.ParamType(p.type) if p.type <= 3 else recipes.ParamType.REAL
+        return recipes.Param(p.id, p.name, p.unit, kind, p.value, p.text)
+
+    return recipes.Recipe(
+        m.id,
+        m.name,
+        m.unit,
+        m.primary_qty,
+        tuple(param(p) for p in m.process_variables),
+        tuple(
+            recipes.RecipeIngredient(i.ingredient_id, tuple(param(p) for p in i.parameters))
+            for i in m.ingredients
+        ),
+    )
+
+
+def recipe_order(
+    time: float, item: tuple[int, int, recipes.Recipe, tuple[str, ...]]
+) -> RecipeOrder:
+    """``RecipeOrder`` of a unit's ``recipe`` output: (order, phase, recipe, EMs asked)."""
+    order, phase, r, ems = item
+    return RecipeOrder(
+        stamp=stamp(time), changeover=order, phase=phase, recipe=recipe(r), ems=list(ems)
+    )
+
+
 # -- status ----------------------------------------------------------------------------------------
 def _generated(cls: type[M], made: dict[str, str], names: dict[str, Any]) -> Callable[[Any], M]:
     """``f(v)``: a ``cls`` message from the view ``v``, each field the expression ``made`` gives
@@ -141,6 +202,8 @@ _STATUS_MADE: dict[str, str] = {
     "commands_valid": "list(v.commands_valid)",
     "commands_valid_names": "list(v.commands_valid_names)",
     "equipment_modules": "[_em_summary(e) for e in v.equipment]",
+    "stack_light": "StackLight(colors=list(v.stack_light.colors), "
+    "modes=list(v.stack_light.modes), horn=v.stack_light.horn)",
 }
 
 #: ``status(v)``: the ``Status`` message of a status view, the one place it is made (for units,
@@ -149,7 +212,7 @@ status: Callable[[StatusView], Status] = _generated(
     Status, _STATUS_MADE,
     {"stamp": stamp, "descriptor": descriptor, "product": product,
      "EquipmentInterlock": EquipmentInterlock, "_remote_interface": _remote_interface,
-     "_em_summary": _em_summary},
+     "_em_summary": _em_summary, "StackLight": StackLight},
 )  # fmt: skip
 
 

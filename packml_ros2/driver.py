@@ -50,6 +50,9 @@ class UnitDriver:
         #: Alarm and Count messages made once per state: every Admin carries all of them.
         self.cache = convert.MessageCache()
         self.modes = convert.mode_slots(unit.config)
+        #: the stack light as last published: the unit's now (a node publishes it at its start,
+        #: :meth:`stack_light_message`; a driver of a restored unit goes on from it)
+        self._light = self._light_key(self.stack_light_message())
 
     def catch_up(self, now: float) -> None:
         """Fire the deadlines due by ``now``, publishing after each."""
@@ -94,6 +97,8 @@ class UnitDriver:
         elif kind == cls.KIND_ALARM:
             run(now, unit.em_alarm, name, msg.alarm_id, msg.alarm_value, msg.alarm_active,
                 msg.warning, msg.category, msg.message)  # fmt: skip
+        elif kind == cls.KIND_RECIPE:
+            run(now, unit.em_recipe, name, msg.sequence, msg.recipe_accepted, msg.message)
 
     def replay(self, now: float, name: str, args: dict[str, Any]) -> Any:
         """Apply a logged input again (name and arguments as ``Unit.on_input`` reported them)."""
@@ -113,6 +118,8 @@ class UnitDriver:
                 )
             elif kind == "admin":
                 self.emit("admin", self.admin_message(item))
+            elif kind == "recipe":
+                self.emit("recipe", convert.recipe_order(unit.now, item))
             else:
                 self.emit("log", item)
 
@@ -135,5 +142,19 @@ class UnitDriver:
         """The Admin message of ``view`` (default: the unit's admin data now)."""
         return convert.admin(self.unit.admin() if view is None else view, self.cache, self.modes)
 
+    def stack_light_message(self) -> Any:
+        """The unit's stack light now (``StackLight``)."""
+        return convert.status(self.unit.status()).stack_light
+
+    @staticmethod
+    def _light_key(light: Any) -> tuple[Any, ...]:
+        return (tuple(light.colors), bytes(light.modes), light.horn)
+
     def status_message(self, mark: Transition | RawTransition | StatusMark) -> Any:
-        return convert.status(self.unit.status_at(mark))
+        msg = convert.status(self.unit.status_at(mark))
+        light = msg.stack_light
+        key = self._light_key(light)
+        if key != self._light:  # the stack light's own topic, on change
+            self._light = key
+            self.emit("stack_light", light)
+        return msg

@@ -26,6 +26,13 @@ function sees ``ctx.cancelled`` set (``ctx.sleep(s)`` returns False; ``ctx.next_
 the unit went). The next state's hook starts only after the previous one has ended (the rules:
 :mod:`packml_ros2.core.em_hooks`). An exception in a hook raises the EM's fault alarm.
 
+Recipes: a changeover sends the unit's recipe to every active EM, which runs ``on_recipe(recipe)``
+(a coroutine or a plain function; a :class:`~packml_ros2.core.recipes.Recipe`, whose
+``parameter(name)`` gives a value). Returning applies it (``self.recipe``); raising
+:class:`RecipeRefused` ("tool 7 not in the magazine") refuses it, and the unit then rolls every
+EM back to the previous recipe (another ``on_recipe`` call) and refuses the changeover with that
+reason. An EM without the hook accepts every recipe.
+
 ``self.state``, ``self.sequence`` and ``self.mode`` follow the unit; ``self.status`` is its latest
 status as the EM reads it (read from the message's bytes: state, sequence, mode, this EM's entry)
 and ``self.unit_status`` the whole message, decoded when asked for.
@@ -48,19 +55,33 @@ from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
 from builtin_interfaces.msg import Time
-from packml_interfaces.msg import EmReport, Status
+from packml_interfaces.msg import EmReport, RecipeOrder, Status
 from rclpy.serialization import deserialize_message
 
 from . import run
 from .boundary import GuardedNode
 from .cdr_fields import Unreadable, field_reader
+from .convert import recipe_in
 from .core.em_hooks import HOOKS, HookRunner, StateContext, StatusView
 from .core.numbers import Cmd, State, state_name
+from .core.recipes import Recipe
 from .core.reports import Writers
 from .presence import with_info
 from .ros import interface
 
-__all__ = ["HOOKS", "EquipmentModule", "StateContext", "StatusView", "status_view"]
+__all__ = [
+    "HOOKS",
+    "EquipmentModule",
+    "RecipeRefused",
+    "StateContext",
+    "StatusView",
+    "status_view",
+]
+
+
+class RecipeRefused(Exception):
+    """Raised by ``on_recipe``: this EM cannot take the recipe; the message is the reason."""
+
 
 T = TypeVar("T")
 
@@ -121,6 +142,14 @@ class EquipmentModule(GuardedNode):
         self._pub = self.create_publisher(reports.type, reports.name, reports.qos)
         self._beats = self.create_publisher(beats.type, beats.name, beats.qos)
         self._follow_unit(unit_lost_state)
+        #: the recipe this EM applied last (None: none yet); ``on_recipe`` sets it
+        self.recipe: Recipe | None = None
+        self._recipe_order = -1  # the last changeover order taken
+        self._recipe_lock: asyncio.Lock | None = None
+        order = interface.TOPIC["recipe"]
+        self._recipe_sub = self.create_subscription(
+            order.type, order.name, self._on_recipe_order, order.qos
+        )
         self.create_timer(lease / 4.0, self._heartbeat)
         self.create_timer(lease / BEATS_PER_LEASE, self._beat)
         self._loop = asyncio.new_event_loop()
@@ -372,6 +401,51 @@ class EquipmentModule(GuardedNode):
         self.raise_alarm(
             self.fault_alarm_id, 0, f"{self.em_name}: {name} failed: {exc}"[:200], category=2
         )
+
+    # -- recipes -----------------------------------------------------------------------------------
+    def _on_recipe_order(self, msg: RecipeOrder) -> None:
+        """Executor thread: an order of the unit's changeover; those naming this EM run its
+        ``on_recipe`` hook, one after the other, and are answered."""
+        if msg.phase == RecipeOrder.PHASE_NONE or self.em_name not in msg.ems:
+            return
+        if msg.changeover == self._recipe_order:
+            return  # (the latched order again)
+        self._recipe_order = msg.changeover
+        try:
+            recipe = recipe_in(msg.recipe)
+        except (ValueError, TypeError) as exc:
+            self._answer_recipe(msg.changeover, False, f"unreadable recipe: {exc}"[:200])
+            return
+        self.run_coroutine(self._apply_recipe(msg.changeover, recipe))
+
+    async def _apply_recipe(self, order: int, recipe: Recipe) -> None:
+        if self._recipe_lock is None:
+            self._recipe_lock = asyncio.Lock()
+        async with self._recipe_lock:
+            hook = getattr(self, "on_recipe", None)
+            try:
+                if hook is not None:
+                    if asyncio.iscoroutinefunction(hook):
+                        await hook(recipe)
+                    else:
+                        await asyncio.get_running_loop().run_in_executor(None, hook, recipe)
+            except RecipeRefused as exc:
+                self._answer_recipe(order, False, str(exc) or "refused")
+                return
+            except Exception as exc:  # a failing hook refuses; its traceback goes to the log
+                self.get_logger().error(f"on_recipe failed: {exc}\n{traceback.format_exc()}")
+                self._answer_recipe(order, False, f"on_recipe failed: {exc}"[:200])
+                return
+            self.recipe = recipe
+            self._answer_recipe(order, True, "")
+
+    def _answer_recipe(self, order: int, accepted: bool, reason: str) -> None:
+        reason = " ".join("".join(c if c.isprintable() else " " for c in reason).split())
+        self._send(
+            EmReport.KIND_RECIPE, sequence=order, recipe_accepted=accepted, message=reason[:200]
+        )
+        if not accepted:
+            self.get_logger().warning(f"recipe order {order} refused: {reason}"[:300])
 
     def run_coroutine(self, coro: Awaitable[T]) -> concurrent.futures.Future[T]:
         """Run a coroutine on the EM's asyncio loop from any thread."""

@@ -18,7 +18,7 @@ from packml_interfaces.msg import (
 )
 
 from .core.line.line import EpisodeView, LossesView
-from .core.line.losses import Summary
+from .core.line.losses import Summary, times_ns
 from .core.numbers import state_name
 
 NS = 1_000_000_000
@@ -77,8 +77,10 @@ def episode_msg(view: EpisodeView, cell: str) -> LineEpisode:
 
 
 def scope_msg(s: Summary, design: float) -> LossScope:
+    """LossScope has no field of its own for the changeover: its ``planned_stop_ns`` holds it
+    (all planned time, "other modes"), its ``buckets`` tell it apart (bucket ``changeover``)."""
     return LossScope(
-        scope=s.scope, elapsed_ns=s.elapsed, planned_stop_ns=s.planned,
+        scope=s.scope, elapsed_ns=s.elapsed, planned_stop_ns=s.planned + s.changeover,
         unplanned_stop_ns=s.unplanned, blocked_ns=s.blocked, starved_ns=s.starved, held_ns=s.held,
         running_ns=s.running, speed_loss_ns=s.speed_loss, quality_loss_ns=s.quality_loss,
         productive_ns=s.productive, processed=s.processed, defective=s.defective,
@@ -125,30 +127,29 @@ def scope_dict(s: Any) -> dict[str, Any]:
     """A LossScope as a dict; a factor with nothing to divide by is None ("no data", not 0 %):
     availability and OEE without planned production time (an empty shift, a window before
     anything was recorded), performance without running time (or without a design speed),
-    quality without a count."""
-    planned_production = s.elapsed_ns - s.planned_stop_ns
+    quality without a count. Times in seconds, and in ``nanoseconds`` (:func:`times_ns`)."""
+    planned_production = s.elapsed_ns - s.planned_stop_ns  # (planned_stop_ns: with changeover)
+    ns = times_ns(s)
 
     def factor(x: float, defined: bool) -> float | None:
         return _float(x) if defined else None
 
     return {
-        "scope": s.scope or "line", "elapsed": s.elapsed_ns / NS,
-        "planned_stop": s.planned_stop_ns / NS, "unplanned_stop": s.unplanned_stop_ns / NS,
-        "blocked": s.blocked_ns / NS, "starved": s.starved_ns / NS, "held": s.held_ns / NS,
-        "running": s.running_ns / NS, "speed_loss": s.speed_loss_ns / NS,
-        "quality_loss": s.quality_loss_ns / NS, "productive": s.productive_ns / NS,
-        "processed": s.processed, "defective": s.defective,
+        "scope": s.scope or "line",
+        **{k: v / NS for k, v in ns.items()},
+        "processed": s.processed,
+        "defective": s.defective,
         "mach_design_speed": s.mach_design_speed,
         "availability": factor(s.availability, planned_production > 0),
         "performance": factor(s.performance, s.running_ns > 0),
         "quality": factor(s.quality, s.processed > 0),
         "oee": factor(s.oee, planned_production > 0),
-        "buckets": [{"bucket": b.bucket, "reason": b.reason, "seconds": b.nanoseconds / NS}
-                    for b in s.buckets],
-        "nanoseconds": {k: getattr(s, f"{k}_ns") for k in (
-            "elapsed", "planned_stop", "unplanned_stop", "blocked", "starved", "held", "running",
-            "speed_loss", "quality_loss", "productive")},
-    }  # fmt: skip
+        "buckets": [
+            {"bucket": b.bucket, "reason": b.reason, "seconds": b.nanoseconds / NS}
+            for b in s.buckets
+        ],
+        "nanoseconds": ns,
+    }
 
 
 def losses_dict(m: Any) -> dict[str, Any]:

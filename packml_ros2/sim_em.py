@@ -6,7 +6,9 @@ and off with a service per fault (``std_srvs/SetBool``):
 ``/<cell>/<unit>/<em>/fault/<name>`` — an alarm (by category it stops or aborts the unit), an
 interlock (``blocked`` / ``starved``: the unit suspends), or ``repeat_complete``: a flaky link that
 delivers every State Complete report of the EM a second time, :data:`REPEAT_AFTER` seconds later
-(by then usually stale: the unit ignores and counts it).
+(by then usually stale: the unit ignores and counts it), or ``refuse_recipe``: the next recipe
+the unit sends is refused with the fault's message, once (the fault then switches itself off).
+A changeover takes ``changeover_time`` seconds in every EM.
 
 Run: ``em_node [--sim] <cell.yaml> <unit> <em> [<em> ...]`` (packml_ros2.em_launch.host_main: an
 EM whose entry says ``run: module:Class`` is built from that class, one that says nothing or all
@@ -34,15 +36,17 @@ from . import responses
 from .core import schema as sc
 from .core.config import CellConfig, load_cell
 from .core.numbers import ACTING, State, parse_state
+from .core.recipes import Recipe
 from .core.schema import ConfigError, Node
-from .equipment_module import EquipmentModule, StateContext, StatusView
+from .equipment_module import EquipmentModule, RecipeRefused, StateContext, StatusView
 from .ros import interface
 
 SIM_KEYS = {"durations", "cycle_time", "counter", "counter_index", "defect_rate", "defect_counter_index",
-            "consumed_per_cycle", "cycles_per_run", "lease", "faults", "seed", "fed_by", "buffer"}  # fmt: skip
+            "consumed_per_cycle", "cycles_per_run", "lease", "faults", "seed", "fed_by", "buffer",
+            "changeover_time"}  # fmt: skip
 BUFFER_TICK = 0.1  # s between looks at the buffer of an EM fed by another unit, while it drains
 FAULT_KEYS = {"kind", "alarm_id", "value", "category", "message"}
-FAULT_KINDS = ("alarm", "warning", "blocked", "starved", "repeat_complete")
+FAULT_KINDS = ("alarm", "warning", "blocked", "starved", "repeat_complete", "refuse_recipe")
 #: ``repeat_complete``: seconds after which a State Complete report is sent again.
 REPEAT_AFTER = 0.5
 
@@ -74,6 +78,7 @@ class SimConfig:
     #: ``buffer`` (seconds of parts) empties; empty, the EM reports Starved until it runs again
     fed_by: str = ""
     buffer: float = 5.0
+    changeover_time: float = 0.0  #: s an EM takes to apply a recipe (on_recipe)
 
 
 def parse_sim(data: Mapping[str, Any], path: str = "sim", file: str = "<memory>",
@@ -121,6 +126,7 @@ def parse_sim(data: Mapping[str, Any], path: str = "sim", file: str = "<memory>"
         seed=n.get("seed", sc.integer(), None),
         fed_by=n.get("fed_by", sc.name, ""),
         buffer=n.get("buffer", sc.number(lo=0), 5.0),
+        changeover_time=n.get("changeover_time", sc.number(lo=0), 0.0),
     )
     if n.problems:
         raise ConfigError(file, n.problems)
@@ -190,6 +196,16 @@ class SimulatedEm(EquipmentModule):
             if self.sim.defect_rate and self.random.random() < self.sim.defect_rate:
                 self.count("defective", 1, self.sim.defect_counter_index)
 
+    # -- recipes -----------------------------------------------------------------------------------
+    async def on_recipe(self, recipe: Recipe) -> None:
+        """A changeover takes ``changeover_time``; a ``refuse_recipe`` fault refuses it, once."""
+        await asyncio.sleep(self.sim.changeover_time)
+        refusing = [f for f in self.faults_on if self.sim.faults[f].kind == "refuse_recipe"]
+        if refusing:
+            fault = self.sim.faults[refusing[0]]
+            self.faults_on.discard(fault.name)
+            raise RecipeRefused(fault.message or f"simulated refusal ({fault.name})")
+
     # -- fed by a unit upstream --------------------------------------------------------------------
     def _on_status(self, msg: StatusView) -> None:
         super()._on_status(msg)
@@ -250,7 +266,7 @@ class SimulatedEm(EquipmentModule):
         self, fault: Fault, req: SetBool.Request, resp: SetBool.Response
     ) -> SetBool.Response:
         on = bool(req.data)
-        if fault.kind == "repeat_complete":
+        if fault.kind in ("repeat_complete", "refuse_recipe"):
             (self.faults_on.add if on else self.faults_on.discard)(fault.name)
         elif fault.kind in ("blocked", "starved"):
             (self.faults_on.add if on else self.faults_on.discard)(fault.name)

@@ -60,6 +60,7 @@ from .core.config import CoordinatorConfig
 from .core.durable import TIME_CHECKPOINT
 from .core.limits import LogLimiter, printable
 from .core.liveliness import Liveliness
+from .core.recipes import inline_recipes
 from .core.reports import LEAVE, Writers, report_problem
 from .core.secrets import redacted_yaml
 from .driver import FrozenClock, UnitDriver
@@ -112,7 +113,9 @@ class UnitNode(GuardedNode):
         self.unit.on_input = self._on_input if self._record else None
         self._hardware_id = f"{config.cell}/{config.name}" if config.cell else config.name
         # the cell file as published on ~/config and recorded: never with its secrets
-        self.source = redacted_yaml(source) if source is not None else None
+        # (its recipe files written in: the unit replays where they are not)
+        inline = partial(inline_recipes, unit=config.name, book=config.recipes)
+        self.source = redacted_yaml(source, transform=inline) if source is not None else None
 
         # liveliness: every face sees the unit gone within its lease (packml_ros2.presence)
         lease = unit_lease if unit_lease is not None else CoordinatorConfig.unit_lease
@@ -124,8 +127,10 @@ class UnitNode(GuardedNode):
         self.pub_inputs = publish("input_log")
         self.pub_diagnostics = publish("/diagnostics")
         self.pub_config = publish("config")
+        self.pub_recipe = publish("recipe")
+        self.pub_stack_light = publish("stack_light")
         self._outputs = {t.name: getattr(self, f"pub_{t.name}")
-                         for t in interface.topics(interface.Role.OUTPUT)}  # fmt: skip
+                         for t in interface.topics(interface.Role.OUTPUT, interface.Role.DERIVED)}  # fmt: skip
         #: messages published per output topic: a snapshot says where a replay from it aligns
         self._published = dict.fromkeys(self._outputs, 0)
         # a recorder that joins gets the engine state: a replay starts from it (bag/replay.py)
@@ -224,6 +229,7 @@ class UnitNode(GuardedNode):
             "set_mach_speed": self._srv_set_mach_speed,
             "set_unit_parameters": self._srv_set_parameters,
             "set_product": self._srv_set_product,
+            "set_recipe": self._srv_set_recipe,
             "set_em_active": self._srv_set_em_active,
             "set_interlock": self._srv_set_interlock,
         }
@@ -344,6 +350,12 @@ class UnitNode(GuardedNode):
             self.unit.set_product,
             [convert.product_in(p) for p in req.product],
             req.source or "operator",
+        )
+        return self._answer(resp, answer)
+
+    def _srv_set_recipe(self, req: Any, resp: Any) -> Any:
+        answer = self._run(
+            self.unit.set_recipe, req.recipe_id, req.recipe_name[:255], req.source or "operator"
         )
         return self._answer(resp, answer)
 
@@ -542,6 +554,7 @@ class UnitNode(GuardedNode):
                      "persistence": self.store is not None, "schema": inputlog.SCHEMA}  # fmt: skip
             # (a copy: the input goes out later, and the engine keeps the restored document)
             self._on_input(self.unit.now, inputlog.START, json.loads(json.dumps(start)))
+        self._emit("stack_light", self.driver.stack_light_message())
         self.driver.flush()
         self._emit("admin", self.driver.admin_message())
 

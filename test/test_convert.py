@@ -121,7 +121,7 @@ def test_every_field_of_the_status_view_reaches_the_status_message() -> None:
     import dataclasses
 
     from packml_ros2.core.config import Descriptor, Product
-    from packml_ros2.core.packtags import RemoteInterfaceView, StatusView
+    from packml_ros2.core.packtags import RemoteInterfaceView, StackLightView, StatusView
 
     view = _views().status()
     base = convert.status(view)
@@ -130,8 +130,10 @@ def test_every_field_of_the_status_view_reaches_the_status_message() -> None:
              "remote_interface": (RemoteInterfaceView(1, 2, 3),)}  # fmt: skip
     for f in dataclasses.fields(StatusView):
         value = getattr(view, f.name)
-        if isinstance(value, bool):
-            other: object = not value
+        if isinstance(value, StackLightView):
+            other: object = value._replace(horn=not value.horn)
+        elif isinstance(value, bool):
+            other = not value
         elif isinstance(value, int | float):
             other = value + 1
         elif isinstance(value, str):

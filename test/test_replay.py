@@ -13,6 +13,7 @@ import json
 import os
 import re
 import shutil
+import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -26,6 +27,7 @@ from packml_ros2.bag import cdr
 from packml_ros2.bag.recording import RecordingError, load
 from packml_ros2.bag.replay import replay, update
 from packml_ros2.bag.topics import CUSTOM_KEY, typestore
+from packml_ros2.bag.upgrade import definition_store
 
 ROOT = Path(__file__).resolve().parents[1]
 BAGS = ROOT / "test" / "bags"
@@ -56,7 +58,7 @@ def rewrite(src: Path, dst: Path, change: Any = None, drop: Any = None, custom: 
     with AnyReader([src]) as reader:
         writer = Writer(dst, version=9)
         writer.open()
-        conns = {c.topic: writer.add_connection(c.topic, c.msgtype, typestore=typestore(),
+        conns = {c.topic: writer.add_connection(c.topic, c.msgtype, typestore=reader.typestore,
                                                 offered_qos_profiles=c.ext.offered_qos_profiles)
                  for c in reader.connections}  # fmt: skip
         for conn, ts, data in reader.messages():
@@ -141,6 +143,24 @@ def test_the_scenarios_do_what_their_names_say() -> None:
     assert u.windows["status"][0] > 0  # the first statuses were published before it subscribed
 
 
+def test_older_definitions_replay_on_the_fields_they_have() -> None:
+    """Issue 32 added the recipe and stack-light fields to Status (and EmSummary, EmReport): the
+    bags recorded before replay, compared on the fields they had; a field they had still
+    counts (the status mutants of test_mutations are caught on these bags)."""
+    rec = load(BAGS / "normal_production")
+    unit = rec.units["/demo_cell/robot_cell"]
+    upgrade = unit.upgrades["status"]
+    assert {"recipe_current", "stack_light", "equipment_modules.recipe_answer"} <= upgrade.absent
+    assert "state_current" not in upgrade.absent
+    result = replay(BAGS / "normal_production", recording=rec)
+    assert result.ok, result.report()
+    assert result.units[0].compared["status"] > 10
+    produced = result.units[0].produced["status"][-1]
+    masked = upgrade.mask(produced)
+    assert masked.stack_light.colors == [] and produced.stack_light.colors  # not compared
+    assert masked.state_current == produced.state_current  # compared
+
+
 def test_bags_carry_metadata_qos_and_type_definitions() -> None:
     from rosbags.highlevel import AnyReader
 
@@ -151,7 +171,11 @@ def test_bags_carry_metadata_qos_and_type_definitions() -> None:
             by_topic = {c.topic: c for c in reader.connections}
             status = by_topic["/demo_cell/robot_cell/status"]
             assert status.msgdef.data  # the definition is stored: other tools decode it
-            assert status.digest == typestore().hash_rihs01("packml_interfaces/msg/Status")
+            # the digest is the stored definition's (these bags predate the recipe fields of
+            # Status: an older definition, which replay upgrades, test_older_definitions_replay)
+            stored = definition_store(status.msgtype, "MSG", status.msgdef.data)
+            assert status.digest == stored.hash_rihs01("packml_interfaces/msg/Status")
+            assert status.digest != typestore().hash_rihs01("packml_interfaces/msg/Status")
             assert status.ext.offered_qos_profiles[0].durability.name == "TRANSIENT_LOCAL"
             assert {t.rsplit("/", 1)[1] for t in by_topic} == {
                 "input_log",
@@ -392,11 +416,13 @@ def test_the_end_of_a_recording_is_checked(tmp_path: Path, bag: str) -> None:
         assert d.topic == topic and d.kind == "extra", d
 
     def later(raw: bytes) -> bytes:
-        m = deserialize_message(raw, Status)
-        m.stamp.nanosec += 1_000_000
-        if m.stamp.nanosec >= 1_000_000_000:
-            m.stamp.sec, m.stamp.nanosec = m.stamp.sec + 1, m.stamp.nanosec - 1_000_000_000
-        return bytes(serialize_message(m))
+        # (the stamp leads the message, after the 4-byte CDR header: the bytes of any version)
+        assert raw[:2] == b"\x00\x01"  # little-endian CDR
+        sec, nanosec = struct.unpack_from("<iI", raw, 4)
+        nanosec += 1_000_000
+        if nanosec >= 1_000_000_000:
+            sec, nanosec = sec + 1, nanosec - 1_000_000_000
+        return raw[:4] + struct.pack("<iI", sec, nanosec) + raw[12:]
 
     dst = tmp_path / "one_more_status"
     rewrite(src, dst, add=lambda t, i, raw: [later(raw)] if t.endswith("/status") and i == counts["status"] - 1 else [])  # fmt: skip

@@ -26,6 +26,7 @@ import math
 import os
 import sqlite3
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,6 +44,7 @@ from .topics import (
     split_topic,
     typestore,
 )
+from .upgrade import Upgrade, definition_store, upgrade_for
 
 #: Why a recording cannot be replayed (:attr:`RecordingError.reason`) -> the exit code of
 #: ``packml replay``: a CI job tells a damaged file from an incomplete or inconsistent log.
@@ -120,6 +122,9 @@ class UnitRecording:
     config_json: str | None = None
     em_reports: list[tuple[int, bytes]] = field(default_factory=list)  # (bag time ns, raw)
     snapshots: list[Snapshot] = field(default_factory=list)
+    #: topic -> how its messages, recorded with an older definition, were carried into the
+    #: installed type (replay compares only the fields they had: bag/upgrade.py)
+    upgrades: dict[str, Upgrade] = field(default_factory=dict)
 
     @property
     def name(self) -> str:
@@ -578,27 +583,29 @@ def _open_any(bag: _Bag, p: Path) -> _Bag:
     return bag
 
 
+def _upgrade(bag: _Bag, conn: Any) -> Upgrade | None:
+    """How ``conn``'s messages, recorded with an older definition, become the installed type."""
+    if bag.any:
+        store = bag.reader.typestore
+    else:
+        fmt = getattr(conn.msgdef.format, "name", "NONE")
+        if fmt == "NONE" or not conn.msgdef.data:
+            return None
+        try:
+            store = definition_store(conn.msgtype, fmt, conn.msgdef.data)
+        except Exception:  # (a definition rosbags cannot parse: no upgrade)
+            return None
+    return upgrade_for(store, conn.msgtype)
+
+
 @functools.cache
 def _definition_hash(msgtype: str, fmt: str, data: str) -> str:
-    from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
-
-    store = get_typestore(Stores.EMPTY)
-    if fmt == "MSG":
-        store.register(get_types_from_msg(data, msgtype))
-    else:
-        sep = "=" * 80 + "\n"
-        types: dict[str, Any] = {}
-        parts = data.split(sep)[1:] if data.startswith(f"{sep}IDL: ") else [data]
-        for part in parts:
-            types.update(
-                get_types_from_idl(part.split("\n", 1)[1] if part.startswith("IDL: ") else part)
-            )
-        store.register(types)
-    return str(store.hash_rihs01(msgtype))
+    return str(definition_store(msgtype, fmt, data).hash_rihs01(msgtype))
 
 
 def _load(bag: _Bag, path: str | Path, keep_raw: bool, em_reports: bool = True) -> Recording:
     units: dict[str, UnitRecording] = {}
+    upgrades: dict[str, Callable[[bytes], bytes]] = {}  # topic -> recorded CDR to installed
     wanted = []
     digests: dict[str, str] = {}
     for conn in bag.connections:
@@ -608,13 +615,18 @@ def _load(bag: _Bag, path: str | Path, keep_raw: bool, em_reports: bool = True) 
         split = split_topic(conn.topic)
         if split is None or UNIT_TOPICS[split[1]] != conn.msgtype:
             continue
-        if have is not None and have != installed_hash(conn.msgtype):
-            raise RecordingError(
-                f"{path}: {conn.msgtype} in the bag ({have}) differs from the installed "
-                f"definition ({installed_hash(conn.msgtype)}): the bag was recorded with "
-                "another version of packml_interfaces; re-record it, or replay it with that version"
-            )
         units.setdefault(split[0], UnitRecording(split[0]))
+        if have is not None and have != installed_hash(conn.msgtype):
+            upgrade = _upgrade(bag, conn)
+            if upgrade is None:
+                raise RecordingError(
+                    f"{path}: {conn.msgtype} in the bag ({have}) differs from the installed "
+                    f"definition ({installed_hash(conn.msgtype)}) other than by fields added "
+                    "since: the bag was recorded with another version of packml_interfaces; "
+                    "re-record it, or replay it with that version"
+                )
+            units[split[0]].upgrades[split[1]] = upgrade
+            upgrades[conn.topic] = upgrade.convert
         if split[1] in OUTPUT_TOPICS:
             units[split[0]].outputs.setdefault(split[1], [])
         if em_reports or split[1] != "em_reports":
@@ -642,6 +654,14 @@ def _load(bag: _Bag, path: str | Path, keep_raw: bool, em_reports: bool = True) 
         split = by_topic.get(conn.topic)
         if split is None:
             continue
+        if conn.topic in upgrades:
+            try:
+                raw = upgrades[conn.topic](raw)
+            except Exception as exc:  # rosbags raises several types for bytes it cannot read
+                raise RecordingError(
+                    f"{path}: a {conn.msgtype} message on {conn.topic} cannot be read by its "
+                    f"recorded definition ({type(exc).__name__})"
+                ) from None
         unit = units[split[0]]
         name = split[1]
         if name == "input_log":
@@ -663,7 +683,7 @@ def _load(bag: _Bag, path: str | Path, keep_raw: bool, em_reports: bool = True) 
             unit.snapshots.append(
                 Snapshot(m.index, m.stamp.sec + m.stamp.nanosec * 1e-9, m.state_json)
             )
-        else:
+        elif name in unit.outputs:  # (the recipe orders and the stack light are not compared)
             unit.outputs[name].append(raw)
     if not keep_raw:
         count += sum(c.msgcount for c in bag.connections if c not in wanted)

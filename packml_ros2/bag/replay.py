@@ -732,8 +732,12 @@ def replay_unit(rec: UnitRecording, bag: Path, config_file: str | Path | None = 
     for topic in OUTPUT_TOPICS:
         if topic not in rec.outputs:
             continue  # not recorded (e.g. a bag of another recorder without it): not compared
+        produced = r.outputs[topic]
+        upgrade = rec.upgrades.get(topic)
+        if upgrade is not None:  # an older definition: only the fields it had are compared
+            produced = [upgrade.mask(m) for m in produced]
         d, n, window, before = compare_topic(name, topic, rec.outputs[topic],
-                                             rec.publications.get(topic), r.outputs[topic],
+                                             rec.publications.get(topic), produced,
                                              r.causes[topic], stop, origin)  # fmt: skip
         result.compared[topic] = n
         result.windows[topic] = window

@@ -167,7 +167,7 @@ class SyntheticUnit:
 
 #: Messages a publisher keeps for a subscriber that joins late (packml_ros2.qos), per topic.
 HISTORY = {"input_log": 5000, "transitions": 100, "em_reports": 0, "config": 1, "status": 1,
-           "admin": 1, "alarms": 1, "snapshot": 1}  # fmt: skip
+           "admin": 1, "alarms": 1, "snapshot": 1, "recipe": 1, "stack_light": 1}  # fmt: skip
 
 
 def _ranges(numbers: Iterable[int]) -> list[list[int]]:

@@ -26,6 +26,9 @@ LATCHED_OUTPUTS = ("status", "admin", "alarms")
 #: the configuration the unit was started with, and the engine state when the recorder joined
 #: (replay starts from it when the input log does not reach back to the unit's start).
 INPUT_TOPICS = ("input_log", "em_reports", "config", "snapshot")
+#: What follows from the outputs (:data:`.interface.Role.DERIVED`): recorded, not compared (the
+#: changeover orders follow from the inputs the log has, the stack light from the status).
+DERIVED_TOPICS = ("recipe", "stack_light")
 #: The unit's topics a recording holds (:mod:`..ros.interface`, ``recorded``): topic (relative to
 #: ``/<cell>/<unit>``) -> ROS type name.
 UNIT_TOPICS: dict[str, str] = {t.name: t.type_name for t in interface.TOPICS if t.recorded}

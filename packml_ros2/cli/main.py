@@ -34,6 +34,7 @@ VERB_MODULES = {
     "launch": ("launch",),
     "status": ("status",),
     "control": ("cmd", "mode", "fault"),
+    "recipe": ("recipe",),
     "alarms": ("alarms",),
     "watch": ("watch",),
     "bag": ("record", "replay"),

@@ -29,6 +29,7 @@ from typing import Any
 
 from .. import line_msgs
 from ..client import Unavailable, call_blocking, discover_cells
+from ..core.line.losses import TIMES
 from .main import EXIT_REFUSED, EXIT_UNAVAILABLE, EXIT_USAGE
 from .session import add_common, fail, session
 
@@ -36,8 +37,8 @@ NS = 1_000_000_000
 _SPAN = re.compile(r"^(\d+(?:\.\d+)?)\s*(s|sec|min|m|h|d)$")
 _UNITS = {"s": 1, "sec": 1, "m": 60, "min": 60, "h": 3600, "d": 86400}
 BUCKET_NAMES = {
-    "running": "running", "planned_stop": "planned stop", "unplanned_stop": "unplanned stop",
-    "blocked": "blocked", "starved": "starved", "held": "held",
+    "running": "running", "planned_stop": "planned stop", "changeover": "changeover",
+    "unplanned_stop": "unplanned stop", "blocked": "blocked", "starved": "starved", "held": "held",
 }  # fmt: skip
 
 
@@ -252,14 +253,13 @@ def table(cell: str, data: dict[str, Any], episodes: list[dict[str, Any]], total
     lines = [
         f"line {cell}: {data['window']} ({clock(data['start']) if data['start'] else 'since the first record'} .. {clock(data['end'])})"
     ]
-    head = ("SCOPE", "ELAPSED", "PLANNED", "UNPLANNED", "BLOCKED", "STARVED", "HELD", "RUNNING",
-            "SPEED LOSS", "QUALITY LOSS", "PRODUCTIVE", "A", "P", "Q", "OEE")  # fmt: skip
+    head = ("SCOPE", "ELAPSED", "PLANNED", "CHANGEOVER", "UNPLANNED", "BLOCKED", "STARVED",
+            "HELD", "RUNNING", "SPEED LOSS", "QUALITY LOSS", "PRODUCTIVE", "A", "P", "Q",
+            "OEE")  # fmt: skip
     rows: list[tuple[str, ...]] = [head]
-    times = ("elapsed", "planned_stop", "unplanned_stop", "blocked", "starved", "held", "running",
-             "speed_loss", "quality_loss", "productive")  # fmt: skip
     for s in data["scopes"]:
         shares = [percent(s[k]) for k in ("availability", "performance", "quality", "oee")]
-        rows.append((s["scope"], *(duration(s[k]) for k in times), *shares))
+        rows.append((s["scope"], *(duration(s[k]) for k in TIMES), *shares))
     lines += _grid(rows, set(range(1, len(head))))
     line = data["scopes"][0]
     lines += ["", "LOSSES OF THE LINE (they add up to its elapsed time)"]

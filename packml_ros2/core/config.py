@@ -22,6 +22,7 @@ from .discovery import DiscoveryConfig, parse_discovery
 from .line.config import LINE_STORE, LineConfig, parse_line
 from .modes import GROUPS, ModeDef, default_modes, make_mode
 from .numbers import ACTING, MANDATORY, MAX_MODE, WAIT, Cmd, Mode, State, parse_state
+from .recipes import RECIPE_KEYS, RecipeBook, recipe_book
 from .rules import (
     COMPLETE_CONFIGURABLE,
     HOLD_CONFIGURABLE,
@@ -33,6 +34,8 @@ from .rules import (
 from .safe_yaml import read_document
 from .schema import ConfigError, Node, invalid
 from .secrets import plain_secrets
+from .stacklight import DEFAULT as DEFAULT_STACK_LIGHT
+from .stacklight import StackLightConfig, stack_light
 
 __all__ = [
     "ArraySizes",
@@ -175,6 +178,11 @@ class UnitConfig:
     #: ``plc:`` block (a unit whose state machine runs in a PLC, reached over OPC UA): validated
     #: by packml_ros2.plc.config; None for a unit of this package's own engine
     plc: Mapping[str, Any] | None = None
+    #: recipes and the rules of changing them (``recipes``, ``recipe_dir``, ``recipe_states``,
+    #: ``recipe_timeout``, ``initial_recipe``: core/recipes.py)
+    recipes: RecipeBook = field(default_factory=RecipeBook)
+    #: the stack light: lights, blink and horn per state and alarm category (core/stacklight.py)
+    stack_light: StackLightConfig = DEFAULT_STACK_LIGHT
 
     def mode_by_name(self, text: str) -> ModeDef | None:
         key = text.strip().upper()
@@ -425,6 +433,7 @@ _UNIT_KEYS = {
     "min_dwell", "mode_change_timeout", "alarms", "reactions", "interlock_reaction", "sizes",
     "counters", "mach_speed", "mach_design_speed", "max_mach_speed", "parameters", "admin_parameters", "products",
     "remote_interfaces", "persistence", "admin_period", "system_alarms", "planned_stop_ids", "plc",
+    *RECIPE_KEYS, "stack_light",
 }  # fmt: skip
 
 
@@ -592,6 +601,8 @@ def _unit(name: str, n: Node, cell: str, base_dir: Path) -> UnitConfig:
         system_alarms=system_alarms,
         planned_stop_ids=n.get("planned_stop_ids", id_range, d.planned_stop_ids),
         plc=n.get("plc", lambda x: dict(x.mapping()), None),
+        recipes=recipe_book(n, sizes, base_dir),
+        stack_light=n.get("stack_light", stack_light, DEFAULT_STACK_LIGHT),
     )
 
 

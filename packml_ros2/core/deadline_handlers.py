@@ -17,6 +17,7 @@ from .deadlines import Due
 from .machine import UnitMachine
 from .numbers import State, state_name
 from .packtags import build_admin
+from .recipe_inputs import RecipeInputs
 from .rules import Trigger
 
 
@@ -92,4 +93,5 @@ class DeadlineHandlers(UnitMachine):
         Due.ADMIN_CHANGE: _on_admin_change,
         Due.SAVE: _on_save,
         Due.ADMIN: _on_admin,
+        Due.RECIPE_TIMEOUT: RecipeInputs._on_recipe_timeout,
     }

@@ -27,6 +27,7 @@ class Due(IntEnum):
     ADMIN_CHANGE = 6  #: a coalesced admin
     SAVE = 7  #: the periodic save (data: the period)
     ADMIN = 8  #: the periodic admin (data: the period)
+    RECIPE_TIMEOUT = 9  #: a changeover order's timeout (data: the order's number)
 
 
 #: Periodic deadlines missed by more than this many periods (the clock jumped, e.g. NTP after

@@ -46,6 +46,7 @@ class Restored:
     document: dict[str, Any] | None
     sequence: int = 0
     mach_speed: float | None = None
+    recipe: int | None = None  #: RecipeCurrent's ID (None: the store has none)
     problems: list[str] = field(default_factory=list)
     #: the unit was producing when it last journaled: it ended without shutting down
     producing: bool = False
@@ -57,7 +58,7 @@ TIME_CHECKPOINT = 1.0
 
 def document(times: ModeStateTimes, counters: Counters, alarms: AlarmManager, stops: StopReasons,
              sequence: int, mach_speed: float, now: float,
-             producing: bool = False) -> dict[str, Any]:  # fmt: skip
+             producing: bool = False, recipe: int = 0) -> dict[str, Any]:  # fmt: skip
     """What persistence stores of a unit: everything of the admin data, never the state (only
     whether it was ``producing``: see the module docstring)."""
     stop_reason = stops.reason
@@ -68,6 +69,7 @@ def document(times: ModeStateTimes, counters: Counters, alarms: AlarmManager, st
         "alarms": alarms.to_dict(),
         "stop_reason": stop_reason.to_dict() if stop_reason else None,
         "mach_speed": mach_speed,
+        "recipe_current": recipe,
         "saved_at": now,
         "producing": producing,
     }
@@ -87,6 +89,7 @@ class Durable:
     __slots__ = (
         "_append",
         "_producing",
+        "_recipe",
         "_retry_at",
         "_written",
         "alarms",
@@ -99,8 +102,10 @@ class Durable:
 
     def __init__(self, store: StoreLike, times: ModeStateTimes, counters: Counters,
                  alarms: AlarmManager, stops: StopReasons,
-                 producing: Callable[[], bool] = lambda: False) -> None:  # fmt: skip
+                 producing: Callable[[], bool] = lambda: False,
+                 recipe: Callable[[], int] = lambda: 0) -> None:  # fmt: skip
         self.store = store
+        self._recipe = recipe  #: RecipeCurrent's ID now
         self._producing = producing  #: whether the unit is producing now (module docstring)
         #: None for a store that keeps no journal (a replay's): journal() then only forgets
         self._append = getattr(store, "append", None)
@@ -117,7 +122,7 @@ class Durable:
     def document(self, sequence: int, mach_speed: float, now: float) -> dict[str, Any]:
         """The snapshot: everything of the admin data, never the state."""
         return document(self.times, self.counters, self.alarms, self.stops, sequence,
-                        mach_speed, now, self._producing())  # fmt: skip
+                        mach_speed, now, self._producing(), self._recipe())  # fmt: skip
 
     def snapshot(self, sequence: int, mode: int, mach_speed: float, now: float,
                  closing: bool = False) -> None:  # fmt: skip
@@ -142,7 +147,7 @@ class Durable:
     def _state(self, sequence: int, mode: int, mach_speed: float) -> tuple[Any, ...]:
         times, counters, stops = self.times, self.counters, self.stops
         return (sequence, mode, times.resets, counters.version, stops.reason, mach_speed,
-                self._producing())  # fmt: skip
+                self._producing(), self._recipe())  # fmt: skip
 
     def checkpoint(self, now: float) -> None:
         """Journal the times as of ``now`` (one ``write()``; not an input: nothing changes)."""
@@ -184,6 +189,8 @@ class Durable:
             changes["mach_speed"] = mach_speed
         if state[6] != written[6]:
             changes["producing"] = state[6]
+        if state[7] != written[7]:
+            changes["recipe_current"] = state[7]
         if changes:
             records.append({"set": changes})
         alarms = self.alarms
@@ -216,6 +223,7 @@ class Durable:
                 self.stops.set(AlarmEvent.from_dict(data["stop_reason"]))
             out.mach_speed = float(data.get("mach_speed", 0.0))
             out.producing = data.get("producing") is True
+            out.recipe = int(data.get("recipe_current", 0))
         except (TypeError, ValueError, KeyError) as exc:
             problems.append(
                 f"the stored admin data could not be restored ({one_line(exc)}): the unit starts without it"

@@ -136,6 +136,8 @@ PRODUCTS = _def("products", "set_product", "products", "source",
                 products=_list_codec(product_to_dict, product_from_dict))  # fmt: skip
 REMOTE = _def("remote", "set_remote_enabled", "enabled")
 INTERLOCK = _def("interlock", "set_interlock", "active", "reason", "source")
+RECIPE = _def("recipe", "set_recipe", "recipe_id", "name", "source")
+EM_RECIPE = _def("em.recipe", "em_recipe", "em", "order", "accepted", "reason")
 ADVANCE = _def("advance", "advance")
 SHUTDOWN = _def("shutdown", "shutdown", "detail")
 
@@ -144,10 +146,12 @@ INPUTS: Mapping[str, InputDef] = {
     d.name: d
     for d in (COMMAND, MODE, STEP, EM_STATE_COMPLETE, EM_SEEN, EM_LOST, EM_INTERLOCK, EM_COUNT,
               EM_ACTIVE, ALARM, ALARM_ACK, ALARM_RESET, TIMES_RESET, COUNTERS_RESET, SPEED,
-              PARAMETERS, PRODUCTS, REMOTE, INTERLOCK, ADVANCE, SHUTDOWN)
+              PARAMETERS, PRODUCTS, REMOTE, INTERLOCK, ADVANCE, SHUTDOWN, RECIPE, EM_RECIPE)
 }  # fmt: skip
 #: Inputs an EM's reports cause (``packml replay --live`` sends the reports, not these).
-EM_INPUTS = frozenset(d.name for d in (EM_STATE_COMPLETE, EM_SEEN, EM_LOST, EM_INTERLOCK, EM_COUNT))
+EM_INPUTS = frozenset(
+    d.name for d in (EM_STATE_COMPLETE, EM_SEEN, EM_LOST, EM_INTERLOCK, EM_COUNT, EM_RECIPE)
+)
 
 
 def fields_of(d: InputDef, values: Sequence[Any]) -> dict[str, Any]:

@@ -61,6 +61,7 @@ from .persistence import Store
 from .publication import Publication as _Publication
 from .publication import StatusMark
 from .reasons import Answer, Reason
+from .recipes import Recipes
 from .requests import CommandRequest, CompleteReport, ModeRequest, Request, priority
 from .rules import (
     AT_ONCE_WITHOUT_EMS,
@@ -162,6 +163,7 @@ class UnitMachine(ModeChanges):
         "config", "rules", "_clock", "store", "_durable", "_not_durable", "on_input", "restored", "alert", "stats",
         "times",
         "counters", "alarms", "equipment", "interlocks", "stops", "deadlines", "publication",
+        "recipes",
         # the compiled rules the hot paths index, and configuration they test
         "_accepted", "_sc", "_timed",
         # evaluation
@@ -214,6 +216,7 @@ class UnitMachine(ModeChanges):
             ignore = not self._lost_reaction(em_cfg.lost_reaction)
             self.equipment.add(em_cfg.name, True, em_cfg.active, em_cfg.lost_reaction, ignore)
         self.interlocks = Interlocks(self.alert)
+        self.recipes = Recipes(config.recipes)
         self.stops = StopReasons(config.planned_stop_ids)
         self.deadlines = Deadlines()
         self._out = Outputs()  # the output queue (drain)
@@ -239,7 +242,15 @@ class UnitMachine(ModeChanges):
         self._durable = (
             None
             if store is None
-            else Durable(store, self.times, self.counters, self.alarms, self.stops, self._producing)
+            else Durable(
+                store,
+                self.times,
+                self.counters,
+                self.alarms,
+                self.stops,
+                self._producing,
+                lambda: self.recipes.current.id,
+            )
         )
         self._not_durable = ""  # why the admin data is not on the disk, as the alarm says
         self._restore(now)
@@ -537,6 +548,10 @@ class UnitMachine(ModeChanges):
         if blocker is None:
             return None
         return f"alarm {blocker.label()} with reaction {command_name(blocker.reaction)}"
+
+    def recipe_change_text(self) -> str:
+        c = self.recipes.changeover
+        return "" if c is None else f"the changeover to recipe {c.requested.label} is in process"
 
     def interlock_reasons(self) -> list[str]:
         return self.interlocks.reasons()
@@ -851,6 +866,13 @@ class UnitMachine(ModeChanges):
             )
         if target.number == self.mode:
             return Answer.ok(f"already in {target.name}")
+        changeover = self.recipes.changeover
+        if changeover is not None:
+            return Answer.no(
+                Reason.RECIPE_CHANGE_IN_PROCESS,
+                f"mode change to {target.name} refused: the changeover to recipe "
+                f"{changeover.requested.label} is in process",
+            )
         why = mode_change_refusal(self.mode_def, target, self.state)
         if why is not None:
             self.mode_change_not_allowed_until = self._t + MODE_CHANGE_NOT_ALLOWED_SECONDS
@@ -940,7 +962,8 @@ class UnitMachine(ModeChanges):
     def document(self) -> dict[str, Any]:
         """What persistence stores: everything of the admin data, never the state."""
         return document(self.times, self.counters, self.alarms, self.stops, self.sequence,
-                        self.mach_speed, self._t, self._producing())  # fmt: skip
+                        self.mach_speed, self._t, self._producing(),
+                        self.recipes.current.id)  # fmt: skip
 
     def _producing(self) -> bool:
         """In Execute or on its way there, with the StopReason armed: a crash now is a stop
@@ -1010,6 +1033,10 @@ class UnitMachine(ModeChanges):
             if restored.mach_speed is not None:
                 self.mach_speed = restored.mach_speed
             self._restart_detail = "unit restarted"
+            if restored.recipe is not None:
+                problem = self.recipes.restore_current(restored.recipe)
+                if problem:
+                    self._log("warn", problem)
             gap = now - float(data.get("saved_at", now))
             self.alarms.log_event(
                 f"unit restarted (last saved {gap:.1f} s before)", now, source="unit"

@@ -11,15 +11,17 @@ from __future__ import annotations
 import datetime as _dt
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 from .alarms import AlarmEvent, AlarmManager
+from .alarms import Kind as AlarmKind
 from .config import Descriptor, Product, UnitConfig
 from .counters import Counter, Counters
 from .equipment import Equipment
 from .interlocks import Interlocks
 from .modes import GROUPS, ModeDef
 from .numbers import NUM_STATES, Cmd, Mode, State, command_name, state_name
+from .recipes import Recipes
 from .times import ROLLOVER, ModeStateTimes, TimesSnapshot
 
 S = State
@@ -47,6 +49,7 @@ class UnitView(Protocol):
     times: ModeStateTimes
     counters: Counters
     interlocks: Interlocks
+    recipes: Recipes
 
     @property
     def now(self) -> float: ...
@@ -72,6 +75,19 @@ class EmView:
     blocked: bool
     starved: bool
     stale_reports: int
+    recipe_answer: int = 0  #: its answer to the last changeover order (recipes.EmAnswer)
+    recipe_message: str = ""  #: the reason it gave
+
+
+class StackLightView(NamedTuple):
+    """``StackLight``: the lights top to bottom (off 0, on 1, blink 2) and the horn."""
+
+    colors: tuple[str, ...] = ()
+    modes: tuple[int, ...] = ()
+    horn: bool = False
+
+
+NO_LIGHT = StackLightView()  #: a unit without a stack light (a PLC's)
 
 
 @dataclass(frozen=True, slots=True)
@@ -118,6 +134,13 @@ class StatusView:
     unacknowledged_alarms: int
     alarm_banner: str
     stop_reason_id: int
+    recipe_current: int = 0
+    recipe_current_name: str = ""
+    recipe_requested: int = 0
+    recipe_change_in_process: bool = False
+    recipe_changeover: int = 0
+    recipe_result: str = ""
+    stack_light: StackLightView = NO_LIGHT
 
     @property
     def commands_valid_names(self) -> tuple[str, ...]:
@@ -177,12 +200,28 @@ def date_time_array(t: float) -> tuple[int, ...]:
 
 def _em_views(unit: UnitView, state: int, sequence: int) -> tuple[EmView, ...]:
     cur = (state, sequence)
+    answers = unit.recipes.answers()
+    none = (0, "")
     return tuple(
         EmView(em.name, em.active, em.online, em.configured, em.last_report == cur,
                em.last_report[1] if em.last_report else 0, em.command_request, em.blocked, em.starved,
-               em.stale_reports)
+               em.stale_reports, *answers.get(em.name, none))
         for em in unit.equipment.modules.values()
     )  # fmt: skip
+
+
+def stack_light(unit: UnitView, state: int) -> StackLightView:
+    """The stack light in ``state`` with the unit's alarms now (core/stacklight.py)."""
+    light = unit.config.stack_light
+    current = unit.alarms.current.values()
+    alarms = [ev for ev in current if ev.trigger and ev.kind is AlarmKind.ALARM]
+    shown = light.show(
+        state,
+        frozenset(ev.category for ev in alarms),
+        any(ev.ack_time is None and ev.kind is AlarmKind.ALARM for ev in current),
+        any(ev.trigger and ev.kind is AlarmKind.WARNING for ev in current),
+    )
+    return StackLightView(light.lights, shown.modes, shown.horn)
 
 
 def build_status(unit: UnitView, time: float, state: State, sequence: int) -> StatusView:
@@ -190,7 +229,7 @@ def build_status(unit: UnitView, time: float, state: State, sequence: int) -> St
     other fields are the unit's current ones."""
     requested = unit.state_requested(state)
     in_execute = state is S.EXECUTE
-    eq = unit.equipment
+    eq, recipes = unit.equipment, unit.recipes
     remote = tuple(
         RemoteInterfaceView(ri.number, *unit.remote_commands.get(ri.number, (0, 0)))
         for ri in unit.config.remote_interfaces
@@ -228,6 +267,13 @@ def build_status(unit: UnitView, time: float, state: State, sequence: int) -> St
         unacknowledged_alarms=unit.alarms.unacknowledged_count(),
         alarm_banner=unit.alarms.banner(),
         stop_reason_id=unit.stop_reason.id if unit.stop_reason else 0,
+        recipe_current=recipes.current.id,
+        recipe_current_name=recipes.current.name,
+        recipe_requested=recipes.requested,
+        recipe_change_in_process=recipes.in_process,
+        recipe_changeover=recipes.order,
+        recipe_result=recipes.result,
+        stack_light=stack_light(unit, state),
     )
 
 

@@ -583,6 +583,9 @@ def document_problem(d: Any) -> str | None:
         problem = _event_problem(d["stop_reason"])
         if problem:
             return f"stop_reason: {problem}"
+    recipe = d.get("recipe_current", 0)
+    if not isinstance(recipe, int) or isinstance(recipe, bool) or not 0 <= recipe <= INT32_MAX:
+        return f"recipe_current is {recipe!r} (not a recipe ID)"[:200]
     for key in ("mach_speed", "saved_at"):
         if not isinstance(d.get(key, 0.0), _NUMBER):
             return f"{key} is not a number"

@@ -27,6 +27,9 @@ class Reason(IntEnum):
     NOTHING_TO_DO = 17
     INTERLOCK_ACTIVE = 18
     NOT_SUPPORTED = 19
+    RECIPE_UNKNOWN = 20
+    RECIPE_NOT_ALLOWED = 21
+    RECIPE_CHANGE_IN_PROCESS = 22
 
 
 class Answer(NamedTuple):

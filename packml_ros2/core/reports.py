@@ -34,8 +34,11 @@ from .numbers import Cmd, State
 from .rules import NUM_CATEGORIES
 
 #: EmReport.KIND_* -> name (packml_interfaces/msg/EmReport; a test keeps them equal).
-KINDS = ("heartbeat", "state_complete", "command_request", "interlock", "count", "alarm", "leave")
-HEARTBEAT, STATE_COMPLETE, COMMAND_REQUEST, INTERLOCK, COUNT, ALARM, LEAVE = range(len(KINDS))
+KINDS = ("heartbeat", "state_complete", "command_request", "interlock", "count", "alarm", "leave",
+         "recipe")  # fmt: skip
+HEARTBEAT, STATE_COMPLETE, COMMAND_REQUEST, INTERLOCK, COUNT, ALARM, LEAVE, RECIPE = range(
+    len(KINDS)
+)
 #: The longest lease a heartbeat may announce (seconds).
 MAX_LEASE = 3600.0
 _FIRST = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz_")
@@ -91,6 +94,8 @@ def report_problem(msg: Any, sequence: int) -> str | None:
             return (
                 f"category {msg.category} is neither -1 (as configured) nor 0..{NUM_CATEGORIES - 1}"
             )
+        return text_problem("message", msg.message)
+    if kind == RECIPE:  # (the order's number is checked by the unit: a stale one changes nothing)
         return text_problem("message", msg.message)
     return f"kind {kind} is not a report kind (0..{len(KINDS) - 1}: {', '.join(KINDS)})"
 

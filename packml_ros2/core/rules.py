@@ -386,6 +386,7 @@ class Watch(IntFlag):
     EM_MISSING = 4  #: an active EM whose loss is not ignored is offline
     ALARM = 8  #: an active alarm with a reaction
     INTERLOCK = 16  #: a line interlock holds the unit
+    RECIPE = 32  #: a recipe changeover is in process
 
 
 class Alert:
@@ -414,6 +415,7 @@ class Situation(Protocol):
     def blocking_alarm(self, blocked: Mapping[int, frozenset[Cmd]], cmd: int) -> str | None: ...
     def interlock_reasons(self) -> list[str]: ...
     def mode_change_text(self) -> str: ...
+    def recipe_change_text(self) -> str: ...
 
 
 @dataclass(frozen=True)
@@ -449,6 +451,10 @@ def _alarm(s: Situation, cmd: int, source: str) -> str | None:
     return s.blocking_alarm(BLOCKED_BY_REACTION, cmd)
 
 
+def _recipe(s: Situation, cmd: int, source: str) -> str | None:
+    return s.recipe_change_text() or None
+
+
 def _interlock(s: Situation, cmd: int, source: str) -> str | None:
     return "; ".join(s.interlock_reasons()) or None
 
@@ -467,6 +473,12 @@ GUARDS: tuple[Guard, ...] = (
         Watch.MODE_CHANGE, True,
         "{command} refused in {where}: {detail}",
         _mode_change,
+    ),
+    Guard(
+        "recipe", Reason.RECIPE_CHANGE_IN_PROCESS, frozenset(COMMANDS) - FAULT_COMMANDS,
+        Watch.RECIPE, False,
+        "{command} refused in {where}: {detail} (only Stop and Abort pass)",
+        _recipe,
     ),
     Guard(
         "em_missing", Reason.EM_MISSING, MOTION, Watch.EM_MISSING, False,

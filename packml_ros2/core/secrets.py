@@ -31,7 +31,7 @@ import hmac
 import os
 import re
 import secrets
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -243,10 +243,15 @@ def redact(document: Any) -> Any:
 
 
 @functools.lru_cache(maxsize=4)  # the launcher gives every unit of a cell the same text
-def redacted_yaml(text: str, file: str = "<memory>") -> str:
+def redacted_yaml(
+    text: str, file: str = "<memory>", transform: Callable[[Any], Any] | None = None
+) -> str:
     """The cell file ``text`` as YAML with its secrets redacted (what units publish on ``~/config``
-    and bags record); raises :class:`~.schema.ConfigError` when ``text`` is not a document."""
+    and bags record), ``transform`` applied to the document; raises
+    :class:`~.schema.ConfigError` when ``text`` is not a document."""
     from .safe_yaml import parse_document
 
     document = redact(parse_document(text, file))
+    if transform is not None:
+        document = transform(document)
     return str(yaml.safe_dump(document, sort_keys=False, allow_unicode=True))

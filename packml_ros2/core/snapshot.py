@@ -81,6 +81,7 @@ NOT_STATE: Mapping[str, str] = {
     "Publication._alarms": "the unit's AlarmManager",
     "Publication._deadlines": "the unit's Deadlines",
     "Publication._emit": "the unit's queue",
+    "Recipes.book": "the configuration",
 }
 
 
@@ -208,6 +209,7 @@ def capture(unit: Unit) -> dict[str, Any]:
             "heap": [[when, order, kind.name.lower(), _plain(data)] for when, order, kind, data in dl.heap],
             "counter": dl._counter,
         },
+        "recipes": unit.recipes.to_dict(),
         "publication": {
             "status_key": list(pub.status_key),
             "status_due": pub.status_due,
@@ -234,6 +236,7 @@ _DEADLINE_DATA: Mapping[Due, Callable[[Any], Any]] = {
     Due.MODE_TIMEOUT: int,
     Due.SAVE: float,
     Due.ADMIN: float,
+    Due.RECIPE_TIMEOUT: int,
     Due.STATUS: lambda d: None,
     Due.LAMP_OFF: lambda d: None,
     Due.ADMIN_CHANGE: lambda d: None,
@@ -401,6 +404,9 @@ def _restore(unit: Unit, d: Mapping[str, Any]) -> None:
     dl.heap = heap
     dl.next_due = heap[0][0] if heap else math.inf
     dl._counter = int(d["deadlines"]["counter"])
+
+    if "recipes" in d:  # (snapshots before recipes: none current, no changeover)
+        unit.recipes.restore(d["recipes"])
 
     p, pub = d["publication"], unit.publication
     pub.status_key = tuple(int(x) for x in p["status_key"])

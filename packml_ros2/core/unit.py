@@ -18,6 +18,7 @@ A :class:`Unit` is composed of its inputs by concern, each in its own module:
   switched active);
 - :mod:`.alarm_inputs`: alarms raised, cleared, acknowledged and reset;
 - :mod:`.tag_inputs`: Admin and Command tags (times, counters, speed, parameters, products);
+- :mod:`.recipe_inputs`: recipe changes and the EMs' answers to a changeover (:mod:`.recipes`);
 - :mod:`.deadline_handlers`: what falls due on its own (timeouts, dwell, coalesced and periodic
   status, admin and saves);
 - :mod:`.unit_views`: the status and admin views built on request.
@@ -37,12 +38,13 @@ from .deadline_handlers import DeadlineHandlers
 from .em_inputs import EquipmentInputs
 from .machine import Stats, StatusMark, Transition, Trigger
 from .reasons import Answer
+from .recipe_inputs import RecipeInputs
 from .requests import CommandRequest, CompleteReport, ModeRequest, Request
 from .tag_inputs import TagInputs
 from .unit_views import UnitViews
 
 
-class Unit(EquipmentInputs, AlarmInputs, TagInputs, DeadlineHandlers, UnitViews):
+class Unit(EquipmentInputs, AlarmInputs, TagInputs, RecipeInputs, DeadlineHandlers, UnitViews):
     """One PackML unit. ``Unit(config, clock)``; optionally a :class:`~.persistence.Store`.
 
     Inputs are methods (:meth:`command`, :meth:`set_mode`, :meth:`em_complete`, ...) answering

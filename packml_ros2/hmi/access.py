@@ -14,7 +14,7 @@
 - ``operator`` runs the line: state commands (Abort included), acknowledging and resetting alarms,
   the machine speed;
 - ``maintenance`` changes how the units run: unit modes (Maintenance, Manual), equipment modules
-  active or inactive;
+  active or inactive, the recipe (a changeover: at least a mode change's weight);
 - ``engineer`` erases records: resets of counters and of the state and mode times (OEE data).
 
 Reading needs nothing. An action above the caller's level is refused (HTTP 403,
@@ -67,6 +67,7 @@ UNIT_ACTION_LEVEL: Mapping[str, str] = {
     "set_mach_speed": OPERATOR,
     "set_mode": MAINTENANCE,
     "set_em_active": MAINTENANCE,
+    "set_recipe": MAINTENANCE,
     "reset_counters": ENGINEER,
     "reset_times": ENGINEER,
 }

@@ -11,6 +11,10 @@ The page draws each unit's state diagram from the unit's compiled rules (:func:`
 the model's edges, each mode's edges and disabled states), and shows why a command or mode change
 is not available now (:mod:`.why`, recomputed on every status and alarm list: event ``why``),
 and why a cell command is not (the cell status' ``why``, from the coordinator's CellStatus).
+Recipes (issue 32): each unit's recipes are in its config (:func:`.recipes.recipe_config`), the
+recipe in use, the changeover and each EM's answer in its status, and why a recipe change is not
+available now in its ``why`` (``recipe``); ``set_recipe`` takes ``{recipe_id}`` or
+``{recipe_name}``.
 
 Actions go to the units' (and the coordinator's) services with source
 :func:`.access.command_source` (``hmi:<user>``); each returns the service's answer as a dict
@@ -64,6 +68,7 @@ from .access import (
     command_source,
     level_refusal,
 )
+from .recipes import EM_ANSWERS, recipe_config, recipe_reason, set_recipe_args
 
 Event = dict[str, Any]
 Listener = Callable[[Event], None]
@@ -150,6 +155,17 @@ def status_dict(s: Any) -> dict[str, Any]:
         "unacknowledged_alarms": s.unacknowledged_alarms,
         "alarm_banner": s.alarm_banner,
         "stop_reason_id": s.stop_reason_id,
+        "recipe_current": s.recipe_current,
+        "recipe_current_name": s.recipe_current_name,
+        "recipe_requested": s.recipe_requested,
+        "recipe_change_in_process": s.recipe_change_in_process,
+        "recipe_changeover": s.recipe_changeover,
+        "recipe_result": s.recipe_result,
+        "stack_light": {
+            "colors": list(s.stack_light.colors),
+            "modes": [int(m) for m in s.stack_light.modes],
+            "horn": s.stack_light.horn,
+        },
         "parameters": [
             {"id": d.id, "name": d.name, "unit": d.unit, "value": d.value} for d in s.parameter
         ],
@@ -168,6 +184,9 @@ def status_dict(s: Any) -> dict[str, Any]:
                 "blocked": e.blocked,
                 "starved": e.starved,
                 "stale_reports": e.stale_reports,
+                "recipe_answer": e.recipe_answer,
+                "recipe_answer_name": EM_ANSWERS.get(e.recipe_answer, str(e.recipe_answer)),
+                "recipe_message": e.recipe_message,
             }
             for e in s.equipment_modules
         ],
@@ -331,6 +350,7 @@ def unit_config_dict(name: str, u: UnitConfig) -> dict[str, Any]:
         ],
         "equipment_modules": [e.name for e in u.equipment_modules],
         "mach_design_speed": u.mach_design_speed,
+        **recipe_config(u),
     }
 
 
@@ -410,7 +430,7 @@ class Bridge:
                 "transitions": [],
                 "online": False,
                 "presence": presence_dict(started),
-                "why": why.reasons(cell.units[name], None, None, self._why_source),
+                "why": self._reasons(name, None, None),
             }
             for name in cell.units
         }
@@ -562,13 +582,22 @@ class Bridge:
             unit[topic] = data
             self._emit({"topic": topic, "unit": name, "data": data, "received": received})
             if topic in ("status", "alarms"):
-                reasons = why.reasons(
-                    self.cell.units[name], unit["status"], unit["alarms"], self._why_source
-                )
+                reasons = self._reasons(name, unit["status"], unit["alarms"])
                 if reasons != unit["why"]:
                     unit["why"] = reasons
                     self._emit({"topic": "why", "unit": name, "data": reasons,
                                 "received": received})  # fmt: skip
+
+    def _reasons(
+        self, name: str, status: dict[str, Any] | None, alarms: dict[str, Any] | None
+    ) -> dict[str, Any]:
+        """The unit's ``why`` (:func:`.why.reasons`) and ``recipe``: why a recipe change is not
+        available now (:func:`.recipes.recipe_reason`, '' = it is)."""
+        config = self.cell.units[name]
+        return {
+            **why.reasons(config, status, alarms, self._why_source),
+            "recipe": recipe_reason(config, status, self._why_source),
+        }
 
     def gone(self, unit: str | None) -> str:
         """Why ``unit`` (None: the coordinator) cannot be called now ('' = it can)."""
@@ -773,6 +802,10 @@ def _set_em_active(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
     return "set_em_active", {"em": em, "active": _flag(args, "active", True)}
 
 
+def _set_recipe(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
+    return "set_recipe", set_recipe_args(args)
+
+
 def _set_mach_speed(args: dict[str, Any]) -> tuple[str, dict[str, Any]]:
     _only(args, "mach_speed")
     speed = args.get("mach_speed")
@@ -797,5 +830,6 @@ UNIT_ACTIONS: dict[str, Builder] = {
     "reset_counters": _reset_counters,
     "set_em_active": _set_em_active,
     "set_mach_speed": _set_mach_speed,
+    "set_recipe": _set_recipe,
 }
 CELL_ACTIONS: dict[str, Builder] = {"command": _command, "set_mode": _set_mode}

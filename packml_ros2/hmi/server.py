@@ -12,8 +12,11 @@ forbids it):
   ``MAX_STREAMS - OPERATOR_STREAMS`` in all (429/503 beyond); ``?ticket=`` from ``POST
   /api/events/ticket`` (authorized, used once within 30 s) opens one of the streams kept for
   operators who have logged in; a page of another origin opens none (403);
+- ``GET /api/units/{unit}/recipes``: the unit's recipes (also in the config) and the recipe in
+  use, the changeover and each EM's answer as its last status shows them;
 - ``POST /api/units/{unit}/{action}`` (command, set_mode, ack_alarms, reset_alarms, reset_times,
-  reset_counters, set_em_active, set_mach_speed) and ``POST /api/cell/{action}`` (command,
+  reset_counters, set_em_active, set_mach_speed, set_recipe ``{recipe_id}`` or
+  ``{recipe_name}``) and ``POST /api/cell/{action}`` (command,
   set_mode through the coordinator), JSON body with the action's arguments: the unit's answer
   ``{accepted, result, result_name, message, ...}`` (200 also when the unit refuses);
 - ``POST /api/auth``: 200 with ``{user, level}`` when the credential is good (or none is
@@ -233,6 +236,20 @@ def create_app(bridge: Bridge, allowed_hosts: Iterable[str] = ()) -> FastAPI:
     @app.get("/api/snapshot")
     async def snapshot() -> Json:
         return Json(bridge.snapshot())
+
+    @app.get("/api/units/{unit}/recipes")
+    async def recipes(unit: str) -> Json:
+        found = next((u for u in bridge.config["units"] if u["name"] == unit), None)
+        if found is None:
+            return refuse(Refusal(404, Reason.INVALID_ARGUMENT, "NOT_FOUND", "no such unit"))
+        status = bridge.snapshot()["units"][unit]["status"] or {}
+        keys = ("recipes", "recipe_states", "recipe_timeout")
+        now = {k: v for k, v in status.items() if k.startswith("recipe_")}
+        ems = [
+            {k: e[k] for k in ("name", "recipe_answer", "recipe_answer_name", "recipe_message")}
+            for e in status.get("equipment_modules", ())
+        ]
+        return Json({"unit": unit, **{k: found[k] for k in keys}, **now, "equipment_modules": ems})
 
     @app.post("/api/events/ticket")
     async def events_ticket(request: Request) -> Json:

@@ -74,6 +74,11 @@ class StatusSituation:
                 return f"alarm {label} with reaction {command_name(reaction)}"
         return None
 
+    def recipe_change_text(self) -> str:
+        if not self.status.get("recipe_change_in_process"):
+            return ""
+        return f"the changeover to recipe {self.status.get('recipe_requested', 0)} is in process"
+
     def interlock_reasons(self) -> list[str]:
         s = self.status
         return [w for w, on in (("blocked", s.get("blocked")), ("starved", s.get("starved"))) if on]

@@ -33,12 +33,19 @@ from ..core.limits import speed_limit, speed_refusal
 from ..core.numbers import Cmd
 from ..presence import Presence, Seen
 from .config import OpcUaConfig
-from .mapping import COMMAND_METHODS, GOOD, RESULT_NAMES, result_status
+from .mapping import COMMAND_METHODS, EXTENSION_METHODS, GOOD, RESULT_NAMES, result_status
 from .nodeset import MethodDef, PackMLModel
 from .security import command_source, may_call, refuse
 
 #: The unit services the methods use (clients are created before spinning starts).
-USED_SERVICES = ("command", "set_mode", "set_mach_speed", "set_unit_parameters", "set_product")
+USED_SERVICES = (
+    "command",
+    "set_mode",
+    "set_mach_speed",
+    "set_unit_parameters",
+    "set_product",
+    "set_recipe",
+)
 #: The unit topics followed: the Admin message carries the alarm lists too.
 FOLLOWED = ("status", "admin")
 S = ua.StatusCodes
@@ -275,13 +282,14 @@ class Methods:
         handlers["SetMachSpeed"] = self._set_mach_speed
         handlers["SetParameter"] = self._set_parameter
         handlers["SetProduct"] = self._set_product
+        handlers["SetRecipe"] = self._set_recipe
         return {path: self._callback(path, handler) for path, handler in handlers.items()}
 
     def _callback(self, path: str, handler: Handler) -> Callback:
         folder = path.rpartition("/")[0]
         owner = ua.NodeId(f"{self.unit}.{folder.replace('/', '.')}" if folder else self.unit,
                           INSTANCE_NS)  # fmt: skip
-        method = self.model.method(path)
+        method = EXTENSION_METHODS.get(path) or self.model.method(path)
 
         async def call(parent: ua.NodeId, *args: Any) -> ua.CallMethodResult:
             if parent != owner:  # OPC UA Part 4: the method must be a component of the object
@@ -378,3 +386,13 @@ class Methods:
     def _set_product(self, values: list[Any]) -> tuple[str, Steps]:
         product = [product_msg(p) for p in values[0]]
         return "SetProduct", [("set_product", {"product": product})]
+
+    def _set_recipe(self, values: list[Any]) -> tuple[str, Steps] | ua.CallMethodResult:
+        """SetRecipe(SelectedRecipe): the unit's ``set_recipe`` by ID; Good = the changeover was
+        accepted as a request (it runs after the answer: Status/RecipeChangeInProcess, then
+        RecipeCurrent or, when an EM refused, RecipeResult says why and the recipe stays)."""
+        (recipe,) = values
+        if recipe <= 0:
+            text = f"SetRecipe({recipe}): SelectedRecipe is the ID of a recipe, 1 or more"
+            return refuse(S.BadInvalidArgument, "INVALID_ARGUMENT", text, [S.BadOutOfRange])
+        return f"SetRecipe({recipe})", [("set_recipe", {"recipe_id": recipe, "recipe_name": ""})]

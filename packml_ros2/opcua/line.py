@@ -4,8 +4,9 @@ the coordinator's ``line/losses`` and ``line/episodes`` topics. Read-only (no me
 
 Variables (server namespace): ``Window`` (String: ``shift:2025-06-16 early``), ``OEE``,
 ``Availability``, ``Performance``, ``Quality`` (Double, 0..1; Performance is NaN without a design
-speed), the waterfall in seconds (Double): ``Elapsed``, ``PlannedStop``, ``UnplannedStop``,
-``Blocked``, ``Starved``, ``Held``, ``Running``, ``SpeedLoss``, ``QualityLoss``, ``Productive``;
+speed), the waterfall in seconds (Double): ``Elapsed``, ``PlannedStop``, ``Changeover``,
+``UnplannedStop``, ``Blocked``, ``Starved``, ``Held``, ``Running``, ``SpeedLoss``, ``QualityLoss``,
+``Productive`` (they add up to ``Elapsed``, ``Running`` aside);
 ``Processed``, ``Defective`` (Int64); and ``CurrentEpisode`` with ``Open`` (Boolean), ``Id``
 (UInt32), ``Start`` (DateTime), ``DurationSeconds`` (Double), ``RootCauseUnit``, ``Bucket``,
 ``Reason``, ``Source`` (String), ``AffectedUnits`` (String[]): the open episode, else the last
@@ -22,10 +23,13 @@ from typing import Any
 
 from asyncua import Server, ua
 
+from ..core.line.losses import times_ns
+
 _logger = logging.getLogger(__name__)
 NS = 1  # the server's own namespace (the units' objects are there too)
 NANO = 1_000_000_000
-#: variable -> (variant type, LossScope field in ns or value field)
+#: variable -> (variant type, LossScope field: a part of its time in ns (``<part>_ns``, of
+#: :func:`~packml_ros2.core.line.losses.times_ns`) or a value)
 LOSSES: dict[str, tuple[ua.VariantType, str]] = {
     "OEE": (ua.VariantType.Double, "oee"),
     "Availability": (ua.VariantType.Double, "availability"),
@@ -33,6 +37,7 @@ LOSSES: dict[str, tuple[ua.VariantType, str]] = {
     "Quality": (ua.VariantType.Double, "quality"),
     "Elapsed": (ua.VariantType.Double, "elapsed_ns"),
     "PlannedStop": (ua.VariantType.Double, "planned_stop_ns"),
+    "Changeover": (ua.VariantType.Double, "changeover_ns"),
     "UnplannedStop": (ua.VariantType.Double, "unplanned_stop_ns"),
     "Blocked": (ua.VariantType.Double, "blocked_ns"),
     "Starved": (ua.VariantType.Double, "starved_ns"),
@@ -148,10 +153,9 @@ class LineFace:
         when = _time(msg.stamp)
         line = msg.scopes[0]
         await self._set("Window", ua.VariantType.String, msg.window, when)
+        parts = times_ns(line)  # (the changeover is its own part, out of planned_stop_ns)
         for name, (vtype, field) in LOSSES.items():
-            value = getattr(line, field)
-            if field.endswith("_ns"):
-                value = value / NANO
+            value = parts[field[:-3]] / NANO if field.endswith("_ns") else getattr(line, field)
             await self._set(name, vtype, value, when)
 
     async def _episode(self, msg: Any) -> None:

@@ -13,7 +13,12 @@ follows (OPC 30050 v1.01 names)::
     Status.StateCurrent               BaseStateMachine/.../CurrentState/Number (+ Status/StateCurrent)
     Status.StateRequested             Status/StateRequested
     Status.StateChangeInProcess       Status/StateChangeInProcess
-    Status.EquipmentInterlock.Blocked Status/EquipmentBlocked (Starved likewise)
+    Status.EquipmentInterlock.Blocked Status/EquipmentBlocked (Starved likewise), and
+                                      Status/EquipmentInterlock/Blocked (v2 draft, our namespace)
+    Status.StackLight[#]              Status/StackLight (UInt32[], v2 draft; Colors: String[])
+    Status.RecipeCurrent              Status/RecipeCurrent (RecipeRequested,
+                                      RecipeChangeInProcess likewise; v2 draft, our namespace)
+    Status.Recipe[#]                  Status/Recipe/Recipe_<ID>/... (:func:`recipe_members`)
     Admin.Alarm[#] / AlarmExtent      Admin/Alarm (PackMLAlarmDataType[]) / Admin/AlarmExtent
     Admin.ProdProcessedCount[#]       Admin/ProdProcessedCount (PackMLCountDataType[])
     Admin.StateCurrentTime[m,s]       Admin/StateCurrentTime (Int32[32,18])
@@ -30,8 +35,10 @@ from typing import Any
 from asyncua import ua
 
 from ..core.numbers import Cmd
+from ..core.recipes import ParamType, Recipe
+from ..core.stacklight import Shown, encode_opcua
 from .available import Graph
-from .nodeset import PackMLModel, TransitionDef
+from .nodeset import ArgumentDef, MethodDef, PackMLModel, TransitionDef
 
 UNECE_URI = "http://www.opcfoundation.org/UA/units/un/cefact"
 #: Engineering units of counters and descriptors -> UN/CEFACT Recommendation 20 common codes.
@@ -260,6 +267,7 @@ def version(model_name: str) -> str:
 # -- whole messages --------------------------------------------------------------------------------
 I32, F, B = ua.VariantType.Int32, ua.VariantType.Float, ua.VariantType.Boolean
 EO = ua.VariantType.ExtensionObject
+U32, D, STR = ua.VariantType.UInt32, ua.VariantType.Double, ua.VariantType.String
 
 
 def status_values(msg: Any, model: PackMLModel, packml_ns: int) -> dict[str, Value]:
@@ -283,9 +291,133 @@ def status_values(msg: Any, model: PackMLModel, packml_ns: int) -> dict[str, Val
         "Status/Product": Value([product(p) for p in msg.product], EO),
         "Status/RemoteParameter": Value([remote_interface(r) for r in msg.remote_interface], EO),
         "Status/StateCurrent": Value(int(msg.state_current), I32),
+        **draft_status_values(msg),
     }
     out.update(state_machine_values(model, msg.state_current, packml_ns))
     return out
+
+
+def draft_status_values(msg: Any) -> dict[str, Value]:
+    """The OPC 30050 v2 draft's Status members this server adds in its own namespace (besides
+    StateCurrent): EquipmentInterlock {Blocked, Starved}, StackLight (UInt32[]:
+    :func:`packml_ros2.core.stacklight.encode_opcua`, the colours in its Colors property) and the
+    recipe in use."""
+    light = msg.stack_light
+    shown = Shown(tuple(int(m) for m in light.modes), bool(light.horn))
+    return {
+        "Status/EquipmentInterlock/Blocked": Value(bool(msg.equipment_interlock.blocked), B),
+        "Status/EquipmentInterlock/Starved": Value(bool(msg.equipment_interlock.starved), B),
+        "Status/StackLight": Value(encode_opcua(shown), U32),
+        "Status/StackLight/Colors": Value([str(c) for c in light.colors], STR),
+        "Status/RecipeCurrent": Value(int(msg.recipe_current), I32),
+        "Status/RecipeRequested": Value(int(msg.recipe_requested), I32),
+        "Status/RecipeChangeInProcess": Value(bool(msg.recipe_change_in_process), B),
+        "Status/RecipeResult": Value(str(msg.recipe_result), STR),
+    }
+
+
+# -- the unit's recipes (Status/Recipe) ------------------------------------------------------------
+#: A parameter type -> the v2 draft's array name and the variable's type.
+PARAMETER_ARRAYS: Mapping[ParamType, tuple[str, ua.VariantType]] = {
+    ParamType.REAL: ("Parameter_REAL", F),
+    ParamType.LREAL: ("Parameter_LREAL", D),
+    ParamType.DINT: ("Parameter_DINT", I32),
+    ParamType.STRING: ("Parameter_STRING", STR),
+}
+#: One level of a member's path: (browse name, the part of its NodeId).
+Level = tuple[str, str]
+
+
+@dataclass(frozen=True)
+class Member:
+    """A node below ``Status/Recipe``: an object (``value`` None), a variable, or a property of
+    the variable above it (``prop``). Parents come before their children."""
+
+    path: tuple[Level, ...]
+    value: Value | None = None
+    prop: bool = False
+    description: str = ""
+
+
+def _parameter_members(base: tuple[Level, ...], params: Sequence[Any]) -> list[Member]:
+    """The four typed arrays of the draft's PackMLProcessVariablesDataType (or
+    PackMLIngredientsDataType) as objects, one variable per parameter: its value (Float, Double,
+    Int32 or String), properties ID and Unit. The browse name is the parameter's name (made
+    unique with its ID when two share it, ``Parameter_<ID>`` when it has none); the NodeId part
+    its ID (unique per recipe list: the configuration checks it)."""
+    out: list[Member] = []
+    for ptype, (array, vtype) in PARAMETER_ARRAYS.items():
+        folder = (*base, (array, array))
+        out.append(Member(folder, description=f"{array}: the parameters of type {ptype.name}"))
+        items = [p for p in params if p.type is ptype]
+        names = [p.name for p in items]
+        for p in items:
+            name = (
+                p.name if p.name and names.count(p.name) == 1 else f"{p.name or 'Parameter'}_{p.id}"
+            )
+            value = p.text if ptype is ParamType.STRING else p.value
+            if ptype is ParamType.DINT:
+                value = int(value)
+            at = (*folder, (name, str(p.id)))
+            text = f"{p.name or name} ({ptype.name}{', ' + p.unit if p.unit else ''})"
+            out.append(Member(at, Value(value, vtype), description=text))
+            out.append(Member((*at, ("ID", "ID")), Value(int(p.id), I32), prop=True))
+            out.append(Member((*at, ("Unit", "Unit")), Value(p.unit, STR), prop=True))
+    return out
+
+
+def recipe_members(recipes: Iterable[Recipe]) -> list[Member]:
+    """A unit's recipes as nodes a generic client browses and reads without decoding a custom
+    structure (the draft's ``Recipe`` is a ``PackMLRecipeDataType[]`` of a v2 namespace this v1.01
+    server cannot have)::
+
+        Recipe_<ID>                        object, one per recipe, in ID order
+          ID Int32, Name String, Unit String, PrimaryQty Float
+          ProcessVariables
+            Parameter_REAL / Parameter_LREAL / Parameter_DINT / Parameter_STRING
+              <name>                       Float / Double / Int32 / String; properties ID, Unit
+          Ingredients
+            Ingredient_<IngredientID>
+              IngredientID Int32, Parameter_REAL ... as above
+    """
+    out: list[Member] = []
+    for recipe in sorted(recipes, key=lambda r: r.id):
+        base: tuple[Level, ...] = ((f"Recipe_{recipe.id}", str(recipe.id)),)
+        out.append(Member(base, description=f"recipe {recipe.label}"))
+        for name, value in (
+            ("ID", Value(int(recipe.id), I32)),
+            ("Name", Value(recipe.name, STR)),
+            ("Unit", Value(recipe.unit, STR)),
+            ("PrimaryQty", Value(float(recipe.primary_qty), F)),
+        ):
+            out.append(Member((*base, (name, name)), value))
+        pv = (*base, ("ProcessVariables", "ProcessVariables"))
+        out.append(Member(pv, description="the recipe's process variables"))
+        out += _parameter_members(pv, recipe.process_variables)
+        ingredients = (*base, ("Ingredients", "Ingredients"))
+        out.append(Member(ingredients, description="the recipe's ingredients"))
+        seen: set[str] = set()
+        for i, ingredient in enumerate(recipe.ingredients):
+            key = str(ingredient.ingredient_id)
+            key = key if key not in seen else f"{key}_{i}"
+            seen.add(key)
+            at = (*ingredients, (f"Ingredient_{key}", key))
+            out.append(Member(at, description=f"ingredient {ingredient.ingredient_id}"))
+            out.append(
+                Member(
+                    (*at, ("IngredientID", "IngredientID")), Value(ingredient.ingredient_id, I32)
+                )
+            )
+            out += _parameter_members(at, ingredient.parameters)
+    return out
+
+
+#: Methods this server adds to each unit object (its own namespace): the recipe change, TR88's
+#: Command.SelectedRecipe + RecipeChangeRequest in one call, as SetUnitMode is UnitMode +
+#: UnitModeChangeRequest (the v2 draft has no method for it).
+EXTENSION_METHODS: Mapping[str, MethodDef] = {
+    "SetRecipe": MethodDef("SetRecipe", 0, (ArgumentDef("SelectedRecipe", (0, I32.value), -1),)),
+}
 
 
 def _matrix(values: Sequence[int], columns: int) -> tuple[list[int], tuple[int, ...]]:
@@ -368,6 +500,9 @@ RESULTS = {
     17: ("NOTHING_TO_DO", _S.BadNothingToDo),
     18: ("INTERLOCK_ACTIVE", _S.BadInvalidState),
     19: ("NOT_SUPPORTED", _S.BadNotSupported),
+    20: ("RECIPE_UNKNOWN", _S.BadNotFound),  # no such recipe in the unit's recipes
+    21: ("RECIPE_NOT_ALLOWED", _S.BadInvalidState),  # not in a state that allows a changeover
+    22: ("RECIPE_CHANGE_IN_PROCESS", _S.BadInvalidState),  # a changeover runs
 }
 RESULT_NAMES = {code: name for code, (name, _) in RESULTS.items()}
 

@@ -12,7 +12,9 @@ type's instance declarations (the object type's own declarations first, then tho
 child's type definition and its supertypes) and the Optional ones this server supports
 (:data:`OPTIONAL`), recursively, with the declarations' browse names, data types, value ranks
 and defaults. The state machine methods (Abort ... ToComplete) are Optional in the NodeSet and
-offered; RemoteCommand, SetInterlock, MaterialInterlock are not.
+offered; RemoteCommand, SetInterlock, MaterialInterlock are not. The Status object gets the v2
+draft members of :data:`STATUS_EXTENSIONS` and the unit object SetRecipe, in the server's own
+namespace (the v1.01 model stays as the official NodeSet has it).
 
 The instances live in the server's own namespace (``urn:packml_ros2:<cell>``, index 1) with string
 NodeIds ``<unit>.<path>`` (e.g. ``filler.Status.StateRequested``). :class:`UnitNodes` maps the
@@ -22,7 +24,7 @@ relative browse paths used by :mod:`.mapping` (``Status/StateRequested``,
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -30,8 +32,8 @@ from asyncua import Server, ua
 from asyncua.common.manage_nodes import create_data_type
 from asyncua.common.ua_utils import get_node_supertypes
 
-from .mapping import Step
-from .nodeset import NODESET, PACKML_URI, PackMLModel, load
+from .mapping import EXTENSION_METHODS, Member, Step
+from .nodeset import NODESET, PACKML_URI, MethodDef, PackMLModel, load
 
 I = ua.ObjectIds  # noqa: E741
 #: Optional instance declarations the units get (paths relative to the unit object). Every
@@ -52,10 +54,35 @@ OPTIONAL = frozenset(
 #: Optional declarations this server does not offer (no counterpart in the units' services).
 NOT_OFFERED = frozenset({"RemoteCommand", "SetInterlock"})
 
-#: Variables this implementation adds to the Status object, in the server's own namespace.
-STATUS_EXTENSIONS: tuple[tuple[str, int, str], ...] = (
-    ("StateCurrent", I.Int32, "PackTags Status.StateCurrent: the TR88 state number (packml_ros2 extension)"),
-)  # fmt: skip
+#: What this implementation adds to the Status object, in the server's own namespace (the
+#: OPC 30050 v2 draft's names, so the v1.01 model stays as the official NodeSet has it): path below
+#: Status, DataType (None: an object), ValueRank, description. A child of a variable is a property.
+_X = "(OPC 30050 v2 draft, packml_ros2 extension)"
+STATUS_EXTENSIONS: tuple[tuple[str, int | None, int, str], ...] = (
+    ("StateCurrent", I.Int32, -1, f"PackTags Status.StateCurrent: the TR88 state number {_X}"),
+    ("EquipmentInterlock", None, -1, f"EquipmentInterlock {{Blocked, Starved}} {_X}"),
+    ("EquipmentInterlock/Blocked", I.Boolean, -1, "downstream cannot take material"),
+    ("EquipmentInterlock/Starved", I.Boolean, -1, "upstream cannot deliver material"),
+    (
+        "StackLight",
+        I.UInt32,
+        1,
+        "one UInt32 per light, top to bottom: bits 0-1 the mode (0 off, 1 on, 2 blink); bit 2 of "
+        f"the first element: the horn {_X}",
+    ),
+    ("StackLight/Colors", I.String, 1, "the colour of each light of StackLight, top to bottom"),
+    ("RecipeCurrent", I.Int32, -1, f"the ID of the recipe in use (0 = none) {_X}"),
+    ("RecipeRequested", I.Int32, -1, f"the ID of the recipe requested last (0 = none) {_X}"),
+    ("RecipeChangeInProcess", I.Boolean, -1, f"a changeover runs {_X}"),
+    ("RecipeResult", I.String, -1, "how the last changeover ended ('' = none yet; extension)"),
+    ("Recipe", None, -1, f"the unit's recipes, one object each (Recipe_<ID>) {_X}"),
+)
+#: The description of SetRecipe (:data:`.mapping.EXTENSION_METHODS`).
+SET_RECIPE_TEXT = (
+    "Change the unit's recipe (Command.SelectedRecipe + RecipeChangeRequest of TR88): the "
+    "changeover runs across the unit's EMs after a Good answer; follow it in Status/RecipeCurrent, "
+    "RecipeChangeInProcess, RecipeResult (packml_ros2 extension)"
+)
 
 
 def wanted(path: str, node_class: ua.NodeClass) -> bool:
@@ -276,10 +303,12 @@ class AddressSpace:
         version: str,
         extra_steps: Mapping[Step, str],
         callbacks: Mapping[str, Callable[..., Any]],
+        recipes: Sequence[Member] = (),
     ) -> UnitNodes:
         """One unit: ``Objects/PackMLObjects/<unit>`` of PackMLBaseObjectType. ``callbacks``: method
         path (``BaseStateMachine/Abort``, ``SetUnitMode``) -> async callback; ``extra_steps``:
-        transitions of the unit's rules the NodeSet lacks -> the method that causes them."""
+        transitions of the unit's rules the NodeSet lacks -> the method that causes them;
+        ``recipes``: the nodes below Status/Recipe (:func:`.mapping.recipe_members`)."""
         u = self.u
         root = await self._add(
             ua.NodeClass.Object, ua.NodeId(unit, u), ua.QualifiedName(unit, u),
@@ -302,18 +331,120 @@ class AddressSpace:
         }
         for path, value in constants.items():
             await self.server.write_attribute_value(nodes.variables[path], ua.DataValue(value))
-        status = ua.NodeId(f"{unit}.Status", u)
-        for name, dtype, text in STATUS_EXTENSIONS:
-            path = f"Status/{name}"
-            nodes.variables[path] = await self.var(
-                ua.NodeId(f"{unit}.{path.replace('/', '.')}", u), ua.QualifiedName(name, u),
-                status, ua.NodeId(dtype), description=text,
-            )  # fmt: skip
+        await self._status_extensions(nodes, recipes)
+        for name, definition in EXTENSION_METHODS.items():
+            await self._method(nodes, name, root, definition, callbacks[name], SET_RECIPE_TEXT)
         await self._extra_transitions(nodes, extra_steps)
         waiting = ua.DataValue(StatusCode=ua.StatusCode(ua.StatusCodes.BadWaitingForInitialData))
         for path in variable_paths(nodes):
             await self.server.write_attribute_value(nodes.variables[path], waiting)
         return nodes
+
+    async def _status_extensions(self, nodes: UnitNodes, recipes: Sequence[Member]) -> None:
+        """:data:`STATUS_EXTENSIONS` and the recipe tree (constants: not in ``nodes.variables``,
+        so they keep their value while the unit is lost)."""
+        u, unit = self.u, nodes.unit
+        parents: dict[str, ua.NodeId] = {"": ua.NodeId(f"{unit}.Status", u)}
+        for path, dtype, rank, text in STATUS_EXTENSIONS:
+            folder, _, name = path.rpartition("/")
+            nodeid = ua.NodeId(f"{unit}.Status.{path.replace('/', '.')}", u)
+            bname, parent = ua.QualifiedName(name, u), parents[folder]
+            if dtype is None:
+                parents[path] = await self._add(
+                    ua.NodeClass.Object,
+                    nodeid,
+                    bname,
+                    parent,
+                    I.HasComponent,
+                    ua.ObjectAttributes(),
+                    I.BaseObjectType,
+                    text,
+                )
+                continue
+            prop = f"Status/{folder}" in nodes.variables
+            parents[path] = nodes.variables[f"Status/{path}"] = await self.var(
+                nodeid,
+                bname,
+                parent,
+                ua.NodeId(dtype),
+                rank=rank,
+                typedef=I.PropertyType if prop else I.BaseDataVariableType,
+                ref=I.HasProperty if prop else I.HasComponent,
+                description=text,
+            )
+        folders: dict[tuple[str, ...], ua.NodeId] = {(): parents["Recipe"]}
+        for member in recipes:
+            key = tuple(part for _, part in member.path)
+            nodeid = ua.NodeId(f"{unit}.Status.Recipe.{'.'.join(key)}", u)
+            bname, parent = ua.QualifiedName(member.path[-1][0], u), folders[key[:-1]]
+            if member.value is None:
+                folders[key] = await self._add(
+                    ua.NodeClass.Object,
+                    nodeid,
+                    bname,
+                    parent,
+                    I.HasComponent,
+                    ua.ObjectAttributes(),
+                    I.BaseObjectType,
+                    member.description,
+                )
+                continue
+            folders[key] = await self.var(
+                nodeid,
+                bname,
+                parent,
+                ua.NodeId(member.value.vtype.value),
+                ua.Variant(member.value.value, member.value.vtype),
+                typedef=I.PropertyType if member.prop else I.BaseDataVariableType,
+                ref=I.HasProperty if member.prop else I.HasComponent,
+                description=member.description,
+            )
+
+    async def _method(
+        self,
+        nodes: UnitNodes,
+        name: str,
+        parent: ua.NodeId,
+        definition: MethodDef,
+        callback: Callable[..., Any],
+        description: str,
+    ) -> None:
+        """A method of this server's own (``<unit>.<name>``) with its InputArguments."""
+        attrs = ua.MethodAttributes()
+        attrs.Executable = attrs.UserExecutable = True
+        nodeid = ua.NodeId(f"{nodes.unit}.{name}", self.u)
+        node = await self._add(
+            ua.NodeClass.Method,
+            nodeid,
+            ua.QualifiedName(name, self.u),
+            parent,
+            I.HasComponent,
+            attrs,
+            None,
+            description,
+        )
+        arguments = [
+            ua.Argument(
+                Name=a.name,
+                DataType=ua.NodeId(a.data_type[1], self.p if a.data_type[0] else 0),
+                ValueRank=a.value_rank,
+                ArrayDimensions=[],
+                Description=ua.LocalizedText(a.name),
+            )
+            for a in definition.arguments
+        ]
+        await self.var(
+            ua.NodeId(f"{nodes.unit}.{name}.InputArguments", self.u),
+            ua.QualifiedName("InputArguments", 0),
+            node,
+            ua.NodeId(I.Argument),
+            ua.Variant(arguments, ua.VariantType.ExtensionObject),
+            1,
+            I.PropertyType,
+            I.HasProperty,
+        )
+        nodes.methods[name] = node
+        self.server.link_method(self.server.get_node(node), callback)
 
     async def _extra_transitions(self, nodes: UnitNodes, steps: Mapping[Step, str]) -> None:
         """TransitionType objects in the unit's machines for ``steps`` (the instance's own

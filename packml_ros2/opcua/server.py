@@ -46,6 +46,7 @@ from .mapping import (
     lost_status,
     method_paths,
     nodeset_transitions,
+    recipe_members,
     status_values,
     transition_steps,
     utc,
@@ -239,6 +240,7 @@ class PackMLServer:
                 version(unit.table.model),
                 extra_steps(space, unit),
                 methods.callbacks(),
+                recipe_members(unit.recipes.recipes.values()),
             )
             machines = tuple(m.path for m in space.model.machines)
             for path, method in nodes.methods.items():

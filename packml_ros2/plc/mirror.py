@@ -137,6 +137,9 @@ class PlcSituation:
     def mode_change_text(self) -> str:
         return "a mode change is in process at the PLC"
 
+    def recipe_change_text(self) -> str:
+        return ""  # (OPC 30050 v1.01 has no recipes: the PLC guards its own changeover)
+
 
 @dataclass
 class Mirror:

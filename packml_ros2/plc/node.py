@@ -211,7 +211,7 @@ class PlcUnitNode(GuardedNode):
         # the unit's outputs (a unit's config and /diagnostics stay while the PLC is gone)
         self._unit_pubs = {
             t.name: interface.create_publisher(self, t.name, lease=self.unit_lease)
-            for t in interface.topics(interface.Role.OUTPUT)
+            for t in interface.topics(interface.Role.OUTPUT, interface.Role.DERIVED)
         }
         self._last.clear()
 

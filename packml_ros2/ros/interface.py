@@ -27,6 +27,8 @@ from packml_interfaces.msg import (
     Admin,
     AlarmList,
     EmReport,
+    RecipeOrder,
+    StackLight,
     Status,
     TransitionEvent,
     UnitInput,
@@ -45,6 +47,7 @@ from packml_interfaces.srv import (
     SetMachSpeed,
     SetMode,
     SetProduct,
+    SetRecipe,
     SetRemoteCommands,
     SetUnitParameters,
 )
@@ -63,6 +66,10 @@ class Role(Enum):
 
     OUTPUT = "output"  #: the unit publishes what its engine decided (replay compares it)
     RECORD = "record"  #: the unit publishes what a recording needs to replay it
+    #: the unit publishes what follows from its outputs (a recording keeps it; replay compares
+    #: the outputs it follows from: the changeover orders' recipes and answers are in the status
+    #: and the input log, the stack light in the status)
+    DERIVED = "derived"
     INPUT = "input"  #: the unit subscribes: its EMs publish
     DIAGNOSTIC = "diagnostic"  #: the unit publishes for the standard tools (not recorded)
 
@@ -144,6 +151,10 @@ TOPICS: tuple[Topic, ...] = (
           plc=True),
     Topic("alarms", AlarmList, qos.ALARMS, Role.OUTPUT,
           "the alarm and warning lists with first-out (latched)", plc=True),
+    Topic("recipe", RecipeOrder, qos.LATCHED, Role.DERIVED,
+          "changeover orders to the EMs: the recipe to apply or roll back to (latched)"),
+    Topic("stack_light", StackLight, qos.LATCHED, Role.DERIVED,
+          "the stack light: lights and horn, on change (latched)", plc=True),
     Topic("em_reports", EmReport, qos.EM_REPORTS, Role.INPUT,
           "EM -> unit: registration, State Complete, counts, alarms, goodbyes"),
     Topic("snapshot", UnitSnapshot, qos.SNAPSHOT, Role.RECORD,
@@ -178,6 +189,8 @@ SERVICES: tuple[Service, ...] = (
     Service("set_mach_speed", SetMachSpeed, "the machine speed set point"),
     Service("set_unit_parameters", SetUnitParameters, "PackTags parameters"),
     Service("set_product", SetProduct, "PackTags products"),
+    Service("set_recipe", SetRecipe, "change the recipe: a changeover across the EMs",
+            "changing recipes"),
     Service("set_em_active", SetEmActive, "switch an EM active or inactive (ModuleActive)",
             "switching equipment modules"),
     Service("set_interlock", SetInterlock, "a line interlock from outside (suspends the unit)"),
@@ -188,7 +201,7 @@ SERVICES: tuple[Service, ...] = (
 
 TOPIC: Mapping[str, Topic] = {t.name: t for t in TOPICS}
 #: The unit's topics its EMs follow (besides publishing its inputs): the unit's state.
-EM_FOLLOWS: tuple[str, ...] = ("status",)
+EM_FOLLOWS: tuple[str, ...] = ("status", "recipe")
 SERVICE: Mapping[str, Service] = {s.name: s for s in SERVICES}
 
 

@@ -13,6 +13,7 @@ import yaml
 from packml_ros2.core import Cmd, ConfigError, Mode, State, load_cell, parse_cell
 from packml_ros2.core.config import _UNIT_KEYS as UNIT_KEYS
 from packml_ros2.core.config import CELL_KEYS, ArraySizes, SystemAlarms
+from packml_ros2.core.line.config import KEYS as LINE_KEYS
 
 REPO = Path(__file__).resolve().parents[2]
 REFERENCE = REPO / "config" / "reference_cell.yaml"
@@ -326,7 +327,8 @@ def test_reference_cell_shows_every_option() -> None:
         i = next(i for i, line in enumerate(lines) if i > start and re.match(rf"  {key}:", line))
         documented(lines, i, key)
     # the line block (issue 19): every key of its parser, each documented
-    line = {"order", "output_unit", "shifts", "timezone", "store", "publish_period"}
+    line = set(LINE_KEYS)  # every key of its parser
+    assert {"publish_period", "changeover_modes"} <= line
     assert {f"line.{k}" for k in line} <= keys
     assert {"line.shifts.early.days", "line.shifts.early.breaks[].name"} <= keys
     start = lines.index("line:")

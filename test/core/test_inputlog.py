@@ -19,6 +19,9 @@ UNIT = {
     "alarms": [{"id": 7, "message": "jam", "category": 6}],
     "counters": {"processed": [{"id": 1}]},
     "remote_commands_enabled": True,
+    "recipes": [
+        {"id": 1, "name": "a", "process_variables": [{"id": 1, "type": "dint", "value": 3}]}
+    ],
 }
 
 
@@ -47,6 +50,8 @@ def drive_every_input(unit: Unit, clock: FakeClock) -> None:
     unit.em_complete("em1", unit.state, unit.sequence)
     unit.set_mode("maintenance")
     unit.em_complete("em1", unit.state, unit.sequence)
+    assert unit.set_recipe(1, "", "operator").accepted
+    assert unit.em_recipe("em1", unit.recipes.order, True).accepted
     unit.set_em_active("em1", False)
     unit.reset_times(all_times=False)
     unit.reset_counters()

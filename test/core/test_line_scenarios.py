@@ -24,7 +24,16 @@ import pytest
 from packml_ros2.core import Cmd, Reason, State
 from packml_ros2.core.line import inputs
 from packml_ros2.core.line.ledger import Ledger
-from packml_ros2.core.line.losses import BLOCKED, PLANNED, RUNNING, STARVED, UNPLANNED, summarize
+from packml_ros2.core.line.losses import (
+    BLOCKED,
+    CHANGEOVER,
+    PLANNED,
+    RUNNING,
+    STARVED,
+    UNPLANNED,
+    Totals,
+    summarize,
+)
 from packml_ros2.core.line.performance import Performance
 from packml_ros2.core.line.store import LineStore
 from test.core.line_sim import NS, T0, SimEm, SimLine
@@ -91,7 +100,8 @@ def times(summary: Any) -> dict[tuple[str, str], int]:
 
 def check_waterfall(x: Any, elapsed: int) -> None:
     assert x.elapsed == elapsed
-    assert x.planned + x.unplanned + x.blocked + x.starved + x.held + x.running == elapsed
+    parts = (x.planned, x.changeover, x.unplanned, x.blocked, x.starved, x.held, x.running)
+    assert sum(parts) == elapsed
     assert x.speed_loss + x.quality_loss + x.productive == x.running
 
 
@@ -204,6 +214,105 @@ def test_planned_stop_over_a_break_is_planned_and_the_cell_is_its_root() -> None
         for x in b.values():
             check_waterfall(x, s(90))
         assert b["line"].planned_production == s(90 - 20 - 11.5)
+
+
+def changeover_doc(mode: str, **line: Any) -> dict[str, Any]:
+    """The cell with a user mode ``mode`` (5) on the filler, entered and left in Stopped."""
+    doc = cell_doc(**line)
+    doc["units"]["filler"]["modes"] = {
+        mode: {
+            "number": 5,
+            "disabled_states": ["suspend"],
+            "mode_change_states": ["Stopped", "Idle"],
+        }
+    }
+    return doc
+
+
+def changeover_run(doc: dict[str, Any]) -> SimLine:
+    """A cell STOP (planned) at 20.5, the filler in mode 5 from 23 to 31, then back to
+    Production, a cell RESET at 32 and START at 35 (the line produces again at 37)."""
+    sim = started(doc)
+    sim.at(20.5, lambda: sim.cell_command(Cmd.STOP))
+    u, d = sim.units["filler"], sim.drivers["filler"]
+
+    def mode(number: int) -> None:
+        assert d.call(sim.t, u.set_mode, number, "operator").accepted
+        d.call(sim.t, u.em_complete, "infeed", int(u.state), u.sequence)  # its EM acknowledges
+        assert u.mode == number
+
+    sim.at(23, lambda: mode(5))
+    sim.at(31, lambda: mode(1))
+    sim.at(32, lambda: sim.cell_command(Cmd.RESET))
+    sim.at(35, lambda: sim.cell_command(Cmd.START))
+    sim.run_until(40)
+    return sim
+
+
+def test_a_changeover_mode_is_its_own_planned_bucket_of_the_unit_and_the_line() -> None:
+    """Issue "Recipes and changeover": a unit's time in a changeover mode is the bucket
+    ``changeover`` (not planned_stop), planned time: out of the planned production time of the
+    unit and of the line (whose time is the changeover while a unit changes over, inside the
+    episode of the cell STOP)."""
+    sim = changeover_run(changeover_doc("changeover"))
+    cell_stop = "cell STOP (operator)"
+    b = buckets(sim)
+    # filler: Stopping 20.5-21.5, Stopped to 23, CHANGEOVER 23-31, Stopped 31-33 (packer resets
+    # first), Resetting 33-34, Idle 34-36, Starting 36-37, Execute from 37
+    assert times(b["filler"]) == {
+        (RUNNING, ""): s(14.5 + 3),
+        (UNPLANNED, "unit restarted"): s(6),
+        (PLANNED, cell_stop): s(1 + 1.5 + 2 + 2),
+        (UNPLANNED, cell_stop): s(1 + 1),
+        (CHANGEOVER, "CHANGEOVER mode"): s(8),
+    }
+    assert CHANGEOVER not in {bucket for bucket, _ in times(b["packer"])}
+    # the line: the episode of the cell STOP (20.5-37) is a changeover while the filler is in it
+    assert times(b["line"]) == {
+        (RUNNING, ""): s(14.5 + 3),
+        (UNPLANNED, "filler: unit restarted"): s(6),
+        (PLANNED, f"cell: {cell_stop}"): s(37 - 20.5 - 8),
+        (CHANGEOVER, "filler: CHANGEOVER mode"): s(8),
+    }
+    f, line = b["filler"], b["line"]
+    assert (f.changeover, line.changeover) == (s(8), s(8))
+    assert (line.planned, line.planned_production) == (s(8.5), s(40 - 8.5 - 8))
+    assert line.availability == s(17.5) / s(23.5) and line.oee == line.productive / s(23.5)
+    assert f.planned_production == s(40 - 6.5 - 8) and f.availability == s(17.5) / s(25.5)
+    for x in b.values():
+        check_waterfall(x, s(40))
+
+
+@pytest.mark.parametrize(
+    ("mode", "line", "bucket"),
+    [
+        ("format_change", {"changeover_modes": ["Format_Change"]}, CHANGEOVER),
+        ("changeover", {"changeover_modes": []}, PLANNED),
+        ("cleaning", {}, PLANNED),
+    ],
+)
+def test_the_changeover_modes_are_the_lines_choice(
+    mode: str, line: dict[str, Any], bucket: str
+) -> None:
+    """``line.changeover_modes`` names them (case-insensitive); default: ``changeover``."""
+    sim = changeover_run(changeover_doc(mode, **line))
+    b = buckets(sim)
+    assert times(b["filler"])[(bucket, f"{mode.upper()} mode")] == s(8)
+    assert b["filler"].changeover == b["line"].changeover == (s(8) if bucket == CHANGEOVER else 0)
+    for x in b.values():
+        check_waterfall(x, s(40))
+
+
+def test_a_summary_counts_the_changeover_as_planned_time() -> None:
+    totals = Totals()
+    for bucket, ns in ((RUNNING, s(50)), (PLANNED, s(10)), (CHANGEOVER, s(20)), (UNPLANNED, s(20))):
+        totals.add_time(bucket, "why", ns)
+    totals.add_count(50, 5, s(50), s(45))
+    x = summarize("", totals, 60.0)
+    assert (x.elapsed, x.planned, x.changeover) == (s(100), s(10), s(20))
+    assert x.planned_production == s(100 - 10 - 20)
+    assert x.availability == 50 / 70 and x.oee == 45 / 70 and x.quality == 0.9
+    assert [b for b, _, _ in x.buckets] == [RUNNING, PLANNED, CHANGEOVER, UNPLANNED]
 
 
 def test_replaying_the_input_log_reproduces_episodes_and_facts_exactly() -> None:

@@ -62,7 +62,7 @@ def test_each_action_needs_a_level_as_a_plc_hmi_splits_them() -> None:
     assert {a for a, lvl in UNIT_ACTION_LEVEL.items() if lvl == "operator"} == {
         "command", "ack_alarms", "reset_alarms", "set_mach_speed"}  # fmt: skip
     assert {a for a, lvl in UNIT_ACTION_LEVEL.items() if lvl == "maintenance"} == {
-        "set_mode", "set_em_active"}  # fmt: skip
+        "set_mode", "set_em_active", "set_recipe"}  # fmt: skip
     assert {a for a, lvl in UNIT_ACTION_LEVEL.items() if lvl == "engineer"} == {
         "reset_counters", "reset_times"}  # fmt: skip
     assert CELL_ACTION_LEVEL == {"command": "operator", "set_mode": "maintenance"}

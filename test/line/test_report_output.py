@@ -10,12 +10,14 @@ from __future__ import annotations
 import csv
 import datetime as dt
 import io
+import json
 import re
 
 from packml_interfaces.msg import LineDeparture, LineEpisode, LineLosses, LossBucket, LossScope
 
 from packml_ros2 import line_msgs
 from packml_ros2.cli import report
+from packml_ros2.core.line.losses import Totals, summarize
 
 NS = 1_000_000_000
 T0 = 1_750_060_800  # 2025-06-16 08:00 UTC
@@ -90,3 +92,64 @@ def test_the_episodes_csv_and_table_list_each_affected_unit_once() -> None:
     episode_line = text.split("STOP EPISODES", 1)[1].splitlines()[-1]
     assert episode_line.count("robot_cell") == 2, text  # the root cause and the affected unit
     assert episode_line.endswith("robot_cell (internal, propagated), case_packer (starved)")
+
+
+def test_the_changeover_is_its_own_bucket_in_the_report_table_csv_and_json() -> None:
+    """Issue "Recipes and changeover": the line's summary (core) through LossScope (whose
+    planned_stop_ns holds all planned time) to what ``packml report`` prints: the changeover is
+    its own planned bucket, out of planned_stop, and out of the planned production time."""
+    totals = Totals()
+    for bucket, reason, seconds in (
+        ("running", "", 60),
+        ("planned_stop", "break: lunch", 10),
+        ("changeover", "filler: CHANGEOVER mode", 20),
+        ("unplanned_stop", "filler: alarm 202: Infeed jam", 10),
+    ):
+        totals.add_time(bucket, reason, seconds * NS)
+    totals.add_count(60, 0, 60 * NS, 60 * NS)
+    line = summarize("", totals, 60.0)
+    scope_msg = line_msgs.scope_msg(line, 60.0)
+    assert scope_msg.planned_stop_ns == 30 * NS  # the message's planned time: both
+    msg = LineLosses(
+        cell="demo_cell",
+        window="lifetime",
+        start=line_msgs.stamp(T0 * NS),
+        end=line_msgs.stamp((T0 + 100) * NS),
+        scopes=[scope_msg],
+    )
+    data = json.loads(json.dumps(line_msgs.losses_dict(msg)))  # what --format json prints
+    (s,) = data["scopes"]
+    assert s["nanoseconds"] == {
+        "elapsed": 100 * NS,
+        "planned_stop": 10 * NS,
+        "changeover": 20 * NS,
+        "unplanned_stop": 10 * NS,
+        "blocked": 0,
+        "starved": 0,
+        "held": 0,
+        "running": 60 * NS,
+        "speed_loss": 0,
+        "quality_loss": 0,
+        "productive": 60 * NS,
+    }
+    assert (s["planned_stop"], s["changeover"]) == (10.0, 20.0)
+    assert s["availability"] == 60 / 70 and s["oee"] == 60 / 70  # 100 s - 10 s - 20 s planned
+    changeover = {"bucket": "changeover", "reason": "filler: CHANGEOVER mode", "seconds": 20.0}
+    assert changeover in s["buckets"]
+    text = report.table("demo_cell", data, [], 0)
+    head, row = (re.split(r"\s{2,}", x.strip()) for x in text.splitlines()[1:3])
+    columns = dict(zip(head, row, strict=True))
+    assert (columns["PLANNED"], columns["CHANGEOVER"], columns["OEE"]) == (
+        "0:00:10.0",
+        "0:00:20.0",
+        "85.7%",
+    ), text
+    losses = text.split("LOSSES OF THE LINE", 1)[1]
+    assert re.search(
+        r"^\s+changeover\s+filler: CHANGEOVER mode\s+0:00:20\.0\s+20\.0%$", losses, re.M
+    ), text
+    rows = list(csv.DictReader(io.StringIO(report.to_csv(data))))
+    assert [(r["reason"], r["seconds"]) for r in rows if r["bucket"] == "changeover"] == [
+        ("filler: CHANGEOVER mode", "20.000")
+    ]
+    assert sum(float(r["seconds"]) for r in rows if r["bucket"] != "elapsed") == 100.0

@@ -256,6 +256,63 @@ def test_status_values() -> None:
     assert changing["Status/UnitModeChangeInProcess"].value is True  # v1.01 name
 
 
+def test_v2_draft_status_members() -> None:
+    """StackLight: one UInt32 per light (bits 0-1 the mode, bit 2 of the first the horn), the
+    colours alongside; EquipmentInterlock {Blocked, Starved}; the recipe in use."""
+    msg = _status(recipe_current=2, recipe_requested=3, recipe_change_in_process=True)
+    msg.stack_light.colors = ["red", "amber", "green"]
+    msg.stack_light.modes = [0, 2, 1]
+    msg.stack_light.horn = True
+    msg.recipe_result = "refused by gripper"
+    v = status_values(msg, MODEL, P)
+    assert v["Status/StackLight"] == mapping.Value([0b100, 2, 1], ua.VariantType.UInt32)
+    assert v["Status/StackLight/Colors"].value == ["red", "amber", "green"]
+    assert v["Status/EquipmentInterlock/Blocked"].value is True
+    assert v["Status/EquipmentInterlock/Starved"].value is False
+    assert v["Status/RecipeCurrent"] == mapping.Value(2, ua.VariantType.Int32)
+    assert v["Status/RecipeRequested"].value == 3
+    assert v["Status/RecipeChangeInProcess"] == mapping.Value(True, ua.VariantType.Boolean)
+    assert v["Status/RecipeResult"].value == "refused by gripper"
+    dark = status_values(_status(), MODEL, P)
+    assert dark["Status/StackLight"].value == [] and dark["Status/RecipeCurrent"].value == 0
+
+
+def test_recipe_members_are_plain_typed_nodes(tmp_path: Path) -> None:
+    from test.recipe_cell import write_recipe_cell
+
+    unit = load_cell(write_recipe_cell(tmp_path, "c")).units["filler"]
+    members = {
+        "/".join(name for name, _ in m.path): (m.value, m.prop)
+        for m in mapping.recipe_members(unit.recipes.recipes.values())
+    }
+    T = ua.VariantType
+    assert members["Recipe_1"] == (None, False)  # an object
+    assert members["Recipe_1/ID"] == (mapping.Value(1, T.Int32), False)
+    assert members["Recipe_1/Name"][0] == mapping.Value("cola 0.5", T.String)
+    assert members["Recipe_1/PrimaryQty"][0] == mapping.Value(1200.0, T.Float)
+    pv = "Recipe_1/ProcessVariables"
+    assert members[f"{pv}/Parameter_REAL/fill_volume"][0] == mapping.Value(500.0, T.Float)
+    assert members[f"{pv}/Parameter_REAL/fill_volume/Unit"] == (mapping.Value("ml", T.String), True)
+    assert members[f"{pv}/Parameter_REAL/fill_volume/ID"] == (mapping.Value(1, T.Int32), True)
+    assert members[f"{pv}/Parameter_STRING/label"][0] == mapping.Value("COLA-500", T.String)
+    assert members[f"{pv}/Parameter_DINT/valves"][0] == mapping.Value(12, T.Int32)
+    assert members[f"{pv}/Parameter_LREAL"] == (None, False)  # every array, even an empty one
+    syrup = "Recipe_1/Ingredients/Ingredient_7/Parameter_LREAL/syrup_ratio"
+    assert members[syrup][0] == mapping.Value(12.5, T.Double)
+    assert members["Recipe_1/Ingredients/Ingredient_7/IngredientID"][0].value == 7
+    assert members["Recipe_2/ProcessVariables/Parameter_STRING/label"][0].value == "AQUA-1000"
+    # NodeId parts are IDs: unique even when two parameters share a name (browse names made so)
+    from packml_ros2.core.recipes import Param, ParamType, Recipe
+
+    twins = Recipe(
+        9, "x", process_variables=(Param(1, "a"), Param(2, "a"), Param(3, type=ParamType.DINT))
+    )
+    names = ["/".join(n for n, _ in m.path) for m in mapping.recipe_members([twins])]
+    real = "Recipe_9/ProcessVariables/Parameter_REAL"
+    assert {f"{real}/a_1", f"{real}/a_2"} <= set(names)
+    assert "Recipe_9/ProcessVariables/Parameter_DINT/Parameter_3" in names
+
+
 def _alarm(id_: int, trigger: bool = True, acked: bool = False) -> Alarm:
     a = Alarm(id=id_, value=1, message=f"alarm {id_}", category=2, trigger=trigger)
     a.stamp = Time(sec=1_700_000_000, nanosec=250_000_000)
@@ -315,6 +372,14 @@ def test_refusals_map_to_bad_status_codes() -> None:
     assert mapping.result_status(False, 5) == S.BadOutOfRange  # MODE_UNKNOWN
     assert mapping.result_status(False, 16) == S.BadUserAccessDenied
     assert mapping.result_status(False, 99) == S.BadInvalidState
+    assert mapping.result_status(False, 20) == S.BadNotFound  # RECIPE_UNKNOWN
+    assert mapping.result_status(False, 21) == S.BadInvalidState  # RECIPE_NOT_ALLOWED
+    assert mapping.RESULT_NAMES[22] == "RECIPE_CHANGE_IN_PROCESS"
+    # every reason the units answer has a name and a status code here
+    from packml_interfaces.msg import Result
+
+    codes = {v for k, v in vars(Result).items() if k.isupper() and isinstance(v, int) and v > 0}
+    assert codes <= set(mapping.RESULTS), codes - set(mapping.RESULTS)
     assert all(ua.StatusCode(code).is_bad() for _, code in mapping.RESULTS.values())
 
 

@@ -30,6 +30,11 @@
 //   {"op": "write", "path": P, "value": {"type": "Int32", "value": 1}[, "attribute": "Value"]}
 //        {status} of the node's write (a ServiceFault: {error})
 //   {"op": "namespaces"}                           Server/Namespaces: uri, version, publication date
+//   {"op": "watch", "path": P, "name": N}          a subscription that records every value of P for
+//        the rest of the job, from the first notification on (answered once that arrived, so a
+//        later step cannot change P unseen): {value, status}
+//   {"op": "watched", "name": N, "until": "<JS expression of seen (the values so far)>"[, "timeout": ms]}
+//        ... until the expression holds: {seen}
 // Prints {"ok": true, "results": [...]} or {"ok": false, "error": "...", "results": [...]}.
 
 import fs from "node:fs";
@@ -118,6 +123,7 @@ async function runJob(job) {
         requestedSessionTimeout: 60000,
     });
     let session = null;
+    const watches = new Map(); // name -> {subscription, seen, changed}
     try {
         await client.connect(job.url);
         let identity = undefined;
@@ -154,7 +160,7 @@ async function runJob(job) {
         for (const step of job.steps) {
             const t0 = Date.now();
             try {
-                results.push({ ...(await run(session, step, resolve, client, alias)), ms: Date.now() - t0 });
+                results.push({ ...(await run(session, step, resolve, client, alias, watches)), ms: Date.now() - t0 });
             } catch (err) {
                 results.push({ error: err.message, ms: Date.now() - t0 });
             }
@@ -163,6 +169,7 @@ async function runJob(job) {
     } catch (err) {
         return { ok: false, error: err.message, results };
     } finally {
+        for (const w of watches.values()) await w.subscription.terminate().catch(() => {});
         if (session) await session.close().catch(() => {});
         await client.disconnect().catch(() => {});
     }
@@ -187,8 +194,70 @@ async function argument(session, arg, alias) {
     return new Variant({ dataType: DataType[arg.type], value: arg.value });
 }
 
-async function run(session, step, resolve, client, alias) {
+function subscribe(session) {
+    return ClientSubscription.create(session, {
+        requestedPublishingInterval: 50,
+        requestedLifetimeCount: 1000,
+        requestedMaxKeepAliveCount: 20,
+        publishingEnabled: true,
+    });
+}
+
+async function run(session, step, resolve, client, alias, watches) {
     switch (step.op) {
+        case "watch": {
+            const nodeId = await resolve(step.path);
+            const w = { subscription: subscribe(session), seen: [], changed: () => {} };
+            watches.set(step.name, w);
+            return await new Promise((resolvePromise, reject) => {
+                const timer = setTimeout(() => reject(new Error(`no value of ${step.path}`)), step.timeout ?? 10000);
+                const item = ClientMonitoredItem.create(
+                    w.subscription,
+                    { nodeId, attributeId: AttributeIds.Value },
+                    { samplingInterval: 0, discardOldest: false, queueSize: 1000 },
+                    TimestampsToReturn.Both,
+                );
+                item.on("changed", (dv) => {
+                    const value = plain(dv.value ? dv.value.value : null);
+                    w.seen.push(value);
+                    w.changed();
+                    if (w.seen.length === 1) {
+                        clearTimeout(timer);
+                        resolvePromise({ value, status: dv.statusCode.name });
+                    }
+                });
+                item.on("err", (message) => {
+                    clearTimeout(timer);
+                    reject(new Error(message));
+                });
+            });
+        }
+        case "watched": {
+            const w = watches.get(step.name);
+            if (!w) throw new Error(`no watch ${step.name}`);
+            const until = new Function("seen", `return (${step.until});`);
+            const holds = () => {
+                try {
+                    return Boolean(until(w.seen));
+                } catch {
+                    return false;
+                }
+            };
+            return await new Promise((resolvePromise, reject) => {
+                const timer = setTimeout(() => {
+                    w.changed = () => {};
+                    reject(new Error(`timeout waiting for ${step.until} of ${step.name}; seen ${JSON.stringify(w.seen.slice(-10))}`));
+                }, step.timeout ?? 10000);
+                w.changed = () => {
+                    if (holds()) {
+                        clearTimeout(timer);
+                        w.changed = () => {};
+                        resolvePromise({ seen: w.seen });
+                    }
+                };
+                w.changed();
+            });
+        }
         case "endpoints": {
             const endpoints = await client.getEndpoints();
             return {
@@ -265,12 +334,7 @@ async function run(session, step, resolve, client, alias) {
             const nodeId = await resolve(step.path);
             const want = JSON.stringify(step.value);
             const until = step.until ? new Function("v", "s", `return (${step.until});`) : (v) => JSON.stringify(v) === want;
-            const subscription = ClientSubscription.create(session, {
-                requestedPublishingInterval: 50,
-                requestedLifetimeCount: 1000,
-                requestedMaxKeepAliveCount: 20,
-                publishingEnabled: true,
-            });
+            const subscription = subscribe(session);
             const seen = [];
             try {
                 return await new Promise((resolvePromise, reject) => {

@@ -73,7 +73,9 @@ def test_the_proxies_and_the_recorder_read_the_declaration() -> None:
         assert bag_topics.PUBLISHER_QOS[t.name] == t.qos
     outputs = {t.name for t in interface.topics(interface.Role.OUTPUT)}
     assert set(bag_topics.OUTPUT_TOPICS) == outputs
-    assert set(bag_topics.INPUT_TOPICS) == {t.name for t in recorded} - outputs
+    derived = {t.name for t in interface.topics(interface.Role.DERIVED)}
+    assert set(bag_topics.DERIVED_TOPICS) == derived
+    assert set(bag_topics.INPUT_TOPICS) == {t.name for t in recorded} - outputs - derived
     assert {t.name for t in interface.TOPICS if t.latched} >= set(bag_topics.LATCHED_OUTPUTS)
     for t in interface.TOPICS:  # the type names rosbag2 and `ros2 topic` spell
         assert bag_topics.msg_class(t.type_name) is t.type

@@ -21,6 +21,18 @@ LINE_STORE = "coordinator.line.sqlite3"
 _TIME = re.compile(r"^([01]?\d|2[0-3]):([0-5]\d)(?::([0-5]\d))?$")
 MAX_SHIFTS = 16
 MAX_BREAKS = 16
+#: the keys of the ``line:`` block
+KEYS = (
+    "order",
+    "output_unit",
+    "shifts",
+    "timezone",
+    "store",
+    "publish_period",
+    "changeover_modes",
+)
+#: the modes whose time is a changeover unless the line names others (lower case)
+CHANGEOVER_MODES = ("changeover",)
 
 
 class InterlockLike(Protocol):
@@ -46,6 +58,8 @@ class LineConfig:
     store: str | None = None
     #: seconds between loss summaries published on ``line/losses``
     publish_period: float = 5.0
+    #: names of the modes (lower case) whose time is the ``changeover`` bucket, not planned_stop
+    changeover_modes: tuple[str, ...] = CHANGEOVER_MODES
     calendar: Calendar = field(default_factory=Calendar, compare=False)
 
 
@@ -125,6 +139,19 @@ def _overlaps(shifts: Sequence[Shift]) -> str | None:
     return None
 
 
+def _mode_name(n: Node) -> str:
+    word = sc.text(n).strip().lower()
+    if not word:
+        raise invalid("a mode name cannot be empty")
+    return word
+
+
+def _mode_names(n: Node) -> tuple[str, ...]:
+    """Mode names (case-insensitive: lower case), each once; [] for none."""
+    out = (e.parse(_mode_name, "") for e in n.elements())
+    return tuple(dict.fromkeys(m for m in out if m))
+
+
 def default_order(units: Sequence[str], rules: Sequence[InterlockLike]) -> tuple[str, ...]:
     """Upstream to downstream from the interlock rules (a unit ``blocked`` suspends the units
     upstream of it, ``starved`` those downstream), stable in configuration order otherwise."""
@@ -155,7 +182,7 @@ def parse_line(n: Node, cell: str, units: Sequence[str], rules: Sequence[Interlo
     the line keeps its losses in memory)."""
     if n.value is None:
         n = Node({}, n.path, n.problems)
-    n.check_keys({"order", "output_unit", "shifts", "timezone", "store", "publish_period"})
+    n.check_keys(set(KEYS))
     names = {u: u for u in units}
 
     def order(x: Node) -> tuple[str, ...]:
@@ -210,5 +237,6 @@ def parse_line(n: Node, cell: str, units: Sequence[str], rules: Sequence[Interlo
         timezone=timezone,
         store=store,
         publish_period=n.get("publish_period", sc.number(0.1, 3600.0), 5.0),
+        changeover_modes=n.get("changeover_modes", _mode_names, CHANGEOVER_MODES),
         calendar=Calendar(tuple(shifts), timezone),
     )

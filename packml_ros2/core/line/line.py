@@ -25,7 +25,7 @@ from . import inputs, snapshot
 from .cell import Call, Cell, CellView, Effect
 from .episodes import Episode, Root
 from .ledger import ROLLING, Fact, History, Ledger, MemoryHistory, add_clipped
-from .losses import DOWN, LINE, PLANNED, Summary, Totals, summarize
+from .losses import DOWN, LINE, PLANNED_BUCKETS, Summary, Totals, summarize
 from .performance import AHEAD_WAIT, Performance
 from .sequence import (
     INTERRUPTS_A_SEQUENCE,
@@ -46,7 +46,7 @@ MEMORY_FACTS = 200_000  # facts a line without a store keeps for its queries
 MAX_WINDOWS = 200  # windows one query may ask for (trend, shifts)
 MAX_STEP = 1e7  # s: the widest window of a trend (116 days)
 MAX_EPISODES = 1000
-EPISODE_BUCKETS = (PLANNED, *DOWN)  #: the buckets an episode's root cause can be in
+EPISODE_BUCKETS = (*PLANNED_BUCKETS, *DOWN)  #: the buckets an episode's root cause can be in
 
 
 @dataclass(frozen=True)

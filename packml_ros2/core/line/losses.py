@@ -8,13 +8,16 @@ Every nanosecond of a scope (a unit, or the line) falls into one bucket, with a 
   *speed loss* (the rest of the running time);
 - ``planned_stop``: a break or no shift (the shift calendar), another mode than Production, or
   stopped with a planned stop reason (``planned_stop_ids``, e.g. a cell Stop: 4006);
+- ``changeover``: in a changeover mode (``line.changeover_modes``, default: a mode named
+  ``changeover``), a product changeover; planned like ``planned_stop`` (a break or no shift in
+  it stays ``planned_stop``);
 - ``unplanned_stop``: stopped, aborted, completing ... with the stop reason (an alarm, a command
   and its source, a lost unit ...);
 - ``blocked`` / ``starved``: suspended because the unit cannot discharge / is not fed;
 - ``held``: Holding, Held, Unholding (internal conditions).
 
-OEE = productive / (elapsed - planned stops) = Availability x Performance x Quality with
-A = running / planned production time, P = (count at design speed) / running and
+OEE = productive / (elapsed - planned stops - changeover) = Availability x Performance x Quality
+with A = running / planned production time, P = (count at design speed) / running and
 Q = good / processed.
 """
 
@@ -28,7 +31,10 @@ NS = 1_000_000_000
 RUNNING, PLANNED, UNPLANNED, BLOCKED, STARVED, HELD = (
     "running", "planned_stop", "unplanned_stop", "blocked", "starved", "held",
 )  # fmt: skip
-BUCKETS = (RUNNING, PLANNED, UNPLANNED, BLOCKED, STARVED, HELD)
+CHANGEOVER = "changeover"
+BUCKETS = (RUNNING, PLANNED, CHANGEOVER, UNPLANNED, BLOCKED, STARVED, HELD)
+#: Planned time: not planned production time (not an availability loss).
+PLANNED_BUCKETS = (PLANNED, CHANGEOVER)
 #: Availability losses, in the waterfall's order.
 DOWN = (UNPLANNED, BLOCKED, STARVED, HELD)
 LINE = ""  #: the scope of the line itself (units are named)
@@ -94,6 +100,7 @@ class Summary:
     elapsed: int
     buckets: tuple[tuple[str, str, int], ...]  #: (bucket, reason, ns), largest first per bucket
     planned: int
+    changeover: int
     unplanned: int
     blocked: int
     starved: int
@@ -111,15 +118,15 @@ class Summary:
 
     @property
     def planned_production(self) -> int:
-        return self.elapsed - self.planned
+        return self.elapsed - self.planned - self.changeover
 
     def by_bucket(self, bucket: str) -> dict[str, int]:
         return {r: ns for b, r, ns in self.buckets if b == bucket}
 
 
 def summarize(scope: str, totals: Totals, design_speed: float) -> Summary:
-    """The waterfall of ``totals``; every part is an integer, and elapsed = planned + unplanned
-    + blocked + starved + held + speed loss + quality loss + productive."""
+    """The waterfall of ``totals``; every part is an integer, and elapsed = planned + changeover
+    + unplanned + blocked + starved + held + speed loss + quality loss + productive."""
     per: dict[str, int] = dict.fromkeys(BUCKETS, 0)
     for (bucket, _), ns in totals.time.items():
         per[bucket] = per.get(bucket, 0) + ns
@@ -135,17 +142,66 @@ def summarize(scope: str, totals: Totals, design_speed: float) -> Summary:
         performance = None
     speed_loss = running - net
     quality_loss = net - good
-    planned_production = elapsed - per[PLANNED]
+    planned_production = elapsed - sum(per[b] for b in PLANNED_BUCKETS)
     availability = running / planned_production if planned_production > 0 else 0.0
     quality = (totals.processed - totals.defective) / totals.processed if totals.processed else 0.0
     oee = good / planned_production if planned_production > 0 else 0.0
     ordered = sorted(((b, r, ns) for (b, r), ns in totals.time.items() if ns),
                      key=lambda x: (BUCKETS.index(x[0]), -x[2], x[1]))  # fmt: skip
     return Summary(
-        scope, elapsed, tuple(ordered), per[PLANNED], per[UNPLANNED], per[BLOCKED], per[STARVED],
-        per[HELD], running, speed_loss, quality_loss, good, totals.processed, totals.defective,
-        availability, performance, quality, oee,
-    )  # fmt: skip
+        scope=scope,
+        elapsed=elapsed,
+        buckets=tuple(ordered),
+        planned=per[PLANNED],
+        changeover=per[CHANGEOVER],
+        unplanned=per[UNPLANNED],
+        blocked=per[BLOCKED],
+        starved=per[STARVED],
+        held=per[HELD],
+        running=running,
+        speed_loss=speed_loss,
+        quality_loss=quality_loss,
+        productive=good,
+        processed=totals.processed,
+        defective=totals.defective,
+        availability=availability,
+        performance=performance,
+        quality=quality,
+        oee=oee,
+    )
+
+
+# -- the LossScope message's view (packml_interfaces; read by attribute) -----------------------
+#: the parts of a scope's time, in order (:func:`times_ns`)
+TIMES = (
+    "elapsed",
+    PLANNED,
+    CHANGEOVER,
+    UNPLANNED,
+    BLOCKED,
+    STARVED,
+    HELD,
+    RUNNING,
+    "speed_loss",
+    "quality_loss",
+    "productive",
+)
+
+
+def bucket_ns(buckets: Iterable[Any], bucket: str) -> int:
+    """ns of ``bucket`` in ``buckets`` (LossBucket messages: ``bucket``, ``nanoseconds``)."""
+    return sum(int(b.nanoseconds) for b in buckets if b.bucket == bucket)
+
+
+def times_ns(s: Any) -> dict[str, int]:
+    """The parts of a LossScope message in ns, in :data:`TIMES` order; they add up: elapsed =
+    planned_stop + changeover + unplanned_stop + blocked + starved + held + running, running =
+    speed_loss + quality_loss + productive. The message has no changeover field: its
+    ``planned_stop_ns`` holds all planned time, its ``buckets`` tell the changeover apart."""
+    changeover = bucket_ns(s.buckets, CHANGEOVER)
+    out = {k: changeover if k == CHANGEOVER else int(getattr(s, f"{k}_ns")) for k in TIMES}
+    out[PLANNED] -= changeover
+    return out
 
 
 def total_of(parts: Iterable[Totals]) -> Totals:

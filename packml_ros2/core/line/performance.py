@@ -11,8 +11,9 @@ carry (the StopReason ID, its EMs' Blocked/Starved) and tells the state at first
 time is cut into segments at each step and each change of presence; a segment's bucket is decided
 when it closes (what arrived meanwhile for the same step, such as its stop reason, counts). The
 line produces while every unit is online, in Production and in Execute; its time is running,
-an episode (attributed to the episode's root cause) or, outside episodes, attributed to the first
-unit of the line order that is not running. See :mod:`.episodes` and :mod:`.losses`.
+a changeover while a unit is in a changeover mode, an episode (attributed to the episode's root
+cause) or, outside episodes, attributed to the first unit of the line order that is not running.
+See :mod:`.episodes` and :mod:`.losses`.
 """
 
 from __future__ import annotations
@@ -40,7 +41,17 @@ from .episodes import (
     Root,
 )
 from .ledger import Count, Fact, Ledger, Segment
-from .losses import BLOCKED, HELD, LINE, PLANNED, RUNNING, STARVED, UNPLANNED, at_speed
+from .losses import (
+    BLOCKED,
+    CHANGEOVER,
+    HELD,
+    LINE,
+    PLANNED,
+    RUNNING,
+    STARVED,
+    UNPLANNED,
+    at_speed,
+)
 
 HOLD_STATES = GROUPS["HOLD"]  # (the state groups a configuration names: one declaration)
 SUSPEND_STATES = GROUPS["SUSPEND"]
@@ -203,6 +214,7 @@ class Performance:
             for i, name in enumerate(units)
         }  # fmt: skip
         self.ledger = ledger or Ledger()
+        self.changeover_modes = frozenset(m.lower() for m in config.changeover_modes)
         self.started: int | None = None  #: when the line's accounting began
         self.line_since = 0
         self.producing = False
@@ -263,7 +275,7 @@ class Performance:
                 tr.restart_time = t.time
                 gone = max(tr.since, min(heard, t.time))
                 if tr.online and gone < t.time:  # gone since it was last heard of
-                    self._before(gone)
+                    self._before(gone, self._changeover(tr, tr.step))
                     self._close_unit(tr, gone)
                     tr.online, tr.lost_why = False, "restarted"
                     self._close_unit(tr, t.time)
@@ -385,8 +397,8 @@ class Performance:
         if not tr.online or s is None:
             return UNPLANNED, OFFLINE
         if s.mode != Mode.PRODUCTION:
-            modes = self.units[tr.name].modes
-            return PLANNED, f"{getattr(modes.get(s.mode), 'name', s.mode)} mode"
+            name = self._mode_name(tr, s.mode)
+            return self._mode_bucket(name), f"{name} mode"
         if s.state == State.EXECUTE:
             return RUNNING, ""
         cause = tr.cause
@@ -410,10 +422,16 @@ class Performance:
         return UNPLANNED
 
     def line_class(self) -> tuple[str, str]:
-        """(bucket, reason) of the line's open segment: running, the episode's root cause, or
-        the first unit of the line order that is not running."""
+        """(bucket, reason) of the line's open segment: running; a changeover while a unit (the
+        first of the line order) is in a changeover mode; the episode's root cause; or the first
+        unit of the line order that is not running."""
         if self.producing:
             return RUNNING, ""
+        for name in self.order:
+            tr = self.trackers[name]
+            if tr.online and self._changeover(tr, tr.step):
+                bucket, reason = self.unit_class(tr)
+                return bucket, f"{name}: {reason}"
         if self.episode is not None:
             root = self.episode.root(self.order)
             return root.bucket, f"{root.unit or 'cell'}: {root.reason}"
@@ -423,6 +441,22 @@ class Performance:
                 bucket, reason = self.unit_class(tr)
                 return bucket, f"{name}: {reason}"
         return UNPLANNED, "line"
+
+    def _mode_name(self, tr: Tracker, mode: int) -> str:
+        return str(getattr(self.units[tr.name].modes.get(mode), "name", mode))
+
+    def _mode_bucket(self, name: str) -> str:
+        """The bucket of the time out of Production in mode ``name``: a changeover mode's is
+        ``changeover`` (``line.changeover_modes``), any other's ``planned_stop``."""
+        return CHANGEOVER if name.lower() in self.changeover_modes else PLANNED
+
+    def _changeover(self, tr: Tracker, s: Step | None) -> bool:
+        """Whether ``s`` is a step of ``tr`` in a changeover mode."""
+        return (
+            s is not None
+            and s.mode != Mode.PRODUCTION
+            and self._mode_bucket(self._mode_name(tr, s.mode)) == CHANGEOVER
+        )
 
     def _mode_names(self, tr: Tracker) -> dict[int, str]:
         return {n: getattr(m, "name", str(n)) for n, m in self.units[tr.name].modes.items()}
@@ -441,7 +475,8 @@ class Performance:
             s.trigger, s.command, s.source, s.detail, s.reason_id)  # fmt: skip
         d.label = step_label(s, self._mode_names(tr))
         if s.mode != Mode.PRODUCTION:
-            d.kind, d.bucket = (INTERNAL, PLANNED) if s.trigger >= 0 else (PENDING, PLANNED)
+            d.kind = INTERNAL if s.trigger >= 0 else PENDING
+            d.bucket = self._mode_bucket(self._mode_name(tr, s.mode))
             return
         if s.trigger < 0:
             d.kind = PENDING
@@ -539,7 +574,7 @@ class Performance:
         self._start(now, tr)
         at = max(new.time, tr.since)
         was = tr.producing()
-        self._before(at)
+        self._before(at, tr.online and self._changeover(tr, tr.step) != self._changeover(tr, new))
         self._close_unit(tr, at)
         tr.step = new
         if tr.producing():
@@ -550,7 +585,7 @@ class Performance:
 
     def _presence(self, now: int, tr: Tracker, online: bool, why: str) -> None:
         was = tr.producing()
-        self._before(now)
+        self._before(now, self._changeover(tr, tr.step))
         self._close_unit(tr, now)
         tr.online, tr.lost_why = online, why
         if not online and was:
@@ -585,10 +620,11 @@ class Performance:
         self._facts_out(self._pieces(tr.name, tr.since, at, bucket, reason))
         tr.since = at
 
-    def _before(self, at: int) -> None:
+    def _before(self, at: int, changeover: bool = False) -> None:
         """A unit is about to change at ``at``: the line's segment outside an episode ends (its
-        attribution is the units' as they were)."""
-        if self.started is not None and not self.producing and self.episode is None:
+        attribution is the units' as they were), in an episode too when the change begins or
+        ends a unit's changeover (``changeover``: the line's time is a changeover meanwhile)."""
+        if self.started is not None and not self.producing and (self.episode is None or changeover):
             self._close_line(max(at, self.line_since))
 
     def _close_line(self, at: int) -> None:

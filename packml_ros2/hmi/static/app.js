@@ -8,6 +8,7 @@
 //   banner.js    the header's tabs and the banner every screen has
 //   overview.js  the cell and a card per unit
 //   unit.js      one unit: state diagram (../diagram.js), commands, modes, EMs, records
+//   recipe.js    one unit's recipes: compare, change, the changeover per EM, its result
 //   alarms.js    the alarm list
 //
 // Every button that cannot act says why (a title, and in the answer box when tapped). What a
@@ -21,11 +22,12 @@ import { renderAlarms } from "./app/alarms.js";
 import { renderBanner, renderNav } from "./app/banner.js";
 import { $ } from "./app/dom.js";
 import { renderOverview } from "./app/overview.js";
+import { renderRecipe } from "./app/recipe.js";
 import { S, conn, parseRoute, setRedraw } from "./app/store.js";
 import { connect } from "./app/stream.js";
 import { renderUnit } from "./app/unit.js";
 
-const SCREENS = ["overview", "unit", "alarms"];
+const SCREENS = ["overview", "unit", "recipe", "alarms"];
 
 function renderAll() {
   const { CFG, route } = S;
@@ -39,6 +41,7 @@ function renderAll() {
   renderBanner();
   if (route.screen === "overview") renderOverview();
   else if (route.screen === "unit") renderUnit();
+  else if (route.screen === "recipe") renderRecipe();
   else renderAlarms();
 }
 
@@ -52,6 +55,8 @@ function renderUpdate(ev) {
     if (topic !== "transition" && topic !== "why") renderOverview();
   } else if (route.screen === "unit") {
     if (ev.unit === route.unit) renderUnit(topic === "online" ? null : new Set([topic]));
+  } else if (route.screen === "recipe") {
+    if (ev.unit === route.unit && topic !== "admin" && topic !== "transition") renderRecipe();
   } else if (route.screen === "alarms" && topic !== "transition" && topic !== "cell" && topic !== "why") {
     if (!route.unit || ev.unit === route.unit) renderAlarms();
   }

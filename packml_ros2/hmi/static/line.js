@@ -93,16 +93,18 @@ function pareto(data) {
   });
 }
 
+const PLANNED_COLORS = { "planned stop": "#8a96a3", changeover: "#5b7fa6" };
+
 function waterfall(data) {
   const s = data.shift.scopes[0];
-  const steps = [["planned stop", s.planned_stop], ["unplanned stop", s.unplanned_stop], ["blocked", s.blocked],
+  const steps = [["planned stop", s.planned_stop], ["changeover", s.changeover], ["unplanned stop", s.unplanned_stop], ["blocked", s.blocked],
                  ["starved", s.starved], ["held", s.held], ["speed loss", s.speed_loss], ["quality loss", s.quality_loss]];
   const labels = ["elapsed"], bars = [[0, s.elapsed / 60]], colors = ["#52606d"];
   let level = s.elapsed;
   for (const [name, value] of steps) {
     labels.push(name);
     bars.push([(level - value) / 60, level / 60]);
-    colors.push(name === "planned stop" ? "#8a96a3" : "#e08600");
+    colors.push(PLANNED_COLORS[name] || "#e08600");  // planned time is not a loss: not orange
     level -= value;
   }
   labels.push("productive");
@@ -138,7 +140,7 @@ function episodes(data) {
 }
 
 function losses(data) {
-  const cols = ["elapsed", "planned_stop", "unplanned_stop", "blocked", "starved", "held", "running", "speed_loss", "quality_loss", "productive"];
+  const cols = ["elapsed", "planned_stop", "changeover", "unplanned_stop", "blocked", "starved", "held", "running", "speed_loss", "quality_loss", "productive"];
   $("#losses thead").innerHTML = `<tr><th>Scope</th>${cols.map((c) => `<th class="num">${c.replace("_", " ")}</th>`).join("")}<th class="num">OEE</th></tr>`;
   $("#losses tbody").innerHTML = data.shift.scopes.map((s) => `<tr data-scope="${esc(s.scope)}"><td>${esc(s.scope)}</td>${cols.map((c) => `<td class="num">${dur(s[c])}</td>`).join("")}<td class="num">${pct(s.oee)}</td></tr>`).join("");
 }

@@ -25,6 +25,7 @@ export function ownReasons(r) {
     commands: Object.fromEntries(Object.entries(r.commands).map(([c, v]) => [c, { ...v, text: own(v.text) }])),
     modes: Object.fromEntries(Object.entries(r.modes).map(([m, text]) => [m, own(text)])),
     ems: Object.fromEntries(Object.entries(r.ems || {}).map(([e, text]) => [e, own(text)])),
+    recipe: own(r.recipe || ""),
   };
 }
 

@@ -2,7 +2,7 @@
 // pressing message (the server's connection, a lost unit, an alarm, an unacknowledged one, a
 // warning). The cell's state and mode as its units show them.
 import { coordinatorLost, isLost, lostSince, presenceOf, serverLost } from "./access.js";
-import { $, esc, group, setChip, view } from "./dom.js";
+import { $, esc, group, setChip, stackLight, view } from "./dom.js";
 import { S, ST, conn } from "./store.js";
 
 function alarmCount(name) {
@@ -18,7 +18,7 @@ export function renderNav() {
   const tabs = [`<a href="#/overview" data-screen="overview" class="${route.screen === "overview" ? "active" : ""}">Overview</a>`];
   for (const u of CFG.units) {
     const s = ST.units[u.name]?.status;
-    const active = route.screen === "unit" && route.unit === u.name;
+    const active = (route.screen === "unit" || route.screen === "recipe") && route.unit === u.name;
     const lost = isLost(u.name);
     tabs.push(`<a href="#/unit/${encodeURIComponent(u.name)}" data-screen="unit" data-unit="${esc(u.name)}" class="${active ? "active" : ""}${lost ? " lost" : ""}"><span class="dot ${lost ? "lost" : s ? group(s.state_name) : ""}"></span>${esc(u.name)}${lost ? ` <span class="count lost">LOST</span>` : alarmCount(u.name) ? ` <span class="count hot">${alarmCount(u.name)}</span>` : ""}</a>`);
   }
@@ -106,7 +106,7 @@ function bannerMessage(units, cell) {
 
 export function renderBanner() {
   const { CFG, route } = S;
-  const unit = route.screen === "unit" ? route.unit : route.screen === "alarms" ? route.unit : null;
+  const unit = route.screen === "unit" || route.screen === "recipe" || route.screen === "alarms" ? route.unit : null;
   const modeEl = $("#banner-mode"), stateEl = $("#banner-state"), alarmEl = $("#banner-alarm");
   let message;
   if (unit) {
@@ -115,7 +115,10 @@ export function renderBanner() {
     modeEl.textContent = s ? `${s.mode_name} (${s.mode})` : "–";
     setChip(stateEl, s?.state_name, s?.state, s?.acting && !isLost(unit), isLost(unit) ? "stale" : "");
     message = bannerMessage([unit], false);
+    view($("#banner-light")).html = stackLight(s?.stack_light, "stack-light");
+    $("#banner-light-item").hidden = !s?.stack_light?.colors?.length;
   } else {
+    $("#banner-light-item").hidden = true;
     $("#banner-scope").textContent = `Cell ${CFG.title}`;
     modeEl.textContent = cellMode();
     setCellChip(stateEl, cellState());

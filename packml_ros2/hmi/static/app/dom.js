@@ -81,3 +81,18 @@ export function setButton(b, why) {
   if (why) b.title = why;
   else b.removeAttribute("title");
 }
+
+// A stack light (tower light) as the unit publishes it: its lights top to bottom in their
+// configured colours (dim when off, lit, or blinking) and the horn. How it looks, not what it
+// means: the unit decides which light is lit (its stack_light configuration).
+const LIGHT_MODES = ["off", "on", "blink"];
+const LIGHT_COLOURS = new Set(["red", "amber", "yellow", "orange", "green", "blue", "white", "clear"]);
+export function stackLight(sl, id = "") {
+  const at = id ? ` id="${esc(id)}"` : "";
+  if (!sl || !sl.colors?.length) return `<span class="stack-light none"${at} data-lights="" title="no stack light reported">–</span>`;
+  const modes = sl.colors.map((_, i) => LIGHT_MODES[sl.modes[i]] || "off");
+  const lamps = sl.colors.map((c, i) => `<span class="sl-lamp sl-${LIGHT_COLOURS.has(c) ? c : "other"} ${modes[i]}" data-color="${esc(c)}" data-mode="${modes[i]}"></span>`).join("");
+  const lit = sl.colors.map((c, i) => `${c} ${modes[i]}`).join(", ");
+  const title = `stack light: ${lit}${sl.horn ? "; horn sounding" : "; horn off"}`;
+  return `<span class="stack-light"${at} data-lights="${esc(sl.colors.map((c, i) => `${c}:${modes[i]}`).join(" "))}" data-horn="${sl.horn ? "on" : "off"}" title="${esc(title)}" role="img" aria-label="${esc(title)}"><span class="sl-tower">${lamps}</span><span class="sl-horn ${sl.horn ? "on" : ""}">♪</span></span>`;
+}

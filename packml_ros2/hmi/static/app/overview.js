@@ -3,7 +3,7 @@
 import { blocked, coordinatorLost, isLost, lostSince } from "./access.js";
 import { renderFeedback } from "./actions.js";
 import { cellMode, cellState, partsText } from "./banner.js";
-import { $, CMD_CLASS, COMMANDS, button, chip, esc, fixed, pct, setHTML } from "./dom.js";
+import { $, CMD_CLASS, COMMANDS, button, chip, esc, fixed, pct, setHTML, stackLight } from "./dom.js";
 import { S, ST, conn } from "./store.js";
 
 /** The cell command buttons: each one the coordinator does not take now says why, in the words
@@ -71,7 +71,7 @@ function unitCard(u) {
     : `<div class="alarm-line ${s?.alarm_banner ? "active" : ""}">${esc(s?.alarm_banner || "No active alarm")}</div>`;
   return `<div class="card unit-card${lost || !conn.ok ? " stale" : ""}" data-go="#/unit/${encodeURIComponent(u.name)}" data-unit-card="${esc(u.name)}">
     <div class="head"><div><div class="name">${esc(u.name)}</div><div class="desc">${esc(u.description)}</div></div>
-      ${chip(s?.state_name, s?.state, `big${s?.acting && !lost ? " acting" : ""}`)}</div>
+      ${chip(s?.state_name, s?.state, `big${s?.acting && !lost ? " acting" : ""}`)}${s?.stack_light?.colors?.length ? stackLight(s.stack_light) : ""}</div>
     <div class="facts">
       <div class="fact"><div class="k">Mode</div><div class="v">${esc(s?.mode_name || "–")}</div></div>
       <div class="fact"><div class="k">Health</div><div class="v"><span class="tag ${healthCls}">${esc(health)}</span></div></div>

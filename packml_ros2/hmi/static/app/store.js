@@ -11,8 +11,9 @@
 export const hmi = (window.__hmi = { renders: [], updates: 0, connected: false, feedback: {}, feedbackMs: 15000, silenceMs: 12000 });
 
 /** The parts of the page's state that are replaced as a whole: the configuration from the last
- * snapshot (CFG), the screen shown (route), the unit whose screen is built (builtUnit). */
-export const S = { CFG: null, route: { screen: "overview", unit: null }, builtUnit: null };
+ * snapshot (CFG), the screen shown (route), the unit whose screen is built (builtUnit) and the
+ * one whose recipe screen is (builtRecipe). */
+export const S = { CFG: null, route: { screen: "overview", unit: null }, builtUnit: null, builtRecipe: null };
 
 /** The latest of everything the server sent: per unit its status, admin, alarms, transitions,
  * presence and why; the coordinator's cell status and presence. */
@@ -41,11 +42,11 @@ export const renderFeedbacks = () => redraw.feedbacks();
 
 export const unitCfg = (name) => S.CFG.units.find((u) => u.name === name);
 
-/** The screen the address names: #/overview, #/unit/<name>, #/alarms[/<name>]. */
+/** The screen the address names: #/overview, #/unit/<name>[/recipe], #/alarms[/<name>]. */
 export function parseRoute() {
   const parts = location.hash.replace(/^#\/?/, "").split("/").filter(Boolean);
   if (parts[0] === "unit" && parts[1] && S.CFG && unitCfg(decodeURIComponent(parts[1]))) {
-    return { screen: "unit", unit: decodeURIComponent(parts[1]) };
+    return { screen: parts[2] === "recipe" ? "recipe" : "unit", unit: decodeURIComponent(parts[1]) };
   }
   if (parts[0] === "alarms") return { screen: "alarms", unit: parts[1] ? decodeURIComponent(parts[1]) : null };
   return { screen: "overview", unit: null };

@@ -6,6 +6,7 @@ import { renderFeedback } from "./actions.js";
 import { OPERATOR_STATE, alarmLamp } from "./alarms.js";
 import * as D from "../diagram.js";
 import { $, $$, CMD_CLASS, COMMANDS, button, esc, fixed, fmtDur, fmtTime, group, modeName, pct, setButton, view } from "./dom.js";
+import { recipeLabel } from "./recipe.js";
 import { S, ST, conn, pending, unitCfg } from "./store.js";
 
 function buildUnit(name) {
@@ -29,6 +30,7 @@ function buildUnit(name) {
           <div class="lamps" id="u-lamps"></div>
           <form class="speed" id="speed-form"><span class="muted">Machine speed</span><input id="speed-input" type="number" step="any" min="0" aria-label="machine speed setpoint"><button class="btn small" id="speed-btn" type="submit">Set</button><span class="muted" id="u-speed"></span></form>
         </div>
+        ${u.recipes?.length ? `<div class="card" id="u-recipe-card"><h2>Recipe <a class="right" id="u-recipe-link" href="#/unit/${encodeURIComponent(name)}/recipe">change, compare →</a></h2><div id="u-recipe"></div></div>` : ""}
         <div class="card"><h2>Alarms <a class="right" href="#/alarms/${encodeURIComponent(name)}">alarm list →</a></h2><div id="u-alarms"></div></div>
         <div class="card"><h2>Equipment modules <span class="sub" id="u-em-sub"></span></h2>
           <div class="table-wrap"><table id="u-ems"><thead><tr><th>EM</th><th>Active</th><th>Online</th><th>State complete</th><th>Request / interlock</th><th></th></tr></thead><tbody></tbody></table></div>
@@ -140,6 +142,8 @@ function renderUnitStatus(name, x) {
   setButton($("#speed-btn"), speedWhy);
   $("#u-speed").textContent = s ? `actual ${fixed(s.cur_mach_speed, 1)}${u.mach_design_speed ? ` · design ${u.mach_design_speed}` : ""}` : "";
 
+  renderRecipeSummary(name, s);
+
   // EMs: each one the unit would not switch now says why (the unit's words, from the server)
   $("#u-em-sub").textContent = s ? `state complete for ${s.state_name}` : "";
   const emBase = blocked(name, "set_em_active");
@@ -156,6 +160,19 @@ function renderUnitStatus(name, x) {
       <td>${button(label, "set_em_active", { unit: name, args: { em: e.name, active: !e.active }, cls: "small", why })}</td></tr>`;
   });
   view($("#u-ems tbody")).html = rows.join("") || `<tr><td colspan="6" class="empty">no equipment modules</td></tr>`;
+}
+
+/** The recipe in use, a changeover running and how the last one ended (the recipe screen has
+ *  the rest). */
+function renderRecipeSummary(name, s) {
+  const el = $("#u-recipe");
+  if (!el) return;
+  if (!s) {
+    view(el).html = `<div class="empty">no status yet</div>`;
+    return;
+  }
+  const change = s.recipe_change_in_process ? ` <span class="tag info">changeover → ${esc(recipeLabel(name, s.recipe_requested))}</span>` : "";
+  view(el).html = `<div class="row">In use <b id="u-recipe-current">${esc(recipeLabel(name, s.recipe_current, s.recipe_current_name))}</b>${change}</div>${s.recipe_result ? `<div class="muted small mt-xs">${esc(s.recipe_result)}</div>` : ""}`;
 }
 
 function renderUnitAdmin(name, x) {
