@@ -212,6 +212,7 @@ class PlcUnitNode(GuardedNode):
         self._unit_pubs = {
             t.name: interface.create_publisher(self, t.name, lease=self.unit_lease)
             for t in interface.topics(interface.Role.OUTPUT, interface.Role.DERIVED)
+            if t.plc
         }
         self._last.clear()
 

@@ -154,7 +154,7 @@ TOPICS: tuple[Topic, ...] = (
     Topic("recipe", RecipeOrder, qos.LATCHED, Role.DERIVED,
           "changeover orders to the EMs: the recipe to apply or roll back to (latched)"),
     Topic("stack_light", StackLight, qos.LATCHED, Role.DERIVED,
-          "the stack light: lights and horn, on change (latched)", plc=True),
+          "the stack light: lights and horn, on change (latched)"),
     Topic("em_reports", EmReport, qos.EM_REPORTS, Role.INPUT,
           "EM -> unit: registration, State Complete, counts, alarms, goodbyes"),
     Topic("snapshot", UnitSnapshot, qos.SNAPSHOT, Role.RECORD,

@@ -91,10 +91,12 @@ def test_recipes_and_the_changeover_are_what_the_page_gets(make_cell: Any) -> No
         now = cell.wait_status(lambda s: s["recipe_current"] == 2, "recipe 2 in use", mark)
         assert now["recipe_current_name"] == "water 1.0"
         assert "recipe 2 'water 1.0' applied" in now["recipe_result"]
-        assert cell.client.status.last.recipe_current == 2
+        # (the unit's own status, as another subscriber gets it)
+        cell.client.status.wait_for(lambda s: s.recipe_current == 2, 10.0, "recipe 2 in use")
+        mark = len(cell.events)  # (recipe 1 was in use before: only a status after counts)
         by_name = http.post(f"/api/units/{UNIT}/set_recipe", json={"recipe_name": "cola 0.5"})
         assert by_name.json()["accepted"], by_name.text
-        cell.wait_status(lambda s: s["recipe_current"] == 1, "recipe 1 by its name")
+        cell.wait_status(lambda s: s["recipe_current"] == 1, "recipe 1 by its name", mark)
         listing = http.get(f"/api/units/{UNIT}/recipes").json()
         assert [r["id"] for r in listing["recipes"]] == [1, 2]
         assert (
