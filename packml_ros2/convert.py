@@ -37,7 +37,14 @@ from .core.alarms import AlarmEvent, AlarmManager
 from .core.counters import Counter
 from .core.numbers import NUM_MODES, NUM_STATES, state_name
 from .core.outputs import RawTransition
-from .core.packtags import AdminView, EmView, RemoteInterfaceView, StatusView, date_time_array
+from .core.packtags import (
+    AdminView,
+    EmView,
+    RemoteInterfaceView,
+    StackLightView,
+    StatusView,
+    date_time_array,
+)
 from .core.unit import Transition
 
 M = TypeVar("M")
@@ -164,6 +171,10 @@ def recipe_order(
     )
 
 
+def stack_light(v: StackLightView) -> StackLight:
+    return StackLight(colors=list(v.colors), modes=list(v.modes), horn=v.horn)
+
+
 # -- status ----------------------------------------------------------------------------------------
 def _generated(cls: type[M], made: dict[str, str], names: dict[str, Any]) -> Callable[[Any], M]:
     """``f(v)``: a ``cls`` message from the view ``v``, each field the expression ``made`` gives
@@ -202,8 +213,7 @@ _STATUS_MADE: dict[str, str] = {
     "commands_valid": "list(v.commands_valid)",
     "commands_valid_names": "list(v.commands_valid_names)",
     "equipment_modules": "[_em_summary(e) for e in v.equipment]",
-    "stack_light": "StackLight(colors=list(v.stack_light.colors), "
-    "modes=list(v.stack_light.modes), horn=v.stack_light.horn)",
+    "stack_light": "stack_light(v.stack_light)",
 }
 
 #: ``status(v)``: the ``Status`` message of a status view, the one place it is made (for units,
@@ -212,7 +222,7 @@ status: Callable[[StatusView], Status] = _generated(
     Status, _STATUS_MADE,
     {"stamp": stamp, "descriptor": descriptor, "product": product,
      "EquipmentInterlock": EquipmentInterlock, "_remote_interface": _remote_interface,
-     "_em_summary": _em_summary, "StackLight": StackLight},
+     "_em_summary": _em_summary, "stack_light": stack_light},
 )  # fmt: skip
 
 

@@ -14,7 +14,7 @@ from collections.abc import Callable
 from typing import Any, TypeVar
 
 from . import convert
-from .core import Unit, inputlog, snapshot
+from .core import Unit, inputlog, packtags, snapshot
 from .core.counters import KINDS
 from .core.liveliness import Liveliness
 from .core.outputs import RawTransition
@@ -144,7 +144,7 @@ class UnitDriver:
 
     def stack_light_message(self) -> Any:
         """The unit's stack light now (``StackLight``)."""
-        return convert.status(self.unit.status()).stack_light
+        return convert.stack_light(packtags.stack_light(self.unit, self.unit.state))
 
     @staticmethod
     def _light_key(light: Any) -> tuple[Any, ...]:

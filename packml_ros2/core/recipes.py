@@ -428,7 +428,7 @@ class Changeover:
 class Recipes:
     """The unit's recipe part: its book, ``RecipeCurrent``, the changeover and the last result."""
 
-    __slots__ = ("book", "changeover", "current", "last_answers", "order", "result", "version")
+    __slots__ = ("book", "changeover", "current", "last_answers", "order", "result")
 
     def __init__(self, book: RecipeBook) -> None:
         self.book = book
@@ -438,7 +438,6 @@ class Recipes:
         self.result = ""  #: how the last changeover ended
         #: each EM's answer to the last order of the last changeover (status)
         self.last_answers: dict[str, tuple[EmAnswer, str]] = {}
-        self.version = 0  #: +1 on every change a status shows
 
     @property
     def requested(self) -> int:
@@ -465,7 +464,6 @@ class Recipes:
             now + self.book.timeout,
             dict.fromkeys(ems, (EmAnswer.PENDING, "")),
         )
-        self.version += 1
         return c
 
     def rollback(self, refusal: str, now: float) -> Changeover:
@@ -476,7 +474,6 @@ class Recipes:
         c.deadline = now + self.book.timeout
         # (a refusal's reason stays beside its EM while the rollback runs)
         c.answers = {em: (EmAnswer.PENDING, why) for em, (_, why) in c.answers.items()}
-        self.version += 1
         return c
 
     def end(self, result: str, current: Recipe) -> None:
@@ -492,7 +489,6 @@ class Recipes:
         self.changeover = None
         self.current = current
         self.result = result
-        self.version += 1
 
     def restore_current(self, recipe_id: int) -> str:
         """Take ``recipe_id`` as RecipeCurrent (a restart): '' or why it cannot be."""
@@ -513,7 +509,6 @@ class Recipes:
             "current": self.current.to_dict(),
             "order": self.order,
             "result": self.result,
-            "version": self.version,
             "last_answers": answers,
             "changeover": None
             if c is None
@@ -536,7 +531,6 @@ class Recipes:
 
         self.current = Recipe.from_dict(d["current"])
         self.order, self.result = int(d["order"]), str(d["result"])
-        self.version = int(d["version"])
         self.last_answers = answers(d.get("last_answers", {}))
         c = d.get("changeover")
         self.changeover = (

@@ -131,6 +131,21 @@ class AddressSpace:
         await self.server.load_data_type_definitions()
 
     # -- low level ---------------------------------------------------------------------------------
+    async def _folder(
+        self, nodeid: ua.NodeId, bname: ua.QualifiedName, parent: ua.NodeId, text: str
+    ) -> ua.NodeId:
+        """A plain object under ``parent`` (a folder of the draft's members or of a recipe)."""
+        return await self._add(
+            ua.NodeClass.Object,
+            nodeid,
+            bname,
+            parent,
+            I.HasComponent,
+            ua.ObjectAttributes(),
+            I.BaseObjectType,
+            text,
+        )
+
     async def _add(
         self,
         nodeclass: ua.NodeClass,
@@ -350,16 +365,7 @@ class AddressSpace:
             nodeid = ua.NodeId(f"{unit}.Status.{path.replace('/', '.')}", u)
             bname, parent = ua.QualifiedName(name, u), parents[folder]
             if dtype is None:
-                parents[path] = await self._add(
-                    ua.NodeClass.Object,
-                    nodeid,
-                    bname,
-                    parent,
-                    I.HasComponent,
-                    ua.ObjectAttributes(),
-                    I.BaseObjectType,
-                    text,
-                )
+                parents[path] = await self._folder(nodeid, bname, parent, text)
                 continue
             prop = f"Status/{folder}" in nodes.variables
             parents[path] = nodes.variables[f"Status/{path}"] = await self.var(
@@ -378,16 +384,7 @@ class AddressSpace:
             nodeid = ua.NodeId(f"{unit}.Status.Recipe.{'.'.join(key)}", u)
             bname, parent = ua.QualifiedName(member.path[-1][0], u), folders[key[:-1]]
             if member.value is None:
-                folders[key] = await self._add(
-                    ua.NodeClass.Object,
-                    nodeid,
-                    bname,
-                    parent,
-                    I.HasComponent,
-                    ua.ObjectAttributes(),
-                    I.BaseObjectType,
-                    member.description,
-                )
+                folders[key] = await self._folder(nodeid, bname, parent, member.description)
                 continue
             folders[key] = await self.var(
                 nodeid,
