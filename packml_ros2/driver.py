@@ -69,6 +69,18 @@ class UnitDriver:
             self.flush()
             self.clock.frozen = None
 
+    def clock_step(self, now: float, offset: float) -> Any:
+        """The wall clock stepped by ``offset`` and reads ``now``: what was due by the same
+        instant on the old timeline (``now - offset``) fires first, then the engine's timeline
+        moves (:meth:`~packml_ros2.core.Unit.clock_step`, at ``now``)."""
+        self.catch_up(now - offset)
+        self.clock.frozen = now
+        try:
+            return self.unit.clock_step(offset)
+        finally:
+            self.flush()
+            self.clock.frozen = None
+
     def report(self, now: float, msg: Any, liveliness: Liveliness, tick: float | None = None) -> None:  # fmt: skip
         """An ``EmReport`` received at ``now``, applied as the engine inputs it stands for: every
         report is a heartbeat (``em_seen`` when the EM was not alive), then its kind's input. The
@@ -102,6 +114,8 @@ class UnitDriver:
 
     def replay(self, now: float, name: str, args: dict[str, Any]) -> Any:
         """Apply a logged input again (name and arguments as ``Unit.on_input`` reported them)."""
+        if name == inputlog.CLOCK_STEP.name:
+            return self.clock_step(now, float(args["offset"]))
         return self.call(now, self.unit.apply_input, name, args)
 
     def flush(self) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+import time
 from collections.abc import Callable, Sequence
 from functools import partial
 from pathlib import Path
@@ -71,6 +72,9 @@ from .ros import interface
 T = TypeVar("T")
 #: s: the input log goes out at most this long after an input (in batches, after the outputs)
 INPUT_LOG_DELAY = 0.05
+#: A jump of the wall clock against the monotonic one larger than this (seconds) is a step (NTP
+#: steps at 0.128 s and slews below; a step this small moves nothing that matters)
+CLOCK_STEP = 0.25
 #: s: a wake-up for a lease is armed this much after it expires (``Liveliness.expired`` is strict)
 LEASE_SLACK = 0.001
 DIAGNOSTICS_PERIOD = 1.0
@@ -108,6 +112,8 @@ class UnitNode(GuardedNode):
         self._leaving: dict[str, tuple[float, EmReport]] = {}  # EM -> (when it is lost, goodbye)
         #: inputs not yet published: (time, index, name, arguments), made messages when they go out
         self._inputs: list[tuple[float, int, str, dict[str, Any]]] = []
+        #: the wall clock's distance to the monotonic one when last read (a jump: a step)
+        self._wall_offset: float | None = None
         self._input_index = 0
         self._record = bool(self.get_parameter("record_inputs").value)
         self.unit.on_input = self._on_input if self._record else None
@@ -168,7 +174,7 @@ class UnitNode(GuardedNode):
             lambda enabled: self._run(self.unit.set_remote_enabled, enabled),
         )  # fmt: skip
         self._publish_start()
-        self._arm(self._now())
+        self._arm(self._time())
         self.get_logger().info(
             f"PackML unit {self.get_fully_qualified_name()} up: {state_name(self.unit.state)} in "
             f"{self.unit.mode_def.name}, {len(config.equipment_modules)} EM(s) configured"
@@ -213,6 +219,21 @@ class UnitNode(GuardedNode):
     # -- clock -------------------------------------------------------------------------------------
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
+
+    def _time(self) -> float:
+        """The engine's time now (the wall clock), after telling the engine of a step of that
+        clock (NTP): the wall clock's distance to the monotonic clock jumped by more than
+        :data:`CLOCK_STEP`. Slewing (NTP's small corrections) is followed without a step. Under
+        simulated time a jump of /clock is time passing, not a step."""
+        now = self._now()
+        if self.uses_sim_time():
+            return now
+        offset = now - time.monotonic()
+        last, self._wall_offset = self._wall_offset, offset
+        if last is not None and abs(offset - last) > CLOCK_STEP:
+            self.driver.clock_step(now, offset - last)
+            self._flush_inputs()  # (a batch due on the old timeline goes out now)
+        return now
 
     # -- services ----------------------------------------------------------------------------------
     def _create_services(self) -> None:
@@ -375,7 +396,7 @@ class UnitNode(GuardedNode):
     def _on_report(self, msg: EmReport, info: MessageInfo) -> None:
         """An EM report: checked field by field, and taken only from the writer that speaks for
         its EM (core.reports); then applied (driver.report), a goodbye after a grace."""
-        now, tick = self._now(), self.steady()  # (engine time; the leases' clock)
+        now, tick = self._time(), self.steady()  # (engine time; the leases' clock)
         problem = report_problem(msg, self.unit.sequence)
         if problem is not None:
             self.refused_reports += 1
@@ -465,7 +486,7 @@ class UnitNode(GuardedNode):
         # unit) counts before any lease is judged: a heartbeat received in time renews it
         self._take_waiting(self._beats, self._on_heartbeat)
         self._take_waiting(self._reports, self._on_report)
-        now, tick = self._now(), self.steady()
+        now, tick = self._time(), self.steady()
         self._apply_leaves(now, tick)
         for name, lease in self.liveliness.expired(tick):
             self.writers.release(name)
@@ -519,7 +540,7 @@ class UnitNode(GuardedNode):
     # -- publishing --------------------------------------------------------------------------------
     def _run(self, fn: Callable[..., T], *args: Any) -> T:
         """An input from a service or parameter callback, at the node's time now."""
-        now = self._now()
+        now = self._time()
         try:
             return self.driver.call(now, fn, *args)
         finally:
@@ -589,7 +610,7 @@ class UnitNode(GuardedNode):
 
     def _checkpoint(self) -> None:
         if not self._closed:
-            self.unit.checkpoint(self._now())
+            self.unit.checkpoint(self._time())
 
     def _publish_diagnostics(self) -> None:
         unit = self.unit

@@ -699,6 +699,19 @@ def test_each_malformed_recording_has_its_own_reason_and_exit_code(tmp_path: Pat
     assert out.returncode == 4 and "[unreadable]" in out.stderr, out.stderr
 
 
+def test_only_a_step_of_the_wall_clock_may_be_stamped_before_the_input_ahead_of_it() -> None:
+    """Issue 25 item 6: the engine takes a step of the wall clock as an input stamped with the
+    new clock's time; after a step back it is the one record whose stamp goes back."""
+    from packml_ros2.bag.replay import check_log
+
+    stepped = [(1, 10.0, "start"), (2, 11.0, "command"), (3, 5.0, "clock.step"), (4, 5.5, "speed")]
+    assert check_log(stepped, "u") == [0, 1, 2, 3]
+    edited = [(1, 10.0, "start"), (2, 11.0, "command"), (3, 5.0, "speed")]
+    with pytest.raises(RecordingError, match="stamped 6.000000 s before") as caught:
+        check_log(edited, "u")
+    assert caught.value.reason == "stamps_out_of_order"
+
+
 def _messages(bag: Path) -> list[tuple[str, bytes]]:
     from rosbags.highlevel import AnyReader
 

@@ -445,7 +445,7 @@ def check_log(entries: Sequence[tuple[int, float, str]], where: str) -> list[int
     index, after the checks every log must pass; :class:`RecordingError` with the reason:
     ``restarted`` (a ``start`` record #1 after other inputs: the log begins again),
     ``duplicate_input`` (an index twice), ``stamps_out_of_order`` (a later index stamped
-    earlier)."""
+    earlier, unless it records a step of the wall clock)."""
     for k, (index, _, name) in enumerate(entries):
         if index == 1 and name == inputlog.START and k > 0:
             raise RecordingError(
@@ -454,14 +454,14 @@ def check_log(entries: Sequence[tuple[int, float, str]], where: str) -> list[int
             )  # fmt: skip
     order = sorted(range(len(entries)), key=lambda k: entries[k][0])
     for a, b in itertools.pairwise(order):
-        (ia, ta, _), (ib, tb, _) = entries[a], entries[b]
+        (ia, ta, _), (ib, tb, nb) = entries[a], entries[b]
         if ia == ib:
             raise RecordingError(
                 f"{where}: input #{ib} is in the recording twice (messages {a + 1} and {b + 1} "
                 "of its input log): the bag was written by something else than a recorder, or "
                 "edited", "duplicate_input"
             )  # fmt: skip
-        if tb < ta:
+        if tb < ta and nb != inputlog.CLOCK_STEP.name:  # (a step back is stamped back)
             raise RecordingError(
                 f"{where}: input #{ib} is stamped {ta - tb:.6f} s before input #{ia}: the stamps "
                 "of an input log never go back (the bag was edited, or its writer is broken)",
@@ -640,10 +640,13 @@ class UnitReplay:
 
     def run(self, inputs: Iterable[Input], until: float) -> None:
         replay = self.driver.replay
+        step = inputlog.CLOCK_STEP.name
         for i in inputs:
-            self.tick(i.time)
+            args = json.loads(i.args_json)
+            # (a step of the wall clock: what was due by its instant on the old timeline first)
+            self.tick(i.time - float(args["offset"]) if i.name == step else i.time)
             self.current = i.index
-            replay(i.time, i.name, json.loads(i.args_json))
+            replay(i.time, i.name, args)
         self.tick(until)
 
 

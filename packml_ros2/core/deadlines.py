@@ -60,6 +60,12 @@ class Deadlines:
         self.next_due = self.heap[0][0] if self.heap else math.inf
         return when, kind, data
 
+    def shift(self, offset: float) -> None:
+        """Every deadline ``offset`` seconds later (earlier when negative): the wall clock stepped
+        and the engine's timeline moves with it (a uniform shift keeps the heap's order)."""
+        self.heap = [(when + offset, n, kind, data) for when, n, kind, data in self.heap]
+        self.next_due = self.heap[0][0] if self.heap else math.inf
+
     def every(self, now: float, behind_to: float, kind: Due, period: float) -> None:
         """The next of a periodic ``kind``: ``period`` after ``now``; if that is already far
         behind ``behind_to`` (the time the unit is being brought to), the last period point

@@ -144,6 +144,10 @@ class Durable:
         self.failing = why
         self._retry_at = now + RETRY
 
+    def shift(self, offset: float) -> None:
+        """The clock stepped by ``offset``: a pending retry keeps its delay."""
+        self._retry_at += offset
+
     def _state(self, sequence: int, mode: int, mach_speed: float) -> tuple[Any, ...]:
         times, counters, stops = self.times, self.counters, self.stops
         return (sequence, mode, times.resets, counters.version, stops.reason, mach_speed,

@@ -139,6 +139,9 @@ INTERLOCK = _def("interlock", "set_interlock", "active", "reason", "source")
 RECIPE = _def("recipe", "set_recipe", "recipe_id", "name", "source")
 EM_RECIPE = _def("em.recipe", "em_recipe", "em", "order", "accepted", "reason")
 ADVANCE = _def("advance", "advance")
+#: The wall clock stepped (NTP) by ``offset`` seconds; stamped with the new clock's time, so it
+#: is the one record whose stamp may go back (UnitDriver.clock_step applies it)
+CLOCK_STEP = _def("clock.step", "clock_step", "offset")
 SHUTDOWN = _def("shutdown", "shutdown", "detail")
 
 #: Every input of schema 1, by name.
@@ -146,7 +149,8 @@ INPUTS: Mapping[str, InputDef] = {
     d.name: d
     for d in (COMMAND, MODE, STEP, EM_STATE_COMPLETE, EM_SEEN, EM_LOST, EM_INTERLOCK, EM_COUNT,
               EM_ACTIVE, ALARM, ALARM_ACK, ALARM_RESET, TIMES_RESET, COUNTERS_RESET, SPEED,
-              PARAMETERS, PRODUCTS, REMOTE, INTERLOCK, ADVANCE, SHUTDOWN, RECIPE, EM_RECIPE)
+              PARAMETERS, PRODUCTS, REMOTE, INTERLOCK, ADVANCE, SHUTDOWN, RECIPE, EM_RECIPE,
+              CLOCK_STEP)
 }  # fmt: skip
 #: Inputs an EM's reports cause (``packml replay --live`` sends the reports, not these).
 EM_INPUTS = frozenset(

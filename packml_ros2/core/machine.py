@@ -481,6 +481,36 @@ class UnitMachine(ModeChanges):
         with self._input(None):
             pass  # (the frame alone: what falls due fires as it opens, then settles)
 
+    def clock_step(self, offset: float) -> Answer:
+        """The wall clock stepped by ``offset`` seconds (NTP, an operator): the engine's timeline
+        moves with it. Its deadlines (timeouts, dwell, the mode change's, the changeover's, the
+        periodic admin and saves) and the starts of its running times move by ``offset`` too, so
+        each keeps the seconds it had left or had run: a step forward fires no timeout, a step
+        back silences nothing, and no time counts the step. Timestamps from here on are the new
+        clock's. What was due by the step's instant on the old timeline (``now - offset``) fires
+        first (a driver fires it one deadline at a time before, as
+        :meth:`packml_ros2.driver.UnitDriver.clock_step` does); this input is taken at the
+        clock's time, on the new timeline, and recorded there (the one record whose stamp may go
+        back)."""
+        now = float(self._clock())
+        if not (math.isfinite(offset) and math.isfinite(now)):
+            return Answer.no(Reason.INVALID_ARGUMENT, f"clock step {offset!r} is not a number")
+        self._advance(now - offset)  # (what was due by the step, on the old timeline)
+        self.deadlines.shift(offset)
+        self.times.shift(offset)
+        self.recipes.shift(offset)
+        if self._durable is not None:
+            self._durable.shift(offset)
+        self.entered_at += offset
+        self.mode_change_not_allowed_until += offset  # (-inf stays -inf)
+        self._t += offset
+        self._advance_to = now
+        with self._input(inputlog.CLOCK_STEP, offset):  # (nothing is due: all moved past now)
+            text = f"the wall clock stepped {offset:+.3f} s: timeouts and times go on as they were"
+            self.alarms.log_event(text, self._t, source="unit")
+            self._log("warn", text)
+            return Answer.ok(text)
+
     def next_deadline(self) -> float | None:
         """When the engine has something to do next on its own (a timeout, a periodic admin...)."""
         due = self.deadlines.next_due

@@ -466,6 +466,11 @@ class Recipes:
         )
         return c
 
+    def shift(self, offset: float) -> None:
+        """The clock stepped by ``offset``: a running changeover keeps its time to its timeout."""
+        if self.changeover is not None:
+            self.changeover.deadline += offset
+
     def rollback(self, refusal: str, now: float) -> Changeover:
         c = self.changeover
         assert c is not None

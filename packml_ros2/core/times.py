@@ -118,6 +118,11 @@ class ModeStateTimes:
         self._state = state
         self._planned = planned
 
+    def shift(self, offset: float) -> None:
+        """The clock stepped by ``offset``: the running times keep their elapsed seconds."""
+        self._since += offset
+        self._mode_since += offset
+
     # -- resets ------------------------------------------------------------------------------------
     def reset_current_mode(self, now: float) -> None:
         """The current mode's times and the times of all its states."""

@@ -35,6 +35,8 @@ def drive_every_input(unit: Unit, clock: FakeClock) -> None:
                ModeRequest("manual")])  # fmt: skip
     clock.advance(0.5)
     unit.advance()
+    clock.advance(-30.0)  # the wall clock steps back (NTP): the log's one stamp that goes back
+    unit.clock_step(-30.0)
     unit.em_interlock("em1", True, False, 3)
     unit.em_count("em1", "processed", 0, 4)
     unit.set_alarm(7, 0, True, "operator")
