@@ -5,9 +5,9 @@ The cell is the edge node; each unit is a device. :class:`Edge` turns what the u
 application's commands (NCMD, DCMD) into requests for the units' services:
 
 - NBIRTH (``bdSeq``, ``Node Control/Rebirth``), then a DBIRTH per known unit with every metric
-  (:data:`STATUS_METRICS`, :func:`admin_metrics`, the EMs, the command and answer metrics), each
-  with its alias; DDATA with only the metrics that changed, by alias; a DBIRTH again when the set
-  of metrics changes (an EM or a count appears);
+  (:data:`STATUS_METRICS` with the recipe, the stack light's lights, :func:`admin_metrics`, the
+  EMs, the command and answer metrics), each with its alias; DDATA with only the metrics that
+  changed, by alias; a DBIRTH again when the set of metrics changes (an EM or a count appears);
 - DDEATH when a unit is lost, DBIRTH when it is back; NDEATH is the MQTT will (:meth:`death`);
 - ``seq`` 0 on NBIRTH, +1 on every later message of the node, modulo 256; ``bdSeq`` +1 on each
   connection (:meth:`connecting`), modulo 256, the same in the NBIRTH and the will;
@@ -27,6 +27,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..core.numbers import ACTING, Cmd, State
+from ..core.recipes import MAX_TEXT as MAX_RECIPE_NAME
+from ..core.stacklight import MODES as LIGHT_MODES
 from . import sparkplug as sp
 from .config import MqttConfig
 from .sparkplug import DataType as T
@@ -41,6 +43,7 @@ COMMANDS: Mapping[str, tuple[str, str]] = {
     "Command/UnitMode": ("set_mode", "mode"),
     "Command/MachSpeed": ("set_mach_speed", "mach_speed"),
     "Command/AckAlarms": ("ack_alarms", "id"),
+    "Command/Recipe": ("set_recipe", "recipe_id"),
 }
 ANSWER = "Command/Answer/"
 MAX_ALARMS_JSON = 32  #: alarms listed in the Alarms/List metric (the count says how many there are)
@@ -67,13 +70,24 @@ STATUS_METRICS: tuple[tuple[str, T, Callable[[Any], Any]], ...] = (
     ("Alarms/Unacknowledged", T.UInt32, lambda s: s.unacknowledged_alarms),
     ("Alarms/Banner", T.String, lambda s: s.alarm_banner),
     ("StopReason/ID", T.Int32, lambda s: s.stop_reason_id),
+    # the recipe (TR88 / OPC 30050 v2 draft RecipeCurrent, RecipeRequested, RecipeChangeInProcess;
+    # 0 and '' on a unit without recipes: always there, so a unit's births never depend on them)
+    ("Recipe/Current", T.Int32, lambda s: s.recipe_current),
+    ("Recipe/CurrentName", T.String, lambda s: s.recipe_current_name),
+    ("Recipe/Requested", T.Int32, lambda s: s.recipe_requested),
+    ("Recipe/ChangeInProcess", T.Boolean, lambda s: s.recipe_change_in_process),
+    ("Recipe/Changeover", T.UInt32, lambda s: s.recipe_changeover),
+    ("Recipe/Result", T.String, lambda s: s.recipe_result),
 )
+#: a light's mode (StackLight.MODE_*) -> its name, as the cell file's stack_light: spells it
+LIGHT_MODE_NAMES: Mapping[int, str] = {number: name for name, number in LIGHT_MODES.items()}
 #: the command metrics' values in a birth: the last accepted command of each kind
 COMMAND_VALUES: tuple[tuple[str, T, Callable[[Any], Any]], ...] = (
     ("Command/CntrlCmd", T.Int32, lambda s: s.cntrl_cmd),
     ("Command/UnitMode", T.Int32, lambda s: s.command_unit_mode),
     ("Command/MachSpeed", T.Double, lambda s: s.command_mach_speed),
     ("Command/AckAlarms", T.Int32, lambda s: 0),
+    ("Command/Recipe", T.Int32, lambda s: s.recipe_current),  # the recipe in use
     (REQUEST_ID, T.String, lambda s: ""),
 )
 ANSWER_METRICS: tuple[tuple[str, T, Any], ...] = (
@@ -117,6 +131,24 @@ def status_metrics(s: Any) -> dict[str, tuple[T, Any]]:
         out[base + "Online"] = (T.Boolean, em.online)
         out[base + "Active"] = (T.Boolean, em.active)
         out[base + "StateComplete"] = (T.Boolean, em.state_complete)
+    out.update(stack_light_metrics(s.stack_light))
+    return out
+
+
+def stack_light_metrics(light: Any) -> dict[str, tuple[T, Any]]:
+    """The stack light of a status (``StackLight``): per light, top (0) to bottom,
+    ``StackLight/<n>/Color``, ``Mode`` (0 off, 1 on, 2 blink) and ``ModeName``, and
+    ``StackLight/Horn``; nothing for a unit without one (a PLC's). The lights are the unit's
+    configuration: their number, and so the metrics, stay while the unit runs."""
+    out: dict[str, tuple[T, Any]] = {}
+    modes = list(light.modes)
+    for i, color in enumerate(light.colors):
+        mode = int(modes[i]) if i < len(modes) else 0
+        out[f"StackLight/{i}/Color"] = (T.String, str(color))
+        out[f"StackLight/{i}/Mode"] = (T.Int32, mode)
+        out[f"StackLight/{i}/ModeName"] = (T.String, LIGHT_MODE_NAMES.get(mode, str(mode)))
+    if out:
+        out["StackLight/Horn"] = (T.Boolean, bool(light.horn))
     return out
 
 
@@ -198,6 +230,10 @@ class Refused(Exception):
     def __init__(self, reason: str, text: str) -> None:
         super().__init__(text)
         self.reason = reason
+        #: of a DCMD refused by the edge, for its answer: the request (as :class:`Request` names
+        #: it) and the command metric, as far as the payload said them ('' otherwise)
+        self.request_id = ""
+        self.shown = ""
 
 
 @dataclass
@@ -353,6 +389,22 @@ class Edge:
             payload = sp.decode(raw)
         except PayloadError as exc:
             raise Refused(exc.reason, str(exc)) from None
+        # the request id first: a refusal names it too, wherever it is in the payload
+        given = next(
+            (
+                m.value[:64]
+                for m in payload.metrics
+                if m.name == REQUEST_ID and m.datatype in (T.String, T.Text) and m.value
+            ),
+            "",
+        )
+        try:
+            return self._request(unit, payload)
+        except Refused as exc:
+            exc.request_id = given or exc.request_id
+            raise
+
+    def _request(self, unit: str, payload: Payload) -> Request:
         d = self.devices[unit]
         request_id, found = "", list[tuple[str, Metric]]()
         for m in payload.metrics:
@@ -378,10 +430,17 @@ class Edge:
             )
         name, m = found[0]
         service, field = COMMANDS[name]
-        value, shown = _command_value(name, m)
+        try:
+            value, shown = _command_value(name, m)
+        except Refused as exc:
+            exc.request_id, exc.shown = request_id or f"{name}@{payload.timestamp or 0}", name
+            raise
         fields = {field: value} if field != "id" else {"all": value == 0, "id": value}
         if name == "Command/UnitMode" and isinstance(value, str):
             fields = {"mode": 0, "mode_name": value}
+        elif name == "Command/Recipe":  # by ID, or by name (ID 0)
+            by_name = isinstance(value, str)
+            fields = {"recipe_id": 0 if by_name else value, "recipe_name": value if by_name else ""}
         return Request(
             unit, name, service, fields, request_id or f"{name}@{payload.timestamp or 0}", shown
         )
@@ -432,6 +491,8 @@ class Edge:
             "umh_state": umh_code(state, present),
             "mode": s.unit_mode_current_name if s is not None and present else "",
             "mach_speed": s.cur_mach_speed if s is not None and present else 0.0,
+            "recipe": s.recipe_current_name if s is not None and present else "",
+            "recipe_id": s.recipe_current if s is not None and present else 0,
         }
         a = d.admin if d is not None else None
         if a is not None and present:
@@ -484,6 +545,17 @@ def _command_value(name: str, m: Metric) -> tuple[Any, str]:
     elif name == "Command/MachSpeed":
         if m.datatype in (T.Float, T.Double) or m.datatype in _INT_TYPES:
             return float(v), f"{name}={float(v):g}"
+    elif name == "Command/Recipe":
+        if m.datatype in _INT_TYPES:
+            if not 1 <= v < 2**31:
+                raise Refused("out_of_range", f"{name}: {v} is not a recipe ID (1 or more)")
+            return int(v), f"{name}={v}"
+        if m.datatype in (T.String, T.Text):
+            if not v.strip() or len(v.strip()) > MAX_RECIPE_NAME:
+                raise Refused(
+                    "out_of_range", f"{name}: a recipe name is 1..{MAX_RECIPE_NAME} characters"
+                )
+            return v.strip(), f"{name}={v.strip()}"
     elif name == "Command/AckAlarms" and m.datatype in _INT_TYPES:
         if not 0 <= v < 2**31:
             raise Refused("out_of_range", f"{name}: {v} is not an alarm id (0: all)")

@@ -185,7 +185,13 @@ class MqttFace:
                 if unit in self.edge.devices:
                     self._publish(
                         self.edge.answer(
-                            unit, "", "", False, INVALID_ARGUMENT, exc.reason, str(exc)
+                            unit,
+                            exc.request_id,
+                            exc.shown,
+                            False,
+                            INVALID_ARGUMENT,
+                            exc.reason,
+                            str(exc),
                         )
                     )
                 raise

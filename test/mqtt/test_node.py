@@ -159,9 +159,15 @@ def test_a_host_application_follows_commands_and_outlives_the_cell_and_the_broke
         "Command/AckAlarms",
         "Command/Answer/Accepted",
         "Command/Answer/RequestId",
+        "Command/Recipe",
+        "StackLight/0/Color",
+        "StackLight/0/Mode",
+        "StackLight/Horn",
     ):
         assert name in names, name
     assert born.metrics["MachSpeed"] == 40.0 and born.metrics["EM/nozzle/Online"] is True
+    # a unit without recipes has the recipe metrics all the same: none in use
+    assert (born.metrics["Recipe/Current"], born.metrics["Recipe/CurrentName"]) == (0, "")
     aliases = [m.alias for m in born.payload.metrics]
     assert all(m.HasField("alias") and m.HasField("datatype") for m in born.payload.metrics)
     assert len(set(aliases)) == len(aliases)  # one alias per metric
@@ -292,6 +298,12 @@ def test_a_host_application_follows_commands_and_outlives_the_cell_and_the_broke
     )
     assert edge.running(), edge.output()[-2000:]
     assert len(edge.output()) < 200_000  # its log stays bounded
+
+    # -- a unit without recipes: a recipe change is the unit's refusal, RECIPE_UNKNOWN --------------
+    no_recipe = face.command("filler", "r-recipe", "Command/Recipe", INT32, 1)
+    assert no_recipe.metrics["Command/Answer/Accepted"] is False
+    assert no_recipe.metrics["Command/Answer/Result"] == 20, no_recipe.metrics
+    assert no_recipe.metrics["Command/Answer/Reason"] == "RECIPE_UNKNOWN"
 
     # -- rebirth on request: NBIRTH (same bdSeq) and every DBIRTH -----------------------------------
     mark = host.mark()
