@@ -112,8 +112,12 @@ def refusal(response: Any, text: str) -> Any:
     return response
 
 
-def guard(callback: Callable[[Any, Any], Any], service: str, log: Any,
-          clock: Callable[[], float] = time.monotonic) -> Callable[[Any, Any], Any]:  # fmt: skip
+def guard(
+    callback: Callable[[Any, Any], Any],
+    service: str,
+    log: Any,
+    clock: Callable[[], float] = time.monotonic,
+) -> Callable[[Any, Any], Any]:
     """``callback`` behind the boundary: refused requests never reach it."""
 
     def guarded(request: Any, response: Any) -> Any:
@@ -158,7 +162,9 @@ def _origin(exc: BaseException) -> str:
     return f"{shown}:{frame.lineno}"
 
 
-def failed(what: str, exc: BaseException, log: Any, clock: Callable[[], float] = time.monotonic) -> None:  # fmt: skip
+def failed(
+    what: str, exc: BaseException, log: Any, clock: Callable[[], float] = time.monotonic
+) -> None:
     """Log that the callback ``what`` raised ``exc``: one line, bounded and rate-limited."""
     text = printable(redact_urls(str(exc)), MAX_EXCEPTION_TEXT)
     line = f"{what} failed: {type(exc).__name__}: {text} (at {_origin(exc)}); the node goes on"
@@ -186,7 +192,9 @@ def contain(callback: Callable[..., Any], what: str, log: Any) -> Callable[..., 
     return contained
 
 
-def contain_service(callback: Callable[[Any, Any], Any], service: str, log: Any) -> Callable[[Any, Any], Any]:  # fmt: skip
+def contain_service(
+    callback: Callable[[Any, Any], Any], service: str, log: Any
+) -> Callable[[Any, Any], Any]:
     """``callback`` of ``service`` answering a refusal instead of raising."""
     if getattr(callback, "_packml_contained", False):
         return callback
@@ -208,14 +216,17 @@ class GuardedNode(Node):
     parameter validator it is given is wrapped by :func:`contain` (services by
     :func:`contain_service`). Every node of this package is one."""
 
-    def create_subscription(self, msg_type: Any, topic: str, callback: Any, qos_profile: Any,
-                            **kwargs: Any) -> Any:  # fmt: skip
+    def create_subscription(
+        self, msg_type: Any, topic: str, callback: Any, qos_profile: Any, **kwargs: Any
+    ) -> Any:
         where = f"topic {topic} of {self.get_fully_qualified_name()}"
         return super().create_subscription(
             msg_type, topic, contain(callback, where, self.get_logger()), qos_profile, **kwargs
         )
 
-    def create_timer(self, timer_period_sec: float, callback: Any, *args: Any, **kwargs: Any) -> Any:  # fmt: skip
+    def create_timer(
+        self, timer_period_sec: float, callback: Any, *args: Any, **kwargs: Any
+    ) -> Any:
         """rclpy's timer on a clock that never steps (an NTP step of the wall clock neither
         silences a timer nor fires it early), unless the node runs on simulated time or the
         caller names a clock."""

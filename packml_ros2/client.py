@@ -112,9 +112,13 @@ class UnitProxy:
     def _subscribe(self, topic: str) -> Any:
         declared = interface.TOPIC[topic]
         return self.node.create_subscription(
-            declared.type, declared.path(self.path), self._callbacks[topic], declared.qos,
-            callback_group=self._topic_group, event_callbacks=qos.quiet_events(),
-        )  # fmt: skip
+            declared.type,
+            declared.path(self.path),
+            self._callbacks[topic],
+            declared.qos,
+            callback_group=self._topic_group,
+            event_callbacks=qos.quiet_events(),
+        )
 
     def resubscribe(self, *topics: str) -> None:
         """Subscribe again to latched topics (``status``, ``admin``, ``alarms``, ``transitions``;
@@ -263,9 +267,12 @@ class CellProxy:
         for unit in units:
             self.add(unit)
         self._cell_sub = node.create_subscription(
-            CellStatus, f"/{cell}/coordinator/status", self._on_cell, qos.CELL_STATUS,
+            CellStatus,
+            f"/{cell}/coordinator/status",
+            self._on_cell,
+            qos.CELL_STATUS,
             event_callbacks=qos.quiet_events(),
-        )  # fmt: skip
+        )
 
     def _on_cell(self, msg: CellStatus) -> None:
         self.cell_status = msg

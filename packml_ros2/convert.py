@@ -56,7 +56,8 @@ _CHECKED = os.environ.get("ROS_PYTHON_CHECK_FIELDS", "0") == "1"
 
 
 #: ``QueryAlarms.Request.sort`` -> the order's name (:data:`.core.alarms.ORDERS`)
-QUERY_SORTS = {QueryAlarms.Request.SORT_TIME: "time", QueryAlarms.Request.SORT_CATEGORY_TIME: "category",
+QUERY_SORTS = {QueryAlarms.Request.SORT_TIME: "time",
+               QueryAlarms.Request.SORT_CATEGORY_TIME: "category",
                QueryAlarms.Request.SORT_TIME_NEWEST: "newest"}  # fmt: skip
 
 
@@ -183,8 +184,11 @@ def _generated(cls: type[M], made: dict[str, str], names: dict[str, Any]) -> Cal
     fields = cls.get_fields_and_field_types()  # type: ignore[attr-defined]
     body = ", ".join(f"{name}={made.get(name, f'v.{name}')}" for name in fields)
     namespace: dict[str, Any] = {}
-    exec(f"def make(v):\n    return build(cls, {body})", {**names, "build": build, "cls": cls},
-         namespace)  # fmt: skip
+    exec(
+        f"def make(v):\n    return build(cls, {body})",
+        {**names, "build": build, "cls": cls},
+        namespace,
+    )
     return namespace["make"]  # type: ignore[no-any-return]
 
 
@@ -219,11 +223,18 @@ _STATUS_MADE: dict[str, str] = {
 #: ``status(v)``: the ``Status`` message of a status view, the one place it is made (for units,
 #: through the driver, and PLC bridges alike).
 status: Callable[[StatusView], Status] = _generated(
-    Status, _STATUS_MADE,
-    {"stamp": stamp, "descriptor": descriptor, "product": product,
-     "EquipmentInterlock": EquipmentInterlock, "_remote_interface": _remote_interface,
-     "_em_summary": _em_summary, "stack_light": stack_light},
-)  # fmt: skip
+    Status,
+    _STATUS_MADE,
+    {
+        "stamp": stamp,
+        "descriptor": descriptor,
+        "product": product,
+        "EquipmentInterlock": EquipmentInterlock,
+        "_remote_interface": _remote_interface,
+        "_em_summary": _em_summary,
+        "stack_light": stack_light,
+    },
+)
 
 
 def transition(
@@ -342,9 +353,22 @@ class MessageCache:
         key = (
             None
             if ev is None
-            else (ev.id, ev.value, ev.message, ev.category, ev.kind, ev.time, ev.em, ev.source,
-                  ev.reaction, ev.trigger, ev.latched, ev.ack_time, ev.cleared_time)
-        )  # fmt: skip
+            else (
+                ev.id,
+                ev.value,
+                ev.message,
+                ev.category,
+                ev.kind,
+                ev.time,
+                ev.em,
+                ev.source,
+                ev.reaction,
+                ev.trigger,
+                ev.latched,
+                ev.ack_time,
+                ev.cleared_time,
+            )
+        )
         msg = self._made.get(key)
         if msg is None:
             if len(self._made) >= self.size:
@@ -394,8 +418,11 @@ def _counts(counters: tuple[Counter, ...]) -> list[Count]:
 def _alarm_lists(
     v: AdminView, alarm_of: Callable[[AlarmEvent | None], Alarm]
 ) -> tuple[list[Alarm], list[Alarm], list[Alarm]]:
-    return ([alarm_of(ev) for ev in v.alarm], [alarm_of(ev) for ev in v.alarm_history],
-            [alarm_of(ev) for ev in v.warning])  # fmt: skip
+    return (
+        [alarm_of(ev) for ev in v.alarm],
+        [alarm_of(ev) for ev in v.alarm_history],
+        [alarm_of(ev) for ev in v.warning],
+    )
 
 
 def admin(v: AdminView, cache: MessageCache | None = None, modes: int = NUM_MODES) -> Admin:
@@ -479,10 +506,12 @@ def diagnostics(
         KeyValue(key="unacknowledged_alarms", value=str(view.unacknowledged_alarms)),
     ]
     values += [
-        KeyValue(key=f"alarm {ev.id}/{ev.value}", value=f"cat {ev.category}: {ev.message}"
-                 + (f" [{ev.em}]" if ev.em else ""))
+        KeyValue(
+            key=f"alarm {ev.id}/{ev.value}",
+            value=f"cat {ev.category}: {ev.message}" + (f" [{ev.em}]" if ev.em else ""),
+        )
         for ev in active + warnings
-    ]  # fmt: skip
+    ]
     message = view.alarm_banner or (
         f"{len(warnings)} warning(s)" if warnings else view.state_current_name
     )

@@ -132,14 +132,21 @@ class CoordinatorNode(GuardedNode):
         self.pub_losses = self.create_publisher(LineLosses, "~/line/losses", qos.LINE_LOSSES)
         self._published = {"episodes": 0, "losses": 0}  # what a snapshot says was published
         self.pub_snapshot = self.create_publisher(
-            UnitSnapshot, "~/line/snapshot", qos.SNAPSHOT,
+            UnitSnapshot,
+            "~/line/snapshot",
+            qos.SNAPSHOT,
             event_callbacks=PublisherEventCallbacks(matched=self._on_snapshot_matched),
-        )  # fmt: skip
+        )
         # (one message at a time, in order: a unit's stale and fresh entries must not swap, as
         # the units' topics must not: UnitProxy)
-        self.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics,
-                                 qos.DIAGNOSTICS, callback_group=MutuallyExclusiveCallbackGroup(),
-                                 event_callbacks=qos.quiet_events())  # fmt: skip
+        self.create_subscription(
+            DiagnosticArray,
+            "/diagnostics",
+            self._on_diagnostics,
+            qos.DIAGNOSTICS,
+            callback_group=MutuallyExclusiveCallbackGroup(),
+            event_callbacks=qos.quiet_events(),
+        )
         serve = partial(responses.create_service, self, callback_group=self._group)
         serve(Command, "~/command", self._srv_command)
         serve(SetMode, "~/set_mode", self._srv_set_mode)
@@ -276,8 +283,15 @@ class CoordinatorNode(GuardedNode):
         """Publish what the line has to say: its inputs, changed episodes, the cell status."""
         records, episodes = self.line.take()
         for r in records:
-            self.pub_inputs.publish(UnitInput(stamp=line_msgs.stamp(r.t), index=r.index, unit=r.unit,
-                                              name=r.name, args_json=r.args_json))  # fmt: skip
+            self.pub_inputs.publish(
+                UnitInput(
+                    stamp=line_msgs.stamp(r.t),
+                    index=r.index,
+                    unit=r.unit,
+                    name=r.name,
+                    args_json=r.args_json,
+                )
+            )
         for view in episodes:
             self.pub_episodes.publish(line_msgs.episode_msg(view, self.cell.cell))
             self._published["episodes"] += 1
@@ -314,8 +328,14 @@ class CoordinatorNode(GuardedNode):
                 return
             self._flush()
             index, t, doc = self.line.snapshot(self._published)
-            self.pub_snapshot.publish(UnitSnapshot(stamp=line_msgs.stamp(t), index=index, unit="",
-                                                   state_json=json.dumps(doc, separators=(",", ":"))))  # fmt: skip
+            self.pub_snapshot.publish(
+                UnitSnapshot(
+                    stamp=line_msgs.stamp(t),
+                    index=index,
+                    unit="",
+                    state_json=json.dumps(doc, separators=(",", ":")),
+                )
+            )
 
     def _arm(self) -> None:
         """Arm the timer for the next thing due (nothing: no timer runs; lock held)."""
@@ -357,12 +377,19 @@ class CoordinatorNode(GuardedNode):
         """Publish the cell status if anything but the stamp changed (lock held)."""
         v = self.line.view()
         msg = CellStatus(
-            cell=v.cell, units=[self._summary(u) for u in v.units], state_current=v.state_current,
-            state_current_name=state_name(v.state_current), unit_mode_current=v.unit_mode_current,
-            all_online=v.all_online, busy=v.busy, sequence_step=v.sequence_step,
-            lost_units=list(v.lost_units), detail=v.detail + self._durability_note(), commands_valid=list(v.commands_valid),
+            cell=v.cell,
+            units=[self._summary(u) for u in v.units],
+            state_current=v.state_current,
+            state_current_name=state_name(v.state_current),
+            unit_mode_current=v.unit_mode_current,
+            all_online=v.all_online,
+            busy=v.busy,
+            sequence_step=v.sequence_step,
+            lost_units=list(v.lost_units),
+            detail=v.detail + self._durability_note(),
+            commands_valid=list(v.commands_valid),
             commands_valid_names=[command_name(c) for c in v.commands_valid],
-        )  # fmt: skip
+        )
         previous = self._last_msg
         if previous is not None:
             msg.stamp = previous.stamp
@@ -406,8 +433,13 @@ class CoordinatorNode(GuardedNode):
             answer = Answer(error=str(exc) or type(exc).__name__)
         else:
             r = future.result()
-            answer = Answer(bool(r.accepted), int(r.result), str(r.message),
-                            int(getattr(r, "state_current", 0)), int(getattr(r, "state_requested", 0)))  # fmt: skip
+            answer = Answer(
+                bool(r.accepted),
+                int(r.result),
+                str(r.message),
+                int(getattr(r, "state_current", 0)),
+                int(getattr(r, "state_requested", 0)),
+            )
         with self._cond:
             run.answer(unit, service, answer)
             self._cond.notify_all()
@@ -497,7 +529,9 @@ class CoordinatorNode(GuardedNode):
             self._flush()
         return outcome.accepted, outcome.result, outcome.message
 
-    def cell_set_mode(self, mode: int, mode_name: str = "", caller: str = "operator") -> tuple[bool, int, str, int]:  # fmt: skip
+    def cell_set_mode(
+        self, mode: int, mode_name: str = "", caller: str = "operator"
+    ) -> tuple[bool, int, str, int]:
         """A mode change of every unit, all or nothing (:class:`~packml_ros2.core.line.sequence.ModeRun`):
         (accepted, result, message, mode): the new mode, or the mode the cell had (0: mixed)."""
         problem = self._not_blocking_executor()
@@ -536,7 +570,9 @@ class CoordinatorNode(GuardedNode):
         )
         return resp
 
-    def _srv_trigger(self, cmd: Cmd, req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:  # fmt: skip
+    def _srv_trigger(
+        self, cmd: Cmd, req: Trigger.Request, resp: Trigger.Response
+    ) -> Trigger.Response:
         resp.success, _, resp.message = self.cell_command(cmd, "operator")
         return resp
 
@@ -546,7 +582,9 @@ class CoordinatorNode(GuardedNode):
         )
         return resp
 
-    def _srv_episodes(self, req: QueryEpisodes.Request, resp: QueryEpisodes.Response) -> QueryEpisodes.Response:  # fmt: skip
+    def _srv_episodes(
+        self, req: QueryEpisodes.Request, resp: QueryEpisodes.Response
+    ) -> QueryEpisodes.Response:
         since, until, unit, bucket = (
             line_msgs.ns_of(req.since),
             line_msgs.ns_of(req.until),
@@ -558,18 +596,26 @@ class CoordinatorNode(GuardedNode):
             if why:
                 resp.accepted, resp.result, resp.message = False, Result.INVALID_ARGUMENT, why
                 return resp
-            found, total = self.line.query_episodes(since, until, unit, req.reason[:200], bucket,
-                                                    req.open_only, req.limit)  # fmt: skip
+            found, total = self.line.query_episodes(
+                since, until, unit, req.reason[:200], bucket, req.open_only, req.limit
+            )
         resp.accepted, resp.result, resp.total = True, Result.ACCEPTED, total
         resp.message = f"{len(found)} of {total} episodes"
         resp.episodes = [line_msgs.episode_msg(v, self.cell.cell) for v in found]
         return resp
 
-    def _srv_losses(self, req: QueryLosses.Request, resp: QueryLosses.Response) -> QueryLosses.Response:  # fmt: skip
+    def _srv_losses(
+        self, req: QueryLosses.Request, resp: QueryLosses.Response
+    ) -> QueryLosses.Response:
         with self._cond:
             now = self._wall()
-            views, why = self.line.query_losses(req.window[:100], line_msgs.ns_of(req.since),
-                                                line_msgs.ns_of(req.until), req.step, req.count)  # fmt: skip
+            views, why = self.line.query_losses(
+                req.window[:100],
+                line_msgs.ns_of(req.since),
+                line_msgs.ns_of(req.until),
+                req.step,
+                req.count,
+            )
             designs = self._designs()
         resp.accepted = not why
         resp.result = Result.ACCEPTED if not why else Result.INVALID_ARGUMENT

@@ -52,8 +52,13 @@ def missing(cell: CellConfig) -> list[tuple[str, str]]:
     if not cell.dds_interfaces or any(on_this_host(i) for i in cell.dds_interfaces):
         return []
     names = ", ".join(name for _, name in socket.if_nameindex())
-    return [("dds.interfaces", f"this host has none of {', '.join(cell.dds_interfaces)} "
-                               f"(its interfaces: {names}): DDS would reach nobody")]  # fmt: skip
+    return [
+        (
+            "dds.interfaces",
+            f"this host has none of {', '.join(cell.dds_interfaces)} "
+            f"(its interfaces: {names}): DDS would reach nobody",
+        )
+    ]
 
 
 def profile_xml(interfaces: Sequence[str]) -> str:

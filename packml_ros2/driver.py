@@ -81,7 +81,9 @@ class UnitDriver:
             self.flush()
             self.clock.frozen = None
 
-    def report(self, now: float, msg: Any, liveliness: Liveliness, tick: float | None = None) -> None:  # fmt: skip
+    def report(
+        self, now: float, msg: Any, liveliness: Liveliness, tick: float | None = None
+    ) -> None:
         """An ``EmReport`` received at ``now``, applied as the engine inputs it stands for: every
         report is a heartbeat (``em_seen`` when the EM was not alive), then its kind's input. The
         unit node and the synthetic recorder (bag/synthetic.py) both come here. ``tick``: the
@@ -91,7 +93,10 @@ class UnitDriver:
             if liveliness.left(name):
                 run(now, unit.em_lost, name, "left")
             return
-        if liveliness.seen(name, now if tick is None else tick) and not run(now, unit.em_seen, name, True).accepted:  # fmt: skip
+        if (
+            liveliness.seen(name, now if tick is None else tick)
+            and not run(now, unit.em_seen, name, True).accepted
+        ):
             liveliness.forget(name)  # not registered: its next report asks again
             return  # the rest of a report of an EM the unit does not know changes nothing
         warning = liveliness.announce(name, msg.lease)
@@ -107,8 +112,17 @@ class UnitDriver:
             if msg.counter < len(KINDS):
                 run(now, unit.em_count, name, KINDS[msg.counter], msg.counter_index, msg.increment)
         elif kind == cls.KIND_ALARM:
-            run(now, unit.em_alarm, name, msg.alarm_id, msg.alarm_value, msg.alarm_active,
-                msg.warning, msg.category, msg.message)  # fmt: skip
+            run(
+                now,
+                unit.em_alarm,
+                name,
+                msg.alarm_id,
+                msg.alarm_value,
+                msg.alarm_active,
+                msg.warning,
+                msg.category,
+                msg.message,
+            )
         elif kind == cls.KIND_RECIPE:
             run(now, unit.em_recipe, name, msg.sequence, msg.recipe_accepted, msg.message)
 
@@ -149,8 +163,12 @@ class UnitDriver:
             "input_schema": inputlog.SCHEMA,
             "published": dict(published),
         }
-        return UnitSnapshot(stamp=convert.stamp(self.unit.now), index=index, unit=self.name,
-                            state_json=json.dumps(state, separators=(",", ":")))  # fmt: skip
+        return UnitSnapshot(
+            stamp=convert.stamp(self.unit.now),
+            index=index,
+            unit=self.name,
+            state_json=json.dumps(state, separators=(",", ":")),
+        )
 
     def admin_message(self, view: AdminView | None = None) -> Any:
         """The Admin message of ``view`` (default: the unit's admin data now)."""

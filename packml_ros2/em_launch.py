@@ -79,8 +79,9 @@ class EmRun:
         return f"{self.key}: {self.target}{where}"
 
 
-def resolve(cell: CellConfig, file: str | os.PathLike[str], simulate: bool = False
-            ) -> tuple[list[EmRun], list[tuple[str, str]]]:  # fmt: skip
+def resolve(
+    cell: CellConfig, file: str | os.PathLike[str], simulate: bool = False
+) -> tuple[list[EmRun], list[tuple[str, str]]]:
     """Every EM of the cell and how it runs, and the problems (key path, sentence) found."""
     runs: list[EmRun] = []
     problems: list[tuple[str, str]] = []
@@ -95,15 +96,21 @@ def resolve(cell: CellConfig, file: str | os.PathLike[str], simulate: bool = Fal
     return runs, problems
 
 
-def _resolve(cell: CellConfig, unit: UnitConfig, em: EmConfig, file: Path, path: str,
-             simulate: bool) -> EmRun | list[tuple[str, str]]:  # fmt: skip
+def _resolve(
+    cell: CellConfig, unit: UnitConfig, em: EmConfig, file: Path, path: str, simulate: bool
+) -> EmRun | list[tuple[str, str]]:
     how = "sim" if simulate else em.runs
     base = EmRun(unit.name, em.name, "class", how, process=em.process)
     if how == "":
         keys = ", ".join(f"{k}:" for k in EM_RUNS)
-        return [(path, f"says not how it runs: give one of {keys} (sim: {{}} simulates it with "
-                       "the defaults; run: module:Class, an entry point or a program starts your "
-                       "EM; external: true waits for an EM started elsewhere)")]  # fmt: skip
+        return [
+            (
+                path,
+                f"says not how it runs: give one of {keys} (sim: {{}} simulates it with "
+                "the defaults; run: module:Class, an entry point or a program starts your "
+                "EM; external: true waits for an EM started elsewhere)",
+            )
+        ]
     if how == "sim":
         return _replace(base, target=SIM_CLASS)
     if em.process and how in ("external",):
@@ -141,12 +148,18 @@ def _external(base: EmRun, spec: Any, path: str) -> EmRun | list[tuple[str, str]
         if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or timeout <= 0:
             return [(f"{path}.timeout", "expected seconds > 0 (how long to wait for the EM)")]
         return _replace(base, kind="external", timeout=float(timeout))
-    return [(path, "expected true (or {timeout: seconds}): the EM is started elsewhere; to have "
-                   "the launcher start it, use run: or sim: instead")]  # fmt: skip
+    return [
+        (
+            path,
+            "expected true (or {timeout: seconds}): the EM is started elsewhere; to have "
+            "the launcher start it, use run: or sim: instead",
+        )
+    ]
 
 
-def _run(cell: CellConfig, unit: UnitConfig, em: EmConfig, file: Path, base: EmRun,
-         path: str) -> EmRun | list[tuple[str, str]]:  # fmt: skip
+def _run(
+    cell: CellConfig, unit: UnitConfig, em: EmConfig, file: Path, base: EmRun, path: str
+) -> EmRun | list[tuple[str, str]]:
     spec = em.spec
     if isinstance(spec, str):
         try:
@@ -158,35 +171,59 @@ def _run(cell: CellConfig, unit: UnitConfig, em: EmConfig, file: Path, base: EmR
     else:
         argv = []
     if not argv:
-        return [(path, "expected module:Class, an entry point or a program with its arguments "
-                       "(a string or a list of strings)")]  # fmt: skip
+        return [
+            (
+                path,
+                "expected module:Class, an entry point or a program with its arguments "
+                "(a string or a list of strings)",
+            )
+        ]
     first, args = argv[0], argv[1:]
     names = {"cell_file": str(file), "cell": cell.cell, "unit": unit.name, "em": em.name}
     try:
         args = [a.format(**names) for a in args]
     except (KeyError, IndexError, ValueError) as exc:
-        return [(path, f"unknown placeholder in the arguments ({exc}); valid: "
-                       "{cell_file}, {cell}, {unit}, {em}")]  # fmt: skip
+        return [
+            (
+                path,
+                f"unknown placeholder in the arguments ({exc}); valid: "
+                "{cell_file}, {cell}, {unit}, {em}",
+            )
+        ]
     if _TARGET.match(first):
         problems = _class_problems(first, path, functions=True)
         if problems:
             return problems
         if isinstance(load_target(first), type):
             if args:
-                return [(path, f"{first} is a class: it takes no arguments (its node is built "
-                               "with the EM's name, unit and cell)")]  # fmt: skip
+                return [
+                    (
+                        path,
+                        f"{first} is a class: it takes no arguments (its node is built "
+                        "with the EM's name, unit and cell)",
+                    )
+                ]
             return _replace(base, target=first)
         command = _python_call(first)
     else:
         program = _program(first, file.resolve().parent)
         if program is None:
-            return [(path, f"executable {first!r} not found (not on PATH, not a console_scripts "
-                           "entry point, not a file relative to the cell file)")]  # fmt: skip
+            return [
+                (
+                    path,
+                    f"executable {first!r} not found (not on PATH, not a console_scripts "
+                    "entry point, not a file relative to the cell file)",
+                )
+            ]
         command = program
     if em.process:
-        return [(path.rsplit(".", 1)[0] + ".process",
-                 "only Python EM classes (run: module:Class, sim:) share a process; a program "
-                 "runs as its own process")]  # fmt: skip
+        return [
+            (
+                path.rsplit(".", 1)[0] + ".process",
+                "only Python EM classes (run: module:Class, sim:) share a process; a program "
+                "runs as its own process",
+            )
+        ]
     return _replace(base, kind="program", argv=(*command, *args), target="")
 
 
@@ -233,8 +270,13 @@ def _class_problems(target: str, path: str, functions: bool = False) -> list[tup
         return [(path, f"module {module!r} has no {attr!r}")]
     if isinstance(obj, type):
         if not issubclass(obj, EquipmentModule):
-            return [(path, f"{target} is a class but not an EquipmentModule (packml_ros2."
-                           "equipment_module): subclass it, or name a program to run")]  # fmt: skip
+            return [
+                (
+                    path,
+                    f"{target} is a class but not an EquipmentModule (packml_ros2."
+                    "equipment_module): subclass it, or name a program to run",
+                )
+            ]
         return []
     if functions and callable(obj):
         return []
@@ -258,8 +300,12 @@ def build(run: EmRun, cell: CellConfig, file: str | os.PathLike[str], **node_kwa
 
 def program_env(run: EmRun, cell: CellConfig, file: str | os.PathLike[str]) -> dict[str, str]:
     """What a program EM finds in its environment, besides the launcher's."""
-    return {"PACKML_CELL_FILE": str(file), "PACKML_CELL": cell.cell, "PACKML_UNIT": run.unit,
-            "PACKML_EM": run.em}  # fmt: skip
+    return {
+        "PACKML_CELL_FILE": str(file),
+        "PACKML_CELL": cell.cell,
+        "PACKML_UNIT": run.unit,
+        "PACKML_EM": run.em,
+    }
 
 
 def groups(runs: Sequence[EmRun]) -> list[list[EmRun]]:

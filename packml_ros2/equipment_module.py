@@ -124,9 +124,17 @@ class EquipmentModule(GuardedNode):
     #: running hook is still cancelled). A constructor argument overrides it.
     unit_lost_state: State | None = State.ABORTING
 
-    def __init__(self, name: str, unit: str, cell: str = "", *, lease: float = 2.0,
-                 fault_alarm_id: int = FAULT_ALARM_ID, unit_lost_state: State | str | None = "",
-                 **node_kwargs: Any) -> None:  # fmt: skip
+    def __init__(
+        self,
+        name: str,
+        unit: str,
+        cell: str = "",
+        *,
+        lease: float = 2.0,
+        fault_alarm_id: int = FAULT_ALARM_ID,
+        unit_lost_state: State | str | None = "",
+        **node_kwargs: Any,
+    ) -> None:
         namespace = "/" + "/".join(p for p in (cell, unit) if p)
         super().__init__(name, namespace=namespace, **node_kwargs)
         self.em_name = name
@@ -215,11 +223,24 @@ class EquipmentModule(GuardedNode):
             EmReport.KIND_COUNT, counter=COUNTERS[counter], counter_index=index, increment=increment
         )
 
-    def raise_alarm(self, alarm_id: int, value: int = 0, message: str = "", category: int = -1,
-                    warning: bool = False) -> None:  # fmt: skip
+    def raise_alarm(
+        self,
+        alarm_id: int,
+        value: int = 0,
+        message: str = "",
+        category: int = -1,
+        warning: bool = False,
+    ) -> None:
         """Raise alarm (``alarm_id``, ``value``); category/message default to the unit's configuration."""
-        self._send(EmReport.KIND_ALARM, alarm_id=alarm_id, alarm_value=value, alarm_active=True,
-                   warning=warning, category=category, message=message)  # fmt: skip
+        self._send(
+            EmReport.KIND_ALARM,
+            alarm_id=alarm_id,
+            alarm_value=value,
+            alarm_active=True,
+            warning=warning,
+            category=category,
+            message=message,
+        )
 
     def clear_alarm(self, alarm_id: int, value: int = 0) -> None:
         """The alarm's condition is gone (it stays latched at the unit until reset)."""
@@ -244,8 +265,10 @@ class EquipmentModule(GuardedNode):
 
     def report_complete(self, state: int | None = None, sequence: int | None = None) -> None:
         """State Complete for (state, sequence); the base class does this when a hook returns."""
-        key = (int(self.state if state is None else state),
-               self.sequence if sequence is None else sequence)  # fmt: skip
+        key = (
+            int(self.state if state is None else state),
+            self.sequence if sequence is None else sequence,
+        )
         self._reported = (*key, time.monotonic())
         self._send(EmReport.KIND_STATE_COMPLETE, state=key[0], sequence=key[1])
 
@@ -357,8 +380,11 @@ class EquipmentModule(GuardedNode):
             f"unit {self.unit_name} lost (its status writer left): {what} until it is back"
         )
         now = self.status
-        view = now._replace(state=int(safe) if safe is not None else int(State.STOPPED),
-                            mode_changing=False, mine=(True, False))  # fmt: skip
+        view = now._replace(
+            state=int(safe) if safe is not None else int(State.STOPPED),
+            mode_changing=False,
+            mine=(True, False),
+        )
         self._on_status(view)
 
     def _beat(self) -> None:
@@ -392,8 +418,9 @@ class EquipmentModule(GuardedNode):
         """Executor thread: follow the unit (:meth:`HookRunner.on_status`)."""
         self.hooks.on_status(msg)
 
-    def _hook_failed(self, hook: Callable[[StateContext], Any], ctx: StateContext,
-                     exc: Exception) -> None:  # fmt: skip
+    def _hook_failed(
+        self, hook: Callable[[StateContext], Any], ctx: StateContext, exc: Exception
+    ) -> None:
         name = getattr(hook, "__name__", "hook")
         self.get_logger().error(
             f"{name} failed in {state_name(ctx.state)}: {exc}\n{traceback.format_exc()}"

@@ -220,8 +220,9 @@ def result_number(result: Any, path: str) -> int:
     return len(value) if hasattr(value, "__len__") else int(value)
 
 
-def parse_interface(data: Mapping[str, Any], kind: str, path: str, file: str,
-                    unit: UnitConfig) -> InterfaceConfig:  # fmt: skip
+def parse_interface(
+    data: Mapping[str, Any], kind: str, path: str, file: str, unit: UnitConfig
+) -> InterfaceConfig:
     """Validate an EM's ``action:`` / ``service:`` block at ``path``; ConfigError names each
     key path with a sentence. The type must be installed and every field must exist in it."""
     n = Node(dict(data), path)
@@ -323,8 +324,20 @@ def parse_interface(data: Mapping[str, Any], kind: str, path: str, file: str,
     lease = n.get("lease", sc.number(positive=True), unit.em_lease)
     if n.problems:
         raise ConfigError(file, n.problems)
-    return InterfaceConfig(kind, type_name, interface, server, timeout, cancel_on, alarm_id,
-                           category, message, steps, success, lease)  # fmt: skip
+    return InterfaceConfig(
+        kind,
+        type_name,
+        interface,
+        server,
+        timeout,
+        cancel_on,
+        alarm_id,
+        category,
+        message,
+        steps,
+        success,
+        lease,
+    )
 
 
 def interface_block(em: Any) -> tuple[str, Mapping[str, Any]] | None:
@@ -344,8 +357,9 @@ class InterfaceEm(EquipmentModule):
     """An EM whose acting states are goals of an action server or calls of a service."""
 
     @classmethod
-    def from_cell(cls, cell: CellConfig, unit: str, em: str, *, file: str,
-                  **node_kwargs: Any) -> InterfaceEm:  # fmt: skip
+    def from_cell(
+        cls, cell: CellConfig, unit: str, em: str, *, file: str, **node_kwargs: Any
+    ) -> InterfaceEm:
         """Built from its cell file's block (the launcher's row in ``EM_RUNS``)."""
         return _from_cell(cell, unit, em, file, **node_kwargs)
 
@@ -358,8 +372,9 @@ class InterfaceEm(EquipmentModule):
             return list(exc.problems)
         return []
 
-    def __init__(self, name: str, unit: str, cell: str, config: InterfaceConfig,
-                 **node_kwargs: Any) -> None:  # fmt: skip
+    def __init__(
+        self, name: str, unit: str, cell: str, config: InterfaceConfig, **node_kwargs: Any
+    ) -> None:
         super().__init__(name, unit, cell, lease=config.lease, **node_kwargs)
         self.config = config
         self.last_feedback: Any = None
@@ -472,13 +487,15 @@ class InterfaceEm(EquipmentModule):
             # cancelled or completed like one that was running.
             handle = sent.result() if sent.done() else None
             if handle is not None and handle.accepted:
-                await self._await(self._wrap(handle.get_result_async()), client.server_is_ready,
-                                  ctx, handle)  # fmt: skip
+                await self._await(
+                    self._wrap(handle.get_result_async()), client.server_is_ready, ctx, handle
+                )
             raise
         if not handle.accepted:
             raise StepFailed(Failure.REJECTED, f"{self.config.name} rejected the goal")
-        answer = await self._await(self._wrap(handle.get_result_async()), client.server_is_ready,
-                                   ctx, handle)  # fmt: skip
+        answer = await self._await(
+            self._wrap(handle.get_result_async()), client.server_is_ready, ctx, handle
+        )
         if answer.status != GoalStatus.STATUS_SUCCEEDED:
             what = {GoalStatus.STATUS_ABORTED: "aborted", GoalStatus.STATUS_CANCELED: "cancelled"}
             raise StepFailed(
@@ -491,8 +508,13 @@ class InterfaceEm(EquipmentModule):
     def _on_feedback(self, msg: Any) -> None:
         self.last_feedback = msg.feedback
 
-    async def _await(self, fut: asyncio.Future[Any], alive: Callable[[], bool],
-                     ctx: StateContext, handle: Any = None) -> Any:  # fmt: skip
+    async def _await(
+        self,
+        fut: asyncio.Future[Any],
+        alive: Callable[[], bool],
+        ctx: StateContext,
+        handle: Any = None,
+    ) -> Any:
         """``fut``'s result, within the timeout, while the server is there. The unit leaving the
         state meanwhile (``ctx.cancelled``: the base class sets it before it cancels the hook)
         does not interrupt it: the goal ``handle`` is cancelled at the server when the state the
@@ -535,12 +557,14 @@ def _parsed(cell: CellConfig, unit: str, em: str, cell_file: str) -> InterfaceCo
     if block is None:
         raise SystemExit(f"{cell_file}: EM {unit}/{em} has no action: or service: block")
     kind, data = block
-    return parse_interface(data, kind, f"units.{unit}.equipment_modules.{em}.{kind}",
-                           cell_file, config)  # fmt: skip
+    return parse_interface(
+        data, kind, f"units.{unit}.equipment_modules.{em}.{kind}", cell_file, config
+    )
 
 
-def _from_cell(cell: CellConfig, unit: str, em: str, cell_file: str,
-               **node_kwargs: Any) -> InterfaceEm:  # fmt: skip
+def _from_cell(
+    cell: CellConfig, unit: str, em: str, cell_file: str, **node_kwargs: Any
+) -> InterfaceEm:
     if unit not in cell.units:
         raise SystemExit(f"{cell_file} has no unit {unit!r} (units: {', '.join(cell.units)})")
     return InterfaceEm(em, unit, cell.cell, _parsed(cell, unit, em, cell_file), **node_kwargs)

@@ -18,8 +18,10 @@ def camel(name: str) -> str:
 def name_problem(name: str) -> str | None:
     """Why ``name`` cannot name an EM package (a ROS package name that is a Python module too)."""
     if not NAME.match(name) or "__" in name or name.endswith("_"):
-        return (f"{name!r} is not a package name: lower-case letters, digits and single "
-                "underscores, starting with a letter (e.g. gripper, vacuum_gripper)")  # fmt: skip
+        return (
+            f"{name!r} is not a package name: lower-case letters, digits and single "
+            "underscores, starting with a letter (e.g. gripper, vacuum_gripper)"
+        )
     return None
 
 

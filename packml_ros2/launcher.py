@@ -148,8 +148,12 @@ def wait_ready(
             break
         if awaited and now - noted >= WAITING_NOTE_EVERY:
             noted = now
-            note("waiting for external EM(s) " + ", ".join(
-                f"{r.name} ({max(0.0, start + r.timeout - now):.0f} s left)" for r in awaited))  # fmt: skip
+            note(
+                "waiting for external EM(s) "
+                + ", ".join(
+                    f"{r.name} ({max(0.0, start + r.timeout - now):.0f} s left)" for r in awaited
+                )
+            )
         spin(0.05)
     for client in clients.values():
         node.destroy_client(client)
@@ -160,8 +164,10 @@ def wait_ready(
 
 def _why_missing(r: EmRun) -> str:
     if r.kind == "external":
-        return (f"external, not online after {r.timeout:g} s: start it where it runs; the unit "
-                "refuses Reset and Start until it is online")  # fmt: skip
+        return (
+            f"external, not online after {r.timeout:g} s: start it where it runs; the unit "
+            "refuses Reset and Start until it is online"
+        )
     return "offline"
 
 
@@ -242,8 +248,10 @@ def _interfaces(p: Plan, note: Callable[[str], None]) -> None:
     """The cell's ``dds.interfaces``: a Fast DDS profile for this process and its children."""
     profile = dds_profile.apply(p.cell)
     if profile is not None:
-        note(f"DDS on {', '.join(i for i in p.cell.dds_interfaces if dds_profile.on_this_host(i))}"
-             f", 127.0.0.1 and shared memory only (dds.interfaces: {profile})")  # fmt: skip
+        note(
+            f"DDS on {', '.join(i for i in p.cell.dds_interfaces if dds_profile.on_this_host(i))}"
+            f", 127.0.0.1 and shared memory only (dds.interfaces: {profile})"
+        )
 
 
 def launch_in_process(p: Plan, threads: int = 0, ready: Callable[[str], None] = print) -> int:
@@ -301,8 +309,9 @@ def launch_in_process(p: Plan, threads: int = 0, ready: Callable[[str], None] = 
     from .unit_node import UnitNode
 
     # (an integrator's EM may wait in a callback: it is not light)
-    light = [n for n in nodes if isinstance(n, (UnitNode, SimulatedEm))
-             or type(n) is EquipmentModule]  # fmt: skip
+    light = [
+        n for n in nodes if isinstance(n, (UnitNode, SimulatedEm)) or type(n) is EquipmentModule
+    ]
     blocking = [n for n in nodes if n not in light]
     return run.spin(light, on_shutdown=shutdown, blocking=blocking)
 
@@ -332,8 +341,11 @@ def node_specs(p: Plan) -> list[NodeSpec]:
     ]
     for group in groups(p.ems):
         label = " ".join(r.name for r in group)
-        out.append(NodeSpec(f"em {label}", "em_node", "packml_ros2.sim_em",
-                            host_arguments(group, f, p.simulate)))  # fmt: skip
+        out.append(
+            NodeSpec(
+                f"em {label}", "em_node", "packml_ros2.sim_em", host_arguments(group, f, p.simulate)
+            )
+        )
     out += [
         NodeSpec(f"em {r.name}", "", "", (), r.argv, tuple(program_env(r, p.cell, f).items()))
         for r in p.ems

@@ -66,12 +66,14 @@ def _of(node: Any, enclave: str) -> Endpoints:
         return {n for n, _ in pairs}
 
     return Endpoints(
-        enclave, ns, name,
+        enclave,
+        ns,
+        name,
         publish=names(node.get_publisher_names_and_types_by_node(name, ns)) | set(COMMON_PUBLISH),
         subscribe=names(node.get_subscriber_names_and_types_by_node(name, ns))
         | set(COMMON_SUBSCRIBE),
         reply=names(node.get_service_names_and_types_by_node(name, ns)),
-    )  # fmt: skip
+    )
 
 
 def _em(unit: str, em: str) -> Endpoints:
@@ -92,8 +94,10 @@ def _without_plc(plan: Plan) -> Plan:
     """``plan`` with no persistence (a running cell holds its stores: the units' and the line's)
     and a PLC unit's bridge built as a unit node: it serves and publishes the same names (and
     would connect to its PLC)."""
-    units = {n: dataclasses.replace(u, plc=None, persistence_path=None)
-             for n, u in plan.cell.units.items()}  # fmt: skip
+    units = {
+        n: dataclasses.replace(u, plc=None, persistence_path=None)
+        for n, u in plan.cell.units.items()
+    }
     line = dataclasses.replace(plan.cell.line, store=None)
     return dataclasses.replace(plan, cell=dataclasses.replace(plan.cell, units=units, line=line))
 
@@ -143,9 +147,16 @@ def endpoints(plan: Plan) -> list[Endpoints]:
         if e.node == "coordinator" and e.ns == base:
             e.request = set().union(*(u.reply for u in units))
     for face in FACES:
-        out.append(Endpoints(f"{base}/{face}", base, face, publish=set(COMMON_PUBLISH),
-                             subscribe=cell_topics | {"/diagnostics", *COMMON_SUBSCRIBE},
-                             request=cell_services))  # fmt: skip
+        out.append(
+            Endpoints(
+                f"{base}/{face}",
+                base,
+                face,
+                publish=set(COMMON_PUBLISH),
+                subscribe=cell_topics | {"/diagnostics", *COMMON_SUBSCRIBE},
+                request=cell_services,
+            )
+        )
     return out
 
 

@@ -98,10 +98,15 @@ class Presence:
             )
             self._subs.append(
                 node.create_subscription(
-                    message_type, f"{path}/status", _ignore, profile, raw=True,
-                    event_callbacks=events, callback_group=callback_group,
+                    message_type,
+                    f"{path}/status",
+                    _ignore,
+                    profile,
+                    raw=True,
+                    event_callbacks=events,
+                    callback_group=callback_group,
                 )
-            )  # fmt: skip
+            )
         self._timer = node.create_timer(lease, self._on_start_lease, callback_group=callback_group)
 
     # -- queries (any thread) ----------------------------------------------------------------------

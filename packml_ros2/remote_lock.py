@@ -29,8 +29,14 @@ class RemoteLock:
     #: the service (:mod:`.ros.interface`) that switches it
     SERVICE = "set_remote_commands"
 
-    def __init__(self, node: Node, unit: str, initial: bool, on_change: Callable[[bool], None],
-                 **service_kwargs: Any) -> None:  # fmt: skip
+    def __init__(
+        self,
+        node: Node,
+        unit: str,
+        initial: bool,
+        on_change: Callable[[bool], None],
+        **service_kwargs: Any,
+    ) -> None:
         self.node = node
         self.unit = unit
         self.on_change = on_change

@@ -107,11 +107,15 @@ class Resender:
         """Retry ``attempt`` (True = sent) for the response of service ``name``."""
         now = time.monotonic()
         if self.window <= 0:
-            log.error(f"response of {name} lost: the client is not discovered yet "
-                      f"({_RESEND_ENV}=0: not sent again)")  # fmt: skip
+            log.error(
+                f"response of {name} lost: the client is not discovered yet "
+                f"({_RESEND_ENV}=0: not sent again)"
+            )
             return
-        log.warning(f"response of {name} not delivered: the client is not discovered yet; "
-                    f"sending it again for up to {self.window:g} s")  # fmt: skip
+        log.warning(
+            f"response of {name} not delivered: the client is not discovered yet; "
+            f"sending it again for up to {self.window:g} s"
+        )
         with self._cond:
             heapq.heappush(
                 self._heap, _Pending(now + self.period, next(self._order), attempt, name, now, log)
@@ -138,12 +142,15 @@ class Resender:
         waited = time.monotonic() - item.lost_at
         if sent:
             self.sent += 1
-            item.log.info(f"response of {item.name} sent after {waited:.2f} s "
-                          f"({item.attempts + 1} attempts)")  # fmt: skip
+            item.log.info(
+                f"response of {item.name} sent after {waited:.2f} s ({item.attempts + 1} attempts)"
+            )
         elif waited >= self.window:
             self.given_up += 1
-            item.log.error(f"response of {item.name} lost: the client's response reader was not "
-                           f"discovered within {self.window:g} s ({item.attempts + 1} attempts)")  # fmt: skip
+            item.log.error(
+                f"response of {item.name} lost: the client's response reader was not "
+                f"discovered within {self.window:g} s ({item.attempts + 1} attempts)"
+            )
         else:
             item.attempts += 1
             item.due = time.monotonic() + self.period

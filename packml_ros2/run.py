@@ -207,8 +207,12 @@ def _guard_teardown() -> None:
 
 
 def _teardown_overdue() -> None:
-    print(f"the ROS 2 teardown did not end within {TEARDOWN_LIMIT:g} s after the nodes were "
-          "closed: exiting; where it was:", file=sys.stderr, flush=True)  # fmt: skip
+    print(
+        f"the ROS 2 teardown did not end within {TEARDOWN_LIMIT:g} s after the nodes were "
+        "closed: exiting; where it was:",
+        file=sys.stderr,
+        flush=True,
+    )
     faulthandler.dump_traceback(sys.stderr, all_threads=True)
     os._exit(0)
 

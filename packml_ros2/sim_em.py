@@ -41,9 +41,9 @@ from .core.schema import ConfigError, Node
 from .equipment_module import EquipmentModule, RecipeRefused, StateContext, StatusView
 from .ros import interface
 
-SIM_KEYS = {"durations", "cycle_time", "counter", "counter_index", "defect_rate", "defect_counter_index",
-            "consumed_per_cycle", "cycles_per_run", "lease", "faults", "seed", "fed_by", "buffer",
-            "changeover_time"}  # fmt: skip
+SIM_KEYS = {"durations", "cycle_time", "counter", "counter_index", "defect_rate",
+            "defect_counter_index", "consumed_per_cycle", "cycles_per_run", "lease", "faults",
+            "seed", "fed_by", "buffer", "changeover_time"}  # fmt: skip
 BUFFER_TICK = 0.1  # s between looks at the buffer of an EM fed by another unit, while it drains
 FAULT_KEYS = {"kind", "alarm_id", "value", "category", "message"}
 FAULT_KINDS = ("alarm", "warning", "blocked", "starved", "repeat_complete", "refuse_recipe")
@@ -81,8 +81,9 @@ class SimConfig:
     changeover_time: float = 0.0  #: s an EM takes to apply a recipe (on_recipe)
 
 
-def parse_sim(data: Mapping[str, Any], path: str = "sim", file: str = "<memory>",
-              lease: float = 2.0) -> SimConfig:  # fmt: skip
+def parse_sim(
+    data: Mapping[str, Any], path: str = "sim", file: str = "<memory>", lease: float = 2.0
+) -> SimConfig:
     """Validate a ``sim:`` block; ConfigError names the key path. ``lease``: the default of
     ``lease`` (give the unit's em_lease: the unit's lease decides, the EM beats a quarter of it)."""
     n = Node(dict(data), path)
@@ -162,8 +163,9 @@ class SimulatedEm(EquipmentModule):
             )
 
     @classmethod
-    def from_cell(cls, cell: CellConfig, unit: str, em: str, *, file: str = "<memory>",
-                  **node_kwargs: Any) -> SimulatedEm:  # fmt: skip
+    def from_cell(
+        cls, cell: CellConfig, unit: str, em: str, *, file: str = "<memory>", **node_kwargs: Any
+    ) -> SimulatedEm:
         """The simulated EM ``em`` of ``unit`` as its ``sim:`` block says (packml_ros2.em_launch)."""
         config = cell.units[unit]
         entry = next((e.sim for e in config.equipment_modules if e.name == em), {})
@@ -244,8 +246,10 @@ class SimulatedEm(EquipmentModule):
 
     def _report_interlock(self) -> None:
         kinds = {self.sim.faults[f].kind for f in self.faults_on}
-        self.set_interlock(blocked="blocked" in kinds,
-                           starved="starved" in kinds or (bool(self.sim.fed_by) and self.buffer <= 0))  # fmt: skip
+        self.set_interlock(
+            blocked="blocked" in kinds,
+            starved="starved" in kinds or (bool(self.sim.fed_by) and self.buffer <= 0),
+        )
 
     # -- fault injection ---------------------------------------------------------------------------
     def report_complete(self, state: int | None = None, sequence: int | None = None) -> None:

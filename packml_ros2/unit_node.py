@@ -88,9 +88,16 @@ EM_LEAVE_GRACE = 1.0
 class UnitNode(GuardedNode):
     """One PackML unit. ``UnitNode(config)`` names itself ``config.name`` in ``/<config.cell>``."""
 
-    def __init__(self, config: UnitConfig, *, context: Any = None, store_path: str | None = None,
-                 source: str | None = None, unit_lease: float | None = None,
-                 **node_kwargs: Any) -> None:  # fmt: skip
+    def __init__(
+        self,
+        config: UnitConfig,
+        *,
+        context: Any = None,
+        store_path: str | None = None,
+        source: str | None = None,
+        unit_lease: float | None = None,
+        **node_kwargs: Any,
+    ) -> None:
         namespace = node_kwargs.pop("namespace", f"/{config.cell}" if config.cell else "/")
         super().__init__(config.name, namespace=namespace, context=context, **node_kwargs)
         self.config = config
@@ -135,15 +142,21 @@ class UnitNode(GuardedNode):
         self.pub_config = publish("config")
         self.pub_recipe = publish("recipe")
         self.pub_stack_light = publish("stack_light")
-        self._outputs = {t.name: getattr(self, f"pub_{t.name}")
-                         for t in interface.topics(interface.Role.OUTPUT, interface.Role.DERIVED)}  # fmt: skip
+        self._outputs = {
+            t.name: getattr(self, f"pub_{t.name}")
+            for t in interface.topics(interface.Role.OUTPUT, interface.Role.DERIVED)
+        }
         #: messages published per output topic: a snapshot says where a replay from it aligns
         self._published = dict.fromkeys(self._outputs, 0)
         # a recorder that joins gets the engine state: a replay starts from it (bag/replay.py)
-        self.pub_snapshot = publish(
-            "snapshot",
-            event_callbacks=PublisherEventCallbacks(matched=self._on_snapshot_matched),
-        ) if self._record else None  # fmt: skip
+        self.pub_snapshot = (
+            publish(
+                "snapshot",
+                event_callbacks=PublisherEventCallbacks(matched=self._on_snapshot_matched),
+            )
+            if self._record
+            else None
+        )
         reports = interface.TOPIC["em_reports"]
         self._reports = self.create_subscription(
             reports.type, reports.path(), with_info(self._on_report), reports.qos
@@ -170,9 +183,11 @@ class UnitNode(GuardedNode):
         self._closed = False
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.remote_lock = RemoteLock(
-            self, config.name, config.remote_commands_enabled,
+            self,
+            config.name,
+            config.remote_commands_enabled,
             lambda enabled: self._run(self.unit.set_remote_enabled, enabled),
-        )  # fmt: skip
+        )
         self._publish_start()
         self._arm(self._time())
         self.get_logger().info(
@@ -343,8 +358,17 @@ class UnitNode(GuardedNode):
         return resp
 
     def _srv_set_alarm(self, req: SetAlarm.Request, resp: SetAlarm.Response) -> SetAlarm.Response:
-        answer = self._run(self.unit.set_alarm, req.id, req.value, req.active, req.source or "operator", "",
-                                     req.warning or None, req.category, req.message)  # fmt: skip
+        answer = self._run(
+            self.unit.set_alarm,
+            req.id,
+            req.value,
+            req.active,
+            req.source or "operator",
+            "",
+            req.warning or None,
+            req.category,
+            req.message,
+        )
         return self._answer(resp, answer, "message_out")
 
     def _srv_set_mach_speed(
@@ -571,8 +595,12 @@ class UnitNode(GuardedNode):
         if self._record:
             # "persistence": whether the unit has a store (its periodic saves are deadlines too,
             # so replay needs one exactly when the node had one)
-            start = {"document": self.unit.restored, "time": self.unit.now,
-                     "persistence": self.store is not None, "schema": inputlog.SCHEMA}  # fmt: skip
+            start = {
+                "document": self.unit.restored,
+                "time": self.unit.now,
+                "persistence": self.store is not None,
+                "schema": inputlog.SCHEMA,
+            }
             # (a copy: the input goes out later, and the engine keeps the restored document)
             self._on_input(self.unit.now, inputlog.START, json.loads(json.dumps(start)))
         self._emit("stack_light", self.driver.stack_light_message())
@@ -635,8 +663,16 @@ class UnitNode(GuardedNode):
             return  # shutting down: nobody can receive them any more
         unit, publish = self.config.name, self.pub_inputs.publish
         for t, index, name, args in inputs:
-            publish(convert.build(UnitInput, stamp=convert.stamp(t), index=index, unit=unit, name=name,
-                                  args_json=json.dumps(args, separators=(",", ":"))))  # fmt: skip
+            publish(
+                convert.build(
+                    UnitInput,
+                    stamp=convert.stamp(t),
+                    index=index,
+                    unit=unit,
+                    name=name,
+                    args_json=json.dumps(args, separators=(",", ":")),
+                )
+            )
 
     def close(self) -> None:
         """Record the unit's shutdown (an event; the StopReason when it was producing), publish

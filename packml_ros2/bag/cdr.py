@@ -21,7 +21,8 @@ from typing import Any, NamedTuple
 
 Walker = Callable[..., int]
 SIZES = {"boolean": 1, "byte": 1, "char": 1, "octet": 1, "int8": 1, "uint8": 1, "int16": 2,
-         "uint16": 2, "int32": 4, "uint32": 4, "float": 4, "int64": 8, "uint64": 8, "double": 8}  # fmt: skip
+         "uint16": 2, "int32": 4, "uint32": 4, "float": 4, "int64": 8, "uint64": 8,
+         "double": 8}  # fmt: skip
 _SEQ = re.compile(r"^sequence<(.+?)(?:, *\d+)?>$")
 _ARRAY = re.compile(r"^(.+)\[(\d+)\]$")
 _U32 = {True: struct.Struct("<I").unpack_from, False: struct.Struct(">I").unpack_from}
@@ -221,8 +222,8 @@ _PACK = {"boolean": None, "byte": None, "char": None, "octet": None, "uint8": No
          "int8": "<b", "int16": "<h", "uint16": "<H", "int32": "<i", "uint32": "<I", "float": "<f",
          "int64": "<q", "uint64": "<Q", "double": "<d"}  # fmt: skip
 _ARRAY_CODE = {"int8": "b", "int16": "h", "uint16": "H", "int32": "i", "uint32": "I", "float": "f",
-               "int64": "q", "uint64": "Q", "double": "d", "boolean": "B", "uint8": "B", "octet": "B",
-               "byte": "B", "char": "B"}  # fmt: skip
+               "int64": "q", "uint64": "Q", "double": "d", "boolean": "B", "uint8": "B",
+               "octet": "B", "byte": "B", "char": "B"}  # fmt: skip
 _ZEROS = [bytes(n) for n in range(8)]
 _serializers: dict[Any, Callable[..., None]] = {}
 #: (id(message), origin offset mod 8) -> (message, bytes): the message is kept so its id stays its own

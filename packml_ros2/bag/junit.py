@@ -22,8 +22,14 @@ def _text(s: str) -> str:
     return s.translate(_BAD)
 
 
-def write(path: str | Path, bag: str | Path, seconds: float, units: ReplayResult | None,
-          lines: list[LineResult], error: RecordingError | None = None) -> None:  # fmt: skip
+def write(
+    path: str | Path,
+    bag: str | Path,
+    seconds: float,
+    units: ReplayResult | None,
+    lines: list[LineResult],
+    error: RecordingError | None = None,
+) -> None:
     """Write the JUnit XML report of one replay of ``bag`` to ``path``."""
     name = Path(bag).name or str(bag)
     suite = ET.Element("testsuite", name=f"packml replay {_text(name)}", time=f"{seconds:.3f}")
@@ -34,8 +40,9 @@ def write(path: str | Path, bag: str | Path, seconds: float, units: ReplayResult
     def case(classname: str, test: str, took: float) -> ET.Element:
         nonlocal cases
         cases += 1
-        return ET.SubElement(suite, "testcase", classname=_text(classname), name=_text(test),
-                             time=f"{took:.3f}")  # fmt: skip
+        return ET.SubElement(
+            suite, "testcase", classname=_text(classname), name=_text(test), time=f"{took:.3f}"
+        )
 
     if error is not None:
         c = case(f"packml_replay.{name}", "recording", seconds)
@@ -52,8 +59,12 @@ def write(path: str | Path, bag: str | Path, seconds: float, units: ReplayResult
                 from .replay import explain
 
                 first = u.first()
-                f = ET.SubElement(c, "failure", type="mismatch",
-                                  message=_text(first.headline(u.start_time) if first else "differs"))  # fmt: skip
+                f = ET.SubElement(
+                    c,
+                    "failure",
+                    type="mismatch",
+                    message=_text(first.headline(u.start_time) if first else "differs"),
+                )
                 f.text = _text("\n".join(explain(u)))
                 failures += 1
     for r in lines:
@@ -70,8 +81,13 @@ def write(path: str | Path, bag: str | Path, seconds: float, units: ReplayResult
     suite.set("tests", str(cases))
     suite.set("failures", str(failures))
     suite.set("errors", str(errors))
-    suites = ET.Element("testsuites", tests=str(cases), failures=str(failures), errors=str(errors),
-                        time=f"{seconds:.3f}")  # fmt: skip
+    suites = ET.Element(
+        "testsuites",
+        tests=str(cases),
+        failures=str(failures),
+        errors=str(errors),
+        time=f"{seconds:.3f}",
+    )
     suites.append(suite)
     ET.indent(suites)
     Path(path).write_bytes(ET.tostring(suites, encoding="utf-8", xml_declaration=True) + b"\n")

@@ -129,10 +129,16 @@ def load(path: str | Path) -> list[LineRecording]:
                 last = max(last, ts)
                 rec = lines.setdefault(cell, LineRecording(cell))
                 msg = deserialize_message(bytes(data), classes[name])
-                {"line/input_log": rec.inputs, "line/episodes": rec.episodes, "line/losses": rec.losses,
-                 "line/snapshot": rec.snapshots}[name].append(msg)  # fmt: skip
+                {
+                    "line/input_log": rec.inputs,
+                    "line/episodes": rec.episodes,
+                    "line/losses": rec.losses,
+                    "line/snapshot": rec.snapshots,
+                }[name].append(msg)
             if any(r.config_yaml is None for r in lines.values()):  # config after the line's topics
-                for conn, _, data in bag.messages([c for c in wanted if c.topic.endswith("/config")]):  # fmt: skip
+                for conn, _, data in bag.messages(
+                    [c for c in wanted if c.topic.endswith("/config")]
+                ):
                     rec = lines.get(conn.topic.strip("/").split("/")[0])
                     if rec is not None and rec.config_yaml is None:
                         rec.config_yaml = json.loads(
@@ -186,8 +192,12 @@ class LineResult:
         since = f" from a snapshot after input #{self.origin}" if self.origin else ""
         if self.ok:
             return f"line {self.cell}: match ({self.inputs} inputs{since}; {n} compared)"
-        return "\n".join([f"line {self.cell}: DIFFERS ({self.inputs} inputs{since}; {n} compared)",
-                          *(f"  {d}" for d in self.differences[:MAX_SHOWN])])  # fmt: skip
+        return "\n".join(
+            [
+                f"line {self.cell}: DIFFERS ({self.inputs} inputs{since}; {n} compared)",
+                *(f"  {d}" for d in self.differences[:MAX_SHOWN]),
+            ]
+        )
 
 
 def _config(rec: LineRecording, config_file: str | Path | None, bag: Path) -> CellConfig:
@@ -272,8 +282,12 @@ def _origin(rec: LineRecording, cell: CellConfig, log: list[Any]) -> tuple[LineO
             perf = line_snapshot.restore(cell.line, cell.units, doc.get("line"))
         except SnapshotError as exc:
             raise RecordingError(f"{at}: {exc}") from None
-        origin = LineOrigin(snap.index, line_msgs.ns_of(snap.stamp) * 1e-9, perf,
-                            {k: published[k] for k in ("episodes", "losses")})  # fmt: skip
+        origin = LineOrigin(
+            snap.index,
+            line_msgs.ns_of(snap.stamp) * 1e-9,
+            perf,
+            {k: published[k] for k in ("episodes", "losses")},
+        )
         return origin, [m for m in log if m.index > snap.index]
     if present and tail > present[0]:
         before = max(i for i in present if i < tail)
@@ -293,8 +307,9 @@ def replay(rec: LineRecording, cell: CellConfig) -> tuple[list[Any], list[Any], 
     inputs applied and the origin."""
     from .replay import check_log
 
-    order = check_log([(m.index, line_msgs.ns_of(m.stamp) * 1e-9, m.name) for m in rec.inputs],
-                      f"line {rec.cell}")  # fmt: skip
+    order = check_log(
+        [(m.index, line_msgs.ns_of(m.stamp) * 1e-9, m.name) for m in rec.inputs], f"line {rec.cell}"
+    )
     log = [rec.inputs[k] for k in order]
     origin, after = _origin(rec, cell, log)
     perf = origin.perf
@@ -319,8 +334,16 @@ def replay(rec: LineRecording, cell: CellConfig) -> tuple[list[Any], list[Any], 
     return episodes, losses, len(after), origin
 
 
-def _compare(topic: str, recorded: list[Any], pubs: list[int] | None, replayed: list[Any],
-             offset: int, origin: LineOrigin, stop: float, out: list[str]) -> int:  # fmt: skip
+def _compare(
+    topic: str,
+    recorded: list[Any],
+    pubs: list[int] | None,
+    replayed: list[Any],
+    offset: int,
+    origin: LineOrigin,
+    stop: float,
+    out: list[str],
+) -> int:
     """Compare one output to the end (see the module docstring); a difference goes to ``out``."""
     from .replay import diff
 
@@ -384,12 +407,26 @@ def check(path: str | Path, config_file: str | Path | None = None) -> list[LineR
         compared: dict[str, int] = {}
         checks: dict[str, str] = {}
         differences: list[str] = []
-        for name, recorded, replayed in (("episodes", rec.episodes, episodes), ("losses", rec.losses, losses)):  # fmt: skip
+        for name, recorded, replayed in (
+            ("episodes", rec.episodes, episodes),
+            ("losses", rec.losses, losses),
+        ):
             problems: list[str] = []
-            compared[name] = _compare(f"line/{name}", recorded, rec.publications.get(name), replayed,
-                                      origin.published.get(name, 0), origin, stop, problems)  # fmt: skip
+            compared[name] = _compare(
+                f"line/{name}",
+                recorded,
+                rec.publications.get(name),
+                replayed,
+                origin.published.get(name, 0),
+                origin,
+                stop,
+                problems,
+            )
             checks[name] = problems[0] if problems else ""
             differences += problems
-        results.append(LineResult(rec.cell, n, compared, differences, checks, origin.index,
-                                  time.perf_counter() - t0))  # fmt: skip
+        results.append(
+            LineResult(
+                rec.cell, n, compared, differences, checks, origin.index, time.perf_counter() - t0
+            )
+        )
     return results

@@ -156,8 +156,12 @@ def service_request(i: Input) -> tuple[str, dict[str, Any]] | None:
         return "set_mode", {"mode": int(mode), "source": source}
     if i.name == inputlog.ALARM_ACK.name:
         every = a.get("id") is None
-        return "ack_alarms", {"all": every, "id": 0 if every else int(a["id"]),
-                              "value": int(a.get("value", 0)), "source": source}  # fmt: skip
+        return "ack_alarms", {
+            "all": every,
+            "id": 0 if every else int(a["id"]),
+            "value": int(a.get("value", 0)),
+            "source": source,
+        }
     if i.name == inputlog.ALARM_RESET.name:
         return "reset_alarms", {"clear_first_out": bool(a.get("clear_first_out")), "source": source}
     if i.name == inputlog.TIMES_RESET.name:
@@ -165,16 +169,23 @@ def service_request(i: Input) -> tuple[str, dict[str, Any]] | None:
     if i.name == inputlog.COUNTERS_RESET.name:
         return "reset_counters", {"source": source}
     if i.name == inputlog.ALARM.name:
-        return "set_alarm", {"id": int(a["id"]), "value": int(a.get("value", 0)),
-                             "active": bool(a.get("active", True)), "warning": bool(a.get("warning")),
-                             "category": int(a.get("category", -1)), "message": a.get("message", ""),
-                             "source": source}  # fmt: skip
+        return "set_alarm", {
+            "id": int(a["id"]),
+            "value": int(a.get("value", 0)),
+            "active": bool(a.get("active", True)),
+            "warning": bool(a.get("warning")),
+            "category": int(a.get("category", -1)),
+            "message": a.get("message", ""),
+            "source": source,
+        }
     if i.name == inputlog.SPEED.name:
         return "set_mach_speed", {"mach_speed": float(a["speed"]), "source": source}
     if i.name == inputlog.PARAMETERS.name:
         desc = msg_class("packml_interfaces/msg/Descriptor")
-        params = [desc(id=int(d["id"]), name=d["name"], unit=d["unit"], value=float(d["value"]))
-                  for d in a["parameters"]]  # fmt: skip
+        params = [
+            desc(id=int(d["id"]), name=d["name"], unit=d["unit"], value=float(d["value"]))
+            for d in a["parameters"]
+        ]
         return "set_unit_parameters", {"parameter": params, "source": source}
     if i.name == inputlog.PRODUCTS.name:
         products = [convert.product(inputlog.product_from_dict(p)) for p in a["products"]]
@@ -275,8 +286,12 @@ def _actions(
     for i in inputs[1:]:
         name = i.args.get("em", "")
         if i.name == inputlog.EM_SEEN.name and first_report.get(name, math.inf) > i.time:
-            beat = report_cls(stamp=convert.stamp(i.time), em=name, kind=report_cls.KIND_HEARTBEAT,
-                              lease=leases.get(name, 0.0))  # fmt: skip
+            beat = report_cls(
+                stamp=convert.stamp(i.time),
+                em=name,
+                kind=report_cls.KIND_HEARTBEAT,
+                lease=leases.get(name, 0.0),
+            )
             actions.append(Action(i.time, order, "report", name, serialize_message(beat)))
             order += 1
             first_report[name] = i.time
@@ -296,8 +311,14 @@ def _actions(
     return actions
 
 
-def replay_live(path: str | Path, speed: float = 1.0, units: Sequence[str] = (), timeout: float = 10.0,
-                settle: float = 5.0, domain_id: int | None = None) -> LiveResult:  # fmt: skip
+def replay_live(
+    path: str | Path,
+    speed: float = 1.0,
+    units: Sequence[str] = (),
+    timeout: float = 10.0,
+    settle: float = 5.0,
+    domain_id: int | None = None,
+) -> LiveResult:
     """Feed the recording at ``path`` to the running units (see the module docstring)."""
     import rclpy
     from rclpy.context import Context
@@ -339,8 +360,15 @@ def replay_live(path: str | Path, speed: float = 1.0, units: Sequence[str] = (),
         thread.join(2)
 
 
-def _run(path: Path, node: Any, chosen: list[UnitRecording], speed: float, timeout: float,
-         settle: float, t_start: float) -> LiveResult:  # fmt: skip
+def _run(
+    path: Path,
+    node: Any,
+    chosen: list[UnitRecording],
+    speed: float,
+    timeout: float,
+    settle: float,
+    t_start: float,
+) -> LiveResult:
     tcls = msg_class(UNIT_TOPICS["transitions"])
     scls = msg_class(UNIT_TOPICS["status"])
     lives: list[_LiveUnit] = []
@@ -419,8 +447,18 @@ def _run(path: Path, node: Any, chosen: list[UnitRecording], speed: float, timeo
             got = [_key(m) for m in live.transitions if m.trigger_name != "RESTART"]
             status = live.status
         final_live = (status.state_current_name, status.unit_mode_current) if status else None
-        results.append(LiveUnitResult(live.rec.name, keys, got, from_start, final, final_live,
-                                      refused[live.prefix], skipped))  # fmt: skip
+        results.append(
+            LiveUnitResult(
+                live.rec.name,
+                keys,
+                got,
+                from_start,
+                final,
+                final_live,
+                refused[live.prefix],
+                skipped,
+            )
+        )
     return LiveResult(path, speed, results, time.monotonic() - t_start)
 
 

@@ -105,11 +105,24 @@ class Recorder:
             for topic, kind, type_name in line.topics(cell):  # its line's inputs and outputs
                 name = topic.split("/coordinator/", 1)[1]
                 output = name in line.LINE_OUTPUTS  # (kept up to the stop as the units')
-                self._add(topic, kind, type_name, store, output,
-                          line.stamp_reader(name) if output else raw_stamp)  # fmt: skip
+                self._add(
+                    topic,
+                    kind,
+                    type_name,
+                    store,
+                    output,
+                    line.stamp_reader(name) if output else raw_stamp,
+                )
 
-    def _add(self, topic: str, kind: str, type_name: str, store: Any, output: bool,
-             stamp: Callable[[bytes], float] = raw_stamp) -> None:  # fmt: skip
+    def _add(
+        self,
+        topic: str,
+        kind: str,
+        type_name: str,
+        store: Any,
+        output: bool,
+        stamp: Callable[[bytes], float] = raw_stamp,
+    ) -> None:
         conn = self._io.call(
             partial(
                 self.writer.add_connection,
@@ -132,8 +145,15 @@ class Recorder:
         )
 
     # -- receiving ---------------------------------------------------------------------------------
-    def _on_message(self, topic: str, conn: Any, input_log: bool,
-                    output: Callable[[bytes], float] | None, raw: bytes, info: Any) -> None:  # fmt: skip
+    def _on_message(
+        self,
+        topic: str,
+        conn: Any,
+        input_log: bool,
+        output: Callable[[bytes], float] | None,
+        raw: bytes,
+        info: Any,
+    ) -> None:
         """``output``: the stamp reader of an output topic (None: not an output)."""
         received = int(info.get("received_timestamp") or time.time_ns())
         with self._lock:

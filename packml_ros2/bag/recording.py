@@ -160,7 +160,11 @@ class Recording:
         """When our recorder stopped (seconds; the units' clock on one host); None: the bag does
         not say (another recorder's)."""
         stopped = self.custom.get("stopped_at_ns")
-        if isinstance(stopped, (int, float)) and not isinstance(stopped, bool) and math.isfinite(stopped):  # fmt: skip
+        if (
+            isinstance(stopped, (int, float))
+            and not isinstance(stopped, bool)
+            and math.isfinite(stopped)
+        ):
             return float(stopped) * 1e-9
         return None
 
@@ -202,14 +206,27 @@ def load(path: str | Path, keep_raw: bool = False, em_reports: bool = True) -> R
     except RecordingError:
         raise
     except MemoryError:
-        raise RecordingError(f"{path}: cannot read the bag: a size recorded in it is larger than "
-                             "this machine's memory (a damaged record?)", "unreadable") from None  # fmt: skip
+        raise RecordingError(
+            f"{path}: cannot read the bag: a size recorded in it is larger than "
+            "this machine's memory (a damaged record?)",
+            "unreadable",
+        ) from None
     except RecursionError:
         raise RecordingError(
             f"{path}: cannot read the bag: its data is nested too deeply"
         ) from None
-    except (OSError, ValueError, KeyError, TypeError, OverflowError, IndexError, AttributeError,
-            struct.error, EOFError, RuntimeError) as exc:  # fmt: skip
+    except (
+        OSError,
+        ValueError,
+        KeyError,
+        TypeError,
+        OverflowError,
+        IndexError,
+        AttributeError,
+        struct.error,
+        EOFError,
+        RuntimeError,
+    ) as exc:
         raise RecordingError(f"{path}: cannot read the bag: {_said(exc)}", "unreadable") from None
     except Exception as exc:  # rosbags' reader errors
         if type(exc).__module__.startswith("rosbags"):
@@ -269,10 +286,19 @@ def check(recording: Recording, path: str | Path) -> None:
     # (the stop bounds a unit's replay, whose engine runs to it; a line-only bag's receive times
     # need not be a clock's: its line is checked on its own messages' numbers)
     units_recorded = any(u.inputs or any(u.outputs.values()) for u in recording.units.values())
-    if stop is not None and units_recorded and (not isinstance(stop, int | float) or isinstance(stop, bool)
-                             or not lo <= stop * 1e-9 <= hi):  # fmt: skip
-        raise RecordingError(f"{path}: its recorder's stop time {str(stop)[:40]} lies outside the "
-                             "time the bag was recorded in")  # fmt: skip
+    if (
+        stop is not None
+        and units_recorded
+        and (
+            not isinstance(stop, int | float)
+            or isinstance(stop, bool)
+            or not lo <= stop * 1e-9 <= hi
+        )
+    ):
+        raise RecordingError(
+            f"{path}: its recorder's stop time {str(stop)[:40]} lies outside the "
+            "time the bag was recorded in"
+        )
     for unit in recording.units.values():
         if unit.config_json is not None:
             try:
@@ -296,9 +322,11 @@ def check(recording: Recording, path: str | Path) -> None:
                     if math.isnan(t)
                     else f"{t - recording.end:+.0f} s from its last message"
                 )
-                raise RecordingError(f"{path}: {unit.prefix} {what} is stamped {shown}: outside the "
-                                     f"time the bag was recorded in (+-{MAX_SKEW:g} s; a damaged "
-                                     "bag, or a clock that jumped)")  # fmt: skip
+                raise RecordingError(
+                    f"{path}: {unit.prefix} {what} is stamped {shown}: outside the "
+                    f"time the bag was recorded in (+-{MAX_SKEW:g} s; a damaged "
+                    "bag, or a clock that jumped)"
+                )
         for i in unit.inputs:
             if i.args_json.count("[") + i.args_json.count("{") > MAX_JSON_DEPTH:  # (cheap first)
                 try:  # (replay parses each input's arguments: json.loads recurses)
@@ -312,8 +340,10 @@ def check(recording: Recording, path: str | Path) -> None:
                     raise RecordingError(f"{path}: {exc}") from None
                 started = args.get("time", i.time) if isinstance(args, dict) else None
                 if not isinstance(started, int | float) or not lo <= started <= hi:
-                    raise RecordingError(f"{path}: {unit.prefix} input #{i.index} (start) has no "
-                                         "time inside the time the bag was recorded in")  # fmt: skip
+                    raise RecordingError(
+                        f"{path}: {unit.prefix} input #{i.index} (start) has no "
+                        "time inside the time the bag was recorded in"
+                    )
 
 
 @functools.cache
@@ -647,8 +677,10 @@ def _load(bag: _Bag, path: str | Path, keep_raw: bool, em_reports: bool = True) 
         raw = bytes(data)
         held += len(raw)
         if held > MAX_MESSAGE_BYTES:
-            raise RecordingError(f"{path}: its messages hold more than {MAX_MESSAGE_BYTES} bytes: "
-                                 "larger than a bag packml replay reads")  # fmt: skip
+            raise RecordingError(
+                f"{path}: its messages hold more than {MAX_MESSAGE_BYTES} bytes: "
+                "larger than a bag packml replay reads"
+            )
         if keep_raw:
             raw_messages.append((conn, ts, raw))
         split = by_topic.get(conn.topic)
@@ -696,5 +728,15 @@ def _load(bag: _Bag, path: str | Path, keep_raw: bool, em_reports: bool = True) 
             numbers = [n for a, b in ranges for n in range(a, b + 1)]
             if len(numbers) == len(recorded):
                 unit.publications[topic] = numbers
-    return Recording(bag.path, bag.storage, units, bag.custom, count, bag.connections, raw_messages,
-                     digests, last * 1e-9 if last >= 0 else None, first * 1e-9 if first >= 0 else None)  # fmt: skip
+    return Recording(
+        bag.path,
+        bag.storage,
+        units,
+        bag.custom,
+        count,
+        bag.connections,
+        raw_messages,
+        digests,
+        last * 1e-9 if last >= 0 else None,
+        first * 1e-9 if first >= 0 else None,
+    )

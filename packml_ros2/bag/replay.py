@@ -143,8 +143,13 @@ def _plain(x: Any) -> Any:
     return tolist() if tolist is not None and not isinstance(x, array.array) else x
 
 
-def diff(a: Any, b: Any, path: str = "", out: list[tuple[str, Any, Any]] | None = None,
-         limit: int = MAX_FIELDS) -> list[tuple[str, Any, Any]]:  # fmt: skip
+def diff(
+    a: Any,
+    b: Any,
+    path: str = "",
+    out: list[tuple[str, Any, Any]] | None = None,
+    limit: int = MAX_FIELDS,
+) -> list[tuple[str, Any, Any]]:
     """Field-level differences between two decoded values: [(path, a, b)] (NaN equals NaN)."""
     out = [] if out is None else out
     if len(out) >= limit:
@@ -450,8 +455,9 @@ def check_log(entries: Sequence[tuple[int, float, str]], where: str) -> list[int
         if index == 1 and name == inputlog.START and k > 0:
             raise RecordingError(
                 f"{where} started more than once during the recording (its input log begins "
-                "again at #1); replay covers one run: record each run apart", "restarted"
-            )  # fmt: skip
+                "again at #1); replay covers one run: record each run apart",
+                "restarted",
+            )
     order = sorted(range(len(entries)), key=lambda k: entries[k][0])
     for a, b in itertools.pairwise(order):
         (ia, ta, _), (ib, tb, nb) = entries[a], entries[b]
@@ -459,8 +465,9 @@ def check_log(entries: Sequence[tuple[int, float, str]], where: str) -> list[int
             raise RecordingError(
                 f"{where}: input #{ib} is in the recording twice (messages {a + 1} and {b + 1} "
                 "of its input log): the bag was written by something else than a recorder, or "
-                "edited", "duplicate_input"
-            )  # fmt: skip
+                "edited",
+                "duplicate_input",
+            )
         if tb < ta and nb != inputlog.CLOCK_STEP.name:  # (a step back is stamped back)
             raise RecordingError(
                 f"{where}: input #{ib} is stamped {ta - tb:.6f} s before input #{ia}: the stamps "
@@ -560,8 +567,9 @@ def _snapshot_origin(snap: Snapshot, rec: UnitRecording, bag: Path) -> Origin:
     )
 
 
-def upgraded(inputs: list[Input], schema: int, rec: UnitRecording, bag: Path,
-             first: bool = True) -> list[Input]:  # fmt: skip
+def upgraded(
+    inputs: list[Input], schema: int, rec: UnitRecording, bag: Path, first: bool = True
+) -> list[Input]:
     """The inputs (of input log ``schema``) in the current schema (core.inputlog): bags recorded
     with an older one replay too. ``first``: the first input is the ``start`` record."""
     if schema == inputlog.SCHEMA or not inputs:
@@ -663,9 +671,15 @@ def _locate(raw: bytes, produced: Sequence[Any]) -> int:
 
 
 def compare_topic(
-    unit: str, topic: str, recorded: list[bytes], pubs: list[int] | None, produced: list[Any],
-    causes: list[int], stop: float, origin: Origin,
-) -> tuple[Difference | None, int, tuple[int, int], int]:  # fmt: skip
+    unit: str,
+    topic: str,
+    recorded: list[bytes],
+    pubs: list[int] | None,
+    produced: list[Any],
+    causes: list[int],
+    stop: float,
+    origin: Origin,
+) -> tuple[Difference | None, int, tuple[int, int], int]:
     """Compare one topic: (first difference or None, messages compared, replayed window,
     recorded messages published before the origin: not compared)."""
     cls = OUTPUT_CLASSES[topic]
@@ -696,8 +710,18 @@ def compare_topic(
             continue
         fields = diff(rec, m)
         if fields:
-            d = Difference(unit, topic, "differs", k, j, min(stamp_of(rec), stamp_of(m)), rec, m,
-                           fields, causes[j])  # fmt: skip
+            d = Difference(
+                unit,
+                topic,
+                "differs",
+                k,
+                j,
+                min(stamp_of(rec), stamp_of(m)),
+                rec,
+                m,
+                fields,
+                causes[j],
+            )
             return d, n, (first, j), before
     # Everything the unit published after the last recorded message, up to the recorder's stop,
     # must have been recorded (a recorder that joined late got the latest as history).
@@ -711,8 +735,13 @@ def compare_topic(
     return None, len(pairs), (first, end), before
 
 
-def replay_unit(rec: UnitRecording, bag: Path, config_file: str | Path | None = None,
-                stop: float | None = None, end: float | None = None) -> UnitResult:  # fmt: skip
+def replay_unit(
+    rec: UnitRecording,
+    bag: Path,
+    config_file: str | Path | None = None,
+    stop: float | None = None,
+    end: float | None = None,
+) -> UnitResult:
     """Replay one unit from its origin and compare what it published up to ``stop`` (the
     recorder's stop time); without one, up to :data:`~.recording.FOREIGN_MARGIN` before the
     bag's ``end`` (its last message), and at least up to the unit's last input."""
@@ -739,9 +768,16 @@ def replay_unit(rec: UnitRecording, bag: Path, config_file: str | Path | None = 
         upgrade = rec.upgrades.get(topic)
         if upgrade is not None:  # an older definition: only the fields it had are compared
             produced = [upgrade.mask(m) for m in produced]
-        d, n, window, before = compare_topic(name, topic, rec.outputs[topic],
-                                             rec.publications.get(topic), produced,
-                                             r.causes[topic], stop, origin)  # fmt: skip
+        d, n, window, before = compare_topic(
+            name,
+            topic,
+            rec.outputs[topic],
+            rec.publications.get(topic),
+            produced,
+            r.causes[topic],
+            stop,
+            origin,
+        )
         result.compared[topic] = n
         result.windows[topic] = window
         result.not_recorded[topic] = len(r.outputs[topic]) - n
@@ -751,8 +787,12 @@ def replay_unit(rec: UnitRecording, bag: Path, config_file: str | Path | None = 
     return result
 
 
-def replay(path: str | Path, config: str | Path | None = None, units: Sequence[str] = (),
-           recording: Recording | None = None) -> ReplayResult:  # fmt: skip
+def replay(
+    path: str | Path,
+    config: str | Path | None = None,
+    units: Sequence[str] = (),
+    recording: Recording | None = None,
+) -> ReplayResult:
     """Replay-check the bag at ``path`` offline (every unit in it, or ``units``)."""
     with gc_paused():
         return _replay(path, config, units, recording)
@@ -773,8 +813,9 @@ def gc_paused() -> Iterator[None]:
             gc.enable()
 
 
-def _replay(path: str | Path, config: str | Path | None, units: Sequence[str],
-            recording: Recording | None) -> ReplayResult:  # fmt: skip
+def _replay(
+    path: str | Path, config: str | Path | None, units: Sequence[str], recording: Recording | None
+) -> ReplayResult:
     t = time.perf_counter()
     rec = recording if recording is not None else load(path, em_reports=False)
     if units:
@@ -782,9 +823,10 @@ def _replay(path: str | Path, config: str | Path | None, units: Sequence[str],
     else:  # units whose topics hold nothing were not running while recording (a cell's); a PLC
         # unit's state machine ran in its PLC: the bag has its outputs, nothing to replay
         chosen = [
-            u for u in rec.units.values()
+            u
+            for u in rec.units.values()
             if (u.inputs or u.config_json or any(u.outputs.values())) and not plc_unit(u)
-        ]  # fmt: skip
+        ]
     if not chosen:
         raise RecordingError(
             f"{path}: no PackML unit topics in the bag (/<cell>/<unit>/input_log ...)"
@@ -794,8 +836,12 @@ def _replay(path: str | Path, config: str | Path | None, units: Sequence[str],
 
 
 # -- --update --------------------------------------------------------------------------------------
-def update(path: str | Path, out: str | Path | None = None, config: str | Path | None = None,
-           storage: str | None = None) -> tuple[ReplayResult, Path]:  # fmt: skip
+def update(
+    path: str | Path,
+    out: str | Path | None = None,
+    config: str | Path | None = None,
+    storage: str | None = None,
+) -> tuple[ReplayResult, Path]:
     """Rewrite the recorded outputs with the replayed ones (into ``out``, or in place for a bag
     directory). Inputs, configuration and other topics are copied unchanged."""
     src = Path(path)

@@ -37,8 +37,14 @@ from .topics import (
 class SyntheticUnit:
     """An engine driven like ``UnitNode``; its input log and outputs become a bag."""
 
-    def __init__(self, config: UnitConfig, cell_yaml: str | None = None, start: float = 1.7e9,
-                 document: dict[str, Any] | None = None, persistence: bool = False) -> None:  # fmt: skip
+    def __init__(
+        self,
+        config: UnitConfig,
+        cell_yaml: str | None = None,
+        start: float = 1.7e9,
+        document: dict[str, Any] | None = None,
+        persistence: bool = False,
+    ) -> None:
         self.config = config
         self.prefix = f"/{config.cell}/{config.name}" if config.cell else f"/{config.name}"
         self.cell_yaml = cell_yaml
@@ -73,9 +79,12 @@ class SyntheticUnit:
     def _on_input(self, t: float, name: str, args: dict[str, Any]) -> None:
         self._index += 1
         msg = msg_class(UNIT_TOPICS["input_log"])(
-            stamp=convert.stamp(t), index=self._index, unit=self.config.name, name=name,
+            stamp=convert.stamp(t),
+            index=self._index,
+            unit=self.config.name,
+            name=name,
             args_json=json.dumps(args, separators=(",", ":")),
-        )  # fmt: skip
+        )
         self.messages["input_log"].append((t, serialize_message(msg)))
 
     def advance(self, t: float) -> None:
@@ -113,8 +122,13 @@ class SyntheticUnit:
         msg = self.driver.snapshot_message(self._index, published, self.unit.store is not None)
         self.messages["snapshot"].append((self.now, serialize_message(msg)))
 
-    def write(self, path: str | os.PathLike[str], storage: str = "mcap",
-              joined: float | None = None, stop: float | None = None) -> int:  # fmt: skip
+    def write(
+        self,
+        path: str | os.PathLike[str],
+        storage: str = "mcap",
+        joined: float | None = None,
+        stop: float | None = None,
+    ) -> int:
         """Write the bag (outputs stamped at the time they were published); returns its size in
         messages. ``joined`` (seconds after the start): what a recorder that joined then has —
         the history the publishers keep (:data:`HISTORY`) and everything after; ``stop``: when it
@@ -133,9 +147,11 @@ class SyntheticUnit:
         publications = {}
         for name, msgs in self.messages.items():
             conn = writer.add_connection(
-                f"{self.prefix}/{name}", UNIT_TOPICS[name], typestore=store,
+                f"{self.prefix}/{name}",
+                UNIT_TOPICS[name],
+                typestore=store,
                 offered_qos_profiles=[rosbags_qos(PUBLISHER_QOS[name])],
-            )  # fmt: skip
+            )
             numbers = list(range(len(msgs)))
             if since is not None:  # the publishers' history, then what came after
                 before = [i for i in numbers if msgs[i][0] < since]

@@ -34,8 +34,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
         description="list (default): alarms and warnings of a unit or of every unit; ack: "
         "acknowledge (all, or --id/--value); reset: clear latched alarms that are no longer active.",
     )
-    p.add_argument("action", nargs="?", default="list", metavar="{list,ack,reset}",
-                   help="what to do (default list); the unit may also come first")  # fmt: skip
+    p.add_argument(
+        "action",
+        nargs="?",
+        default="list",
+        metavar="{list,ack,reset}",
+        help="what to do (default list); the unit may also come first",
+    )
     p.add_argument("unit", nargs="?", help="a unit (default: every unit of the cell)")
     p.add_argument("--id", type=int, help="ack: only this alarm ID")
     p.add_argument("--value", type=int, default=0, help="ack: the alarm's Value (default 0)")
@@ -59,8 +64,10 @@ def words(args: argparse.Namespace) -> str | None:
     if args.action in ACTIONS:
         return None
     if args.unit is not None and args.unit not in ACTIONS:
-        return (f"alarms: neither {args.action!r} nor {args.unit!r} is one of {', '.join(ACTIONS)}"
-                " (packml alarms [ACTION] [UNIT])")  # fmt: skip
+        return (
+            f"alarms: neither {args.action!r} nor {args.unit!r} is one of {', '.join(ACTIONS)}"
+            " (packml alarms [ACTION] [UNIT])"
+        )
     args.action, args.unit = args.unit or "list", args.action
     return None
 
@@ -118,10 +125,15 @@ def _listed(u: UnitProxy, args: argparse.Namespace, timeout: float) -> tuple[str
 
 def _list(u: UnitProxy, args: argparse.Namespace, timeout: float) -> tuple[str, int]:
     resp = u.call_sync(
-        "query_alarms", timeout, active_only=args.active, filter_category=args.category is not None,
-        category=args.category or 0, include_warnings=True, history=args.history,
+        "query_alarms",
+        timeout,
+        active_only=args.active,
+        filter_category=args.category is not None,
+        category=args.category or 0,
+        include_warnings=True,
+        history=args.history,
         sort=SORTS["newest" if args.history and args.sort == "time" else args.sort],
-    )  # fmt: skip
+    )
     return _lines(u.name, resp.alarms, "history" if args.history else "alarms"), EXIT_OK
 
 

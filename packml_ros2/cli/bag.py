@@ -203,8 +203,12 @@ def record(args: argparse.Namespace) -> int:
         recorder = Recorder(out, units, cells, storage=args.storage, context=context)
         executor.add_node(recorder.node)
         topics = len(recorder.counts)
-        print(f"recording {', '.join(units)} ({topics} topics) into {out} ({args.storage}); "
-              "Ctrl-C to stop", file=sys.stderr, flush=True)  # fmt: skip
+        print(
+            f"recording {', '.join(units)} ({topics} topics) into {out} ({args.storage}); "
+            "Ctrl-C to stop",
+            file=sys.stderr,
+            flush=True,
+        )
 
         def announce(unit: str) -> None:
             print(f"receiving {unit}", file=sys.stderr, flush=True)
@@ -218,8 +222,11 @@ def record(args: argparse.Namespace) -> int:
                 f"packml: warning: the recorder missed {n} message(s) on {topic}", file=sys.stderr
             )
         if not any(recorder.received(f"{u}/input_log") for u in units):
-            print("packml: warning: no input log received: replay needs one (is the unit "
-                  "running with record_inputs true?)", file=sys.stderr)  # fmt: skip
+            print(
+                "packml: warning: no input log received: replay needs one (is the unit "
+                "running with record_inputs true?)",
+                file=sys.stderr,
+            )
         return EXIT_OK
     finally:
         for s, handler in old.items():

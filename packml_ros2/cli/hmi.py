@@ -85,8 +85,13 @@ def hmi(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     if args.check:
         n = len(settings.users)
-        access = (f", {n} user login{'s' if n > 1 else ''}" if n
-                  else ", an access token" if settings.token else "")  # fmt: skip
+        access = (
+            f", {n} user login{'s' if n > 1 else ''}"
+            if n
+            else ", an access token"
+            if settings.token
+            else ""
+        )
         print(f"{args.cell_file}: hmi valid ({settings.host}:{settings.port}{access})")
         if settings.exposure:
             print(f"packml hmi: warning: {settings.exposure}", file=sys.stderr)
@@ -142,8 +147,13 @@ def serve(cell: CellConfig, settings: HmiSettings) -> int:
             file=sys.stderr,
         )
         return EXIT_USAGE
-    bridge = Bridge(cell, token=settings.token, users=settings.users,
-                    logout_after=settings.logout_after, title=settings.title)  # fmt: skip
+    bridge = Bridge(
+        cell,
+        token=settings.token,
+        users=settings.users,
+        logout_after=settings.logout_after,
+        title=settings.title,
+    )
     try:
         bridge.spin_in_background()
         server = Server(bridge, sock, allowed_hosts=(*settings.allowed_hosts, settings.host))
@@ -154,8 +164,10 @@ def serve(cell: CellConfig, settings: HmiSettings) -> int:
             if settings.token
             else "no access token: whoever opens the page can operate"
         )
-        print(f"PackML HMI for cell {cell.cell}: {url_of(sock, settings.host)}  ({access})",
-              flush=True)  # fmt: skip
+        print(
+            f"PackML HMI for cell {cell.cell}: {url_of(sock, settings.host)}  ({access})",
+            flush=True,
+        )
         if settings.exposure:
             print(f"packml hmi: warning: {settings.exposure}", file=sys.stderr, flush=True)
         # uvicorn handles Ctrl-C/SIGTERM while it runs and raises the signal again afterwards:

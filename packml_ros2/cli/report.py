@@ -43,14 +43,23 @@ BUCKET_NAMES = {
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = subparsers.add_parser("report", help="the line's losses, OEE and stop episodes",
-                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    p = subparsers.add_parser(
+        "report",
+        help="the line's losses, OEE and stop episodes",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument(
         "cell_name", nargs="?", metavar="cell", help="the cell (default: the only one running)"
     )
     which = p.add_mutually_exclusive_group()
-    which.add_argument("--shift", nargs="?", const="current", metavar="SHIFT",
-                       help="current (default), previous, or 'YYYY-MM-DD name'")  # fmt: skip
+    which.add_argument(
+        "--shift",
+        nargs="?",
+        const="current",
+        metavar="SHIFT",
+        help="current (default), previous, or 'YYYY-MM-DD name'",
+    )
     which.add_argument(
         "--since", metavar="TIME", help="a span back from now (2h, 30min) or an ISO time"
     )
@@ -59,8 +68,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[ty
     )
     p.add_argument("--until", metavar="TIME", help="with --since: the end (ISO time; default now)")
     p.add_argument("--format", choices=("table", "csv", "episodes-csv", "json"), default="table")
-    p.add_argument("--episodes", type=int, default=None, metavar="N",
-                   help="episodes listed (default 10; episodes-csv: all, up to 1000)")  # fmt: skip
+    p.add_argument(
+        "--episodes",
+        type=int,
+        default=None,
+        metavar="N",
+        help="episodes listed (default 10; episodes-csv: all, up to 1000)",
+    )
     add_common(p)
     p.set_defaults(func=report)
 
@@ -123,12 +137,20 @@ def report(args: argparse.Namespace) -> int:
                     )
                 cell = next(iter(cells))
             base = f"/{cell}/coordinator/line"
-            losses = call_blocking(s.node.create_client(QueryLosses, f"{base}/query_losses"),
-                                   request, s.timeout, f"{base}/query_losses")  # fmt: skip
+            losses = call_blocking(
+                s.node.create_client(QueryLosses, f"{base}/query_losses"),
+                request,
+                s.timeout,
+                f"{base}/query_losses",
+            )
             if not losses.accepted and request.window == "shift" and not args.shift:
                 request.window = "lifetime"  # no shift calendar (or no shift now)
-                losses = call_blocking(s.node.create_client(QueryLosses, f"{base}/query_losses"),
-                                       request, s.timeout, f"{base}/query_losses")  # fmt: skip
+                losses = call_blocking(
+                    s.node.create_client(QueryLosses, f"{base}/query_losses"),
+                    request,
+                    s.timeout,
+                    f"{base}/query_losses",
+                )
             if not losses.accepted:
                 return fail(f"{cell}: {losses.message}", EXIT_REFUSED)
             window = losses.windows[0]
@@ -140,8 +162,12 @@ def report(args: argparse.Namespace) -> int:
             ep_req = QueryEpisodes.Request(limit=max(1, min(wanted, 1000)))
             ep_req.since = window.start if (window.start.sec or window.start.nanosec) else Time()
             ep_req.until = window.end
-            episodes = call_blocking(s.node.create_client(QueryEpisodes, f"{base}/query_episodes"),
-                                     ep_req, s.timeout, f"{base}/query_episodes")  # fmt: skip
+            episodes = call_blocking(
+                s.node.create_client(QueryEpisodes, f"{base}/query_episodes"),
+                ep_req,
+                s.timeout,
+                f"{base}/query_episodes",
+            )
         except Unavailable as exc:
             return fail(f"{exc} (is the cell's coordinator running?)", EXIT_UNAVAILABLE)
     data = line_msgs.losses_dict(window)
@@ -204,8 +230,11 @@ def rows_of(scope: dict[str, Any]) -> list[tuple[str, str, float]]:
         for b in scope["buckets"]
         if b["bucket"] != "running"
     ]
-    rows += [("speed_loss", "", scope["speed_loss"]), ("quality_loss", "", scope["quality_loss"]),
-             ("productive", "", scope["productive"])]  # fmt: skip
+    rows += [
+        ("speed_loss", "", scope["speed_loss"]),
+        ("quality_loss", "", scope["quality_loss"]),
+        ("productive", "", scope["productive"]),
+    ]
     return rows
 
 
@@ -229,13 +258,38 @@ def episodes_csv(episodes: list[dict[str, Any]]) -> str:
     """One row per episode, oldest first; ``end`` empty while it is open."""
     out = io.StringIO()
     w = csv.writer(out)
-    w.writerow(["id", "start", "end", "seconds", "open", "root_cause", "bucket", "reason",
-                "source", "stop_reason_id", "affected"])  # fmt: skip
+    w.writerow(
+        [
+            "id",
+            "start",
+            "end",
+            "seconds",
+            "open",
+            "root_cause",
+            "bucket",
+            "reason",
+            "source",
+            "stop_reason_id",
+            "affected",
+        ]
+    )
     for e in sorted(episodes, key=lambda x: x["id"]):
         reason_id = e["stop_reason"]["id"] if e["stop_reason"] else ""
-        w.writerow([e["id"], iso(e["start"]), "" if e["open"] else iso(e["end"]),
-                    f"{e['duration']:.3f}", "yes" if e["open"] else "no", e["root_unit"],
-                    e["bucket"], e["reason"], e["source"], reason_id, affected(e)])  # fmt: skip
+        w.writerow(
+            [
+                e["id"],
+                iso(e["start"]),
+                "" if e["open"] else iso(e["end"]),
+                f"{e['duration']:.3f}",
+                "yes" if e["open"] else "no",
+                e["root_unit"],
+                e["bucket"],
+                e["reason"],
+                e["source"],
+                reason_id,
+                affected(e),
+            ]
+        )
     return out.getvalue()
 
 
@@ -253,9 +307,24 @@ def table(cell: str, data: dict[str, Any], episodes: list[dict[str, Any]], total
     lines = [
         f"line {cell}: {data['window']} ({clock(data['start']) if data['start'] else 'since the first record'} .. {clock(data['end'])})"
     ]
-    head = ("SCOPE", "ELAPSED", "PLANNED", "CHANGEOVER", "UNPLANNED", "BLOCKED", "STARVED",
-            "HELD", "RUNNING", "SPEED LOSS", "QUALITY LOSS", "PRODUCTIVE", "A", "P", "Q",
-            "OEE")  # fmt: skip
+    head = (
+        "SCOPE",
+        "ELAPSED",
+        "PLANNED",
+        "CHANGEOVER",
+        "UNPLANNED",
+        "BLOCKED",
+        "STARVED",
+        "HELD",
+        "RUNNING",
+        "SPEED LOSS",
+        "QUALITY LOSS",
+        "PRODUCTIVE",
+        "A",
+        "P",
+        "Q",
+        "OEE",
+    )
     rows: list[tuple[str, ...]] = [head]
     for s in data["scopes"]:
         shares = [percent(s[k]) for k in ("availability", "performance", "quality", "oee")]

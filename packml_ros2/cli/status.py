@@ -15,9 +15,12 @@ from .session import add_common, fail, session
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = subparsers.add_parser("status", help="states, modes, EMs, alarms and counts",
-                              description="Without a unit: one line per unit of the cell. With a unit "
-                              "(name, cell/unit or /cell/unit): its status, EMs, alarms, counters and times.")  # fmt: skip
+    p = subparsers.add_parser(
+        "status",
+        help="states, modes, EMs, alarms and counts",
+        description="Without a unit: one line per unit of the cell. With a unit "
+        "(name, cell/unit or /cell/unit): its status, EMs, alarms, counters and times.",
+    )
     p.add_argument("unit", nargs="?", help="a unit (default: every unit of the cell)")
     add_common(p)
     p.set_defaults(func=status)
@@ -68,8 +71,12 @@ def wait_cell(cell: CellProxy, timeout: float) -> dict[str, str]:
     while True:
         changed.clear()
         lost = lost_units(cell)
-        waiting = [u for u in cell.units.values()
-                   if u.name not in lost and (u.status is None or ("admin" in u.topics and u.admin is None))]  # fmt: skip
+        waiting = [
+            u
+            for u in cell.units.values()
+            if u.name not in lost
+            and (u.status is None or ("admin" in u.topics and u.admin is None))
+        ]
         remaining = deadline - time.monotonic()
         if not waiting or remaining <= 0:
             break
@@ -91,8 +98,12 @@ def counts(unit: UnitProxy) -> str:
     return f"{processed} processed, {defective} defective"
 
 
-def table(cell: str, units: list[UnitProxy], cell_status: CellStatus | None = None,
-          lost: Mapping[str, str] | None = None) -> str:  # fmt: skip
+def table(
+    cell: str,
+    units: list[UnitProxy],
+    cell_status: CellStatus | None = None,
+    lost: Mapping[str, str] | None = None,
+) -> str:
     """One row per unit; a unit in ``lost`` (name -> why) is marked LOST, with what the
     coordinator last knew of it (or its own last status) on a line below the table."""
     lost = lost or {}
@@ -111,8 +122,17 @@ def table(cell: str, units: list[UnitProxy], cell_status: CellStatus | None = No
         online = sum(e.online for e in st.equipment_modules)
         alarms = st.alarm_banner or (f"{st.active_alarms} active" if st.active_alarms else "-")
         state = f"LOST ({st.state_current_name})" if u.name in lost else st.state_current_name
-        rows.append((u.name, state, st.unit_mode_current_name, str(st.sequence),
-                     f"{online}/{len(st.equipment_modules)}", alarms, counts(u) or "-"))  # fmt: skip
+        rows.append(
+            (
+                u.name,
+                state,
+                st.unit_mode_current_name,
+                str(st.sequence),
+                f"{online}/{len(st.equipment_modules)}",
+                alarms,
+                counts(u) or "-",
+            )
+        )
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]) - 1)]
     head = f"cell {cell}" + (
         f": {cell_status.state_current_name}" if cell_status is not None else ""

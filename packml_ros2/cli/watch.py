@@ -21,8 +21,8 @@ RED, YELLOW, GREEN, BOLD, DIM, RESET = (
     "\033[2m",
     "\033[0m",
 )
-STATE_COLORS = {"EXECUTE": GREEN, "ABORTED": RED, "ABORTING": RED, "STOPPED": YELLOW, "HELD": YELLOW,
-                "SUSPENDED": YELLOW, "COMPLETE": GREEN, "IDLE": GREEN}  # fmt: skip
+STATE_COLORS = {"EXECUTE": GREEN, "ABORTED": RED, "ABORTING": RED, "STOPPED": YELLOW,
+                "HELD": YELLOW, "SUSPENDED": YELLOW, "COMPLETE": GREEN, "IDLE": GREEN}  # fmt: skip
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -85,8 +85,10 @@ def render(cell: CellProxy, color: bool) -> str:
         in_state = ad.state_current_time[st.unit_mode_current * 18 + st.state_current] if ad else 0
         in_mode = ad.mode_current_time[st.unit_mode_current] if ad else 0
         state = c(STATE_COLORS.get(st.state_current_name, ""), f"{st.state_current_name:<14}")
-        lines.append(f"  {u.name:<14}{state}{st.unit_mode_current_name:<13}{online}/{len(st.equipment_modules):<4}"
-                     f"{processed:>10}{defective:>10}  {hms(in_state):>9}  {hms(in_mode):>9}")  # fmt: skip
+        lines.append(
+            f"  {u.name:<14}{state}{st.unit_mode_current_name:<13}{online}/{len(st.equipment_modules):<4}"
+            f"{processed:>10}{defective:>10}  {hms(in_state):>9}  {hms(in_mode):>9}"
+        )
         ems = []
         for e in st.equipment_modules:
             mark = "✓" if e.state_complete else ("●" if e.online else "○")

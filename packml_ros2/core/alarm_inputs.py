@@ -45,8 +45,17 @@ class AlarmInputs(UnitMachine):
                 int(alarm_id), int(value), bool(active), source, em, warning, int(category), message
             )
 
-    def _set_alarm(self, alarm_id: int, value: int, active: bool, source: str, em: str,
-                   warning: bool | None, category: int, message: str) -> Answer:  # fmt: skip
+    def _set_alarm(
+        self,
+        alarm_id: int,
+        value: int,
+        active: bool,
+        source: str,
+        em: str,
+        warning: bool | None,
+        category: int,
+        message: str,
+    ) -> Answer:
         name = self.config.name
         if not active:
             ev = self.alarms.clear(alarm_id, value, self._t)

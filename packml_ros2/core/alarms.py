@@ -151,8 +151,13 @@ ORDERS: dict[str, Callable[[int, float], tuple[float, ...]]] = {
 T = TypeVar("T")
 
 
-def select(items: Iterable[T], active_only: bool, category: int | None, sort: str,
-           view: Callable[[T], tuple[bool, int, float]]) -> list[T]:  # fmt: skip
+def select(
+    items: Iterable[T],
+    active_only: bool,
+    category: int | None,
+    sort: str,
+    view: Callable[[T], tuple[bool, int, float]],
+) -> list[T]:
     """``items`` filtered (only those whose condition is active, only ``category``) and ordered
     by ``sort`` (:data:`ORDERS`); ``view(item)`` = (trigger, category, time)."""
     if sort not in ORDERS:
@@ -167,8 +172,12 @@ def select(items: Iterable[T], active_only: bool, category: int | None, sort: st
     return [item for _, item in sorted(kept, key=lambda pair: pair[0])]
 
 
-def select_events(events: Iterable[AlarmEvent], active_only: bool = False,
-                  category: int | None = None, sort: str = "time") -> list[AlarmEvent]:  # fmt: skip
+def select_events(
+    events: Iterable[AlarmEvent],
+    active_only: bool = False,
+    category: int | None = None,
+    sort: str = "time",
+) -> list[AlarmEvent]:
     """:func:`select` for the engine's own events."""
     return select(
         events, active_only, category, sort, lambda ev: (ev.trigger, ev.category, ev.time)

@@ -431,9 +431,9 @@ _UNIT_KEYS = {
     "description", "initial_mode", "model", "hold_from", "complete_from", "remote_commands_enabled",
     "modes", "equipment_modules", "allow_registration", "em_lease", "em_lost_reaction", "timeouts",
     "min_dwell", "mode_change_timeout", "alarms", "reactions", "interlock_reaction", "sizes",
-    "counters", "mach_speed", "mach_design_speed", "max_mach_speed", "parameters", "admin_parameters", "products",
-    "remote_interfaces", "persistence", "admin_period", "system_alarms", "planned_stop_ids", "plc",
-    *RECIPE_KEYS, "stack_light",
+    "counters", "mach_speed", "mach_design_speed", "max_mach_speed", "parameters",
+    "admin_parameters", "products", "remote_interfaces", "persistence", "admin_period",
+    "system_alarms", "planned_stop_ids", "plc", *RECIPE_KEYS, "stack_light",
 }  # fmt: skip
 
 
@@ -667,12 +667,16 @@ def _dds_interface(n: Node) -> str:
         ip = ipaddress.ip_address(s)
     except ValueError:
         if not _INTERFACE_NAME.fullmatch(s):
-            raise invalid(f"{sc.shown(s)} is neither an interface name (at most 15 letters, "
-                          "digits, _ . : @ -) nor an IPv4 address") from None  # fmt: skip
+            raise invalid(
+                f"{sc.shown(s)} is neither an interface name (at most 15 letters, "
+                "digits, _ . : @ -) nor an IPv4 address"
+            ) from None
         return s
     if ip.version != 4 or ip.is_multicast or ip.is_unspecified:
-        raise invalid(f"{s} is not an address of an interface: give an interface name or a "
-                      "unicast IPv4 address (DDS runs on UDPv4)")  # fmt: skip
+        raise invalid(
+            f"{s} is not an address of an interface: give an interface name or a "
+            "unicast IPv4 address (DDS runs on UDPv4)"
+        )
     return str(ip)
 
 
@@ -717,9 +721,14 @@ def parse_cell(data: Any, file: str = "<memory>", base_dir: Path | None = None) 
     )
     dds: tuple[str, ...] = root.get("dds", _dds, ())
     stores = [u.persistence_path for u in units.values() if u.persistence_path]
-    line = parse_line(root.child("line", root.mapping().get("line")), cell, list(units),
-                      coord.interlocks, base_dir or Path.cwd(),
-                      str(Path(stores[0]).parent / LINE_STORE) if stores else None)  # fmt: skip
+    line = parse_line(
+        root.child("line", root.mapping().get("line")),
+        cell,
+        list(units),
+        coord.interlocks,
+        base_dir or Path.cwd(),
+        str(Path(stores[0]).parent / LINE_STORE) if stores else None,
+    )
     discovery = root.get("discovery", parse_discovery, DiscoveryConfig())
     root.problems.extend(plain_secrets(data))
     if root.problems:
@@ -729,8 +738,9 @@ def parse_cell(data: Any, file: str = "<memory>", base_dir: Path | None = None) 
     }
     if root.problems:
         raise ConfigError(file, root.problems)
-    return CellConfig(cell, units, coord, file, **extras, line=line, discovery=discovery,
-                      dds_interfaces=dds)  # fmt: skip
+    return CellConfig(
+        cell, units, coord, file, **extras, line=line, discovery=discovery, dds_interfaces=dds
+    )
 
 
 def load_cell(path: str | os.PathLike[str]) -> CellConfig:

@@ -56,9 +56,17 @@ class Restored:
 TIME_CHECKPOINT = 1.0
 
 
-def document(times: ModeStateTimes, counters: Counters, alarms: AlarmManager, stops: StopReasons,
-             sequence: int, mach_speed: float, now: float,
-             producing: bool = False, recipe: int = 0) -> dict[str, Any]:  # fmt: skip
+def document(
+    times: ModeStateTimes,
+    counters: Counters,
+    alarms: AlarmManager,
+    stops: StopReasons,
+    sequence: int,
+    mach_speed: float,
+    now: float,
+    producing: bool = False,
+    recipe: int = 0,
+) -> dict[str, Any]:
     """What persistence stores of a unit: everything of the admin data, never the state (only
     whether it was ``producing``: see the module docstring)."""
     stop_reason = stops.reason
@@ -100,10 +108,16 @@ class Durable:
         "times",
     )
 
-    def __init__(self, store: StoreLike, times: ModeStateTimes, counters: Counters,
-                 alarms: AlarmManager, stops: StopReasons,
-                 producing: Callable[[], bool] = lambda: False,
-                 recipe: Callable[[], int] = lambda: 0) -> None:  # fmt: skip
+    def __init__(
+        self,
+        store: StoreLike,
+        times: ModeStateTimes,
+        counters: Counters,
+        alarms: AlarmManager,
+        stops: StopReasons,
+        producing: Callable[[], bool] = lambda: False,
+        recipe: Callable[[], int] = lambda: 0,
+    ) -> None:
         self.store = store
         self._recipe = recipe  #: RecipeCurrent's ID now
         self._producing = producing  #: whether the unit is producing now (module docstring)
@@ -121,11 +135,21 @@ class Durable:
 
     def document(self, sequence: int, mach_speed: float, now: float) -> dict[str, Any]:
         """The snapshot: everything of the admin data, never the state."""
-        return document(self.times, self.counters, self.alarms, self.stops, sequence,
-                        mach_speed, now, self._producing(), self._recipe())  # fmt: skip
+        return document(
+            self.times,
+            self.counters,
+            self.alarms,
+            self.stops,
+            sequence,
+            mach_speed,
+            now,
+            self._producing(),
+            self._recipe(),
+        )
 
-    def snapshot(self, sequence: int, mode: int, mach_speed: float, now: float,
-                 closing: bool = False) -> None:  # fmt: skip
+    def snapshot(
+        self, sequence: int, mode: int, mach_speed: float, now: float, closing: bool = False
+    ) -> None:
         """The snapshot; ``closing``: the unit's last, at an orderly end (never a crash, so it
         is not ``producing`` whatever its state)."""
         document = self.document(sequence, mach_speed, now)
@@ -150,8 +174,16 @@ class Durable:
 
     def _state(self, sequence: int, mode: int, mach_speed: float) -> tuple[Any, ...]:
         times, counters, stops = self.times, self.counters, self.stops
-        return (sequence, mode, times.resets, counters.version, stops.reason, mach_speed,
-                self._producing(), self._recipe())  # fmt: skip
+        return (
+            sequence,
+            mode,
+            times.resets,
+            counters.version,
+            stops.reason,
+            mach_speed,
+            self._producing(),
+            self._recipe(),
+        )
 
     def checkpoint(self, now: float) -> None:
         """Journal the times as of ``now`` (one ``write()``; not an input: nothing changes)."""

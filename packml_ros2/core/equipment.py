@@ -72,10 +72,22 @@ class Equipment:
     def get(self, name: str) -> EquipmentModule | None:
         return self.modules.get(name)
 
-    def add(self, name: str, configured: bool, active: bool = True,
-            lost_reaction: int | None = None, ignore_loss: bool = False) -> EquipmentModule:  # fmt: skip
-        em = EquipmentModule(name, configured, active, lost_reaction=lost_reaction,
-                             ignore_loss=ignore_loss, index=len(self.modules) + 1)  # fmt: skip
+    def add(
+        self,
+        name: str,
+        configured: bool,
+        active: bool = True,
+        lost_reaction: int | None = None,
+        ignore_loss: bool = False,
+    ) -> EquipmentModule:
+        em = EquipmentModule(
+            name,
+            configured,
+            active,
+            lost_reaction=lost_reaction,
+            ignore_loss=ignore_loss,
+            index=len(self.modules) + 1,
+        )
         self.modules[name] = em
         self.changed_roster()
         return em

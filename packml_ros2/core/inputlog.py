@@ -50,8 +50,9 @@ def descriptor_to_dict(d: Descriptor) -> dict[str, Any]:
 
 
 def descriptor_from_dict(d: Mapping[str, Any]) -> Descriptor:
-    return Descriptor(int(d["id"]), str(d.get("name", "")), str(d.get("unit", "")),
-                      float(d.get("value", 0.0)))  # fmt: skip
+    return Descriptor(
+        int(d["id"]), str(d.get("name", "")), str(d.get("unit", "")), float(d.get("value", 0.0))
+    )
 
 
 def product_to_dict(p: Product) -> dict[str, Any]:
@@ -59,10 +60,13 @@ def product_to_dict(p: Product) -> dict[str, Any]:
         "product_id": p.product_id,
         "process_variables": [descriptor_to_dict(d) for d in p.process_variables],
         "ingredients": [
-            {"ingredient_id": i.ingredient_id, "parameter": [descriptor_to_dict(d) for d in i.parameter]}
+            {
+                "ingredient_id": i.ingredient_id,
+                "parameter": [descriptor_to_dict(d) for d in i.parameter],
+            }
             for i in p.ingredients
         ],
-    }  # fmt: skip
+    }
 
 
 def product_from_dict(d: Mapping[str, Any]) -> Product:
@@ -70,11 +74,13 @@ def product_from_dict(d: Mapping[str, Any]) -> Product:
         int(d["product_id"]),
         tuple(descriptor_from_dict(v) for v in d.get("process_variables", [])),
         tuple(
-            Ingredient(int(i["ingredient_id"]),
-                       tuple(descriptor_from_dict(v) for v in i.get("parameter", [])))
+            Ingredient(
+                int(i["ingredient_id"]),
+                tuple(descriptor_from_dict(v) for v in i.get("parameter", [])),
+            )
             for i in d.get("ingredients", [])
         ),
-    )  # fmt: skip
+    )
 
 
 def request_to_dict(r: Request) -> dict[str, Any]:
@@ -115,25 +121,35 @@ def _list_codec(encode: Callable[[Any], Any], decode: Callable[[Any], Any]) -> C
 
 COMMAND = _def("command", "command", "command", "source")
 MODE = _def("mode", "set_mode", "mode", "source")
-STEP = _def("step", "step", "requests",
-            requests=_list_codec(request_to_dict, request_from_dict))  # fmt: skip
+STEP = _def("step", "step", "requests", requests=_list_codec(request_to_dict, request_from_dict))
 EM_STATE_COMPLETE = _def("em.state_complete", "em_complete", "em", "state", "sequence")
 EM_SEEN = _def("em.seen", "em_seen", "em", "report")
 EM_LOST = _def("em.lost", "em_lost", "em", "detail")
 EM_INTERLOCK = _def("em.interlock", "em_interlock", "em", "blocked", "starved", "material")
 EM_COUNT = _def("em.count", "em_count", "em", "counter", "index", "increment")
 EM_ACTIVE = _def("em.active", "set_em_active", "em", "active", "source")
-ALARM = _def("alarm", "set_alarm", "id", "value", "active", "source", "em", "warning",
-             "category", "message")  # fmt: skip
+ALARM = _def(
+    "alarm", "set_alarm", "id", "value", "active", "source", "em", "warning", "category", "message"
+)
 ALARM_ACK = _def("alarm.ack", "ack_alarms", "id", "value", "source")
 ALARM_RESET = _def("alarm.reset", "reset_alarms", "clear_first_out", "source")
 TIMES_RESET = _def("times.reset", "reset_times", "all", "source")
 COUNTERS_RESET = _def("counters.reset", "reset_counters", "source")
 SPEED = _def("speed", "set_mach_speed", "speed", "source")
-PARAMETERS = _def("parameters", "set_parameters", "parameters", "source",
-                  parameters=_list_codec(descriptor_to_dict, descriptor_from_dict))  # fmt: skip
-PRODUCTS = _def("products", "set_product", "products", "source",
-                products=_list_codec(product_to_dict, product_from_dict))  # fmt: skip
+PARAMETERS = _def(
+    "parameters",
+    "set_parameters",
+    "parameters",
+    "source",
+    parameters=_list_codec(descriptor_to_dict, descriptor_from_dict),
+)
+PRODUCTS = _def(
+    "products",
+    "set_product",
+    "products",
+    "source",
+    products=_list_codec(product_to_dict, product_from_dict),
+)
 REMOTE = _def("remote", "set_remote_enabled", "enabled")
 INTERLOCK = _def("interlock", "set_interlock", "active", "reason", "source")
 RECIPE = _def("recipe", "set_recipe", "recipe_id", "name", "source")
@@ -147,11 +163,33 @@ SHUTDOWN = _def("shutdown", "shutdown", "detail")
 #: Every input of schema 1, by name.
 INPUTS: Mapping[str, InputDef] = {
     d.name: d
-    for d in (COMMAND, MODE, STEP, EM_STATE_COMPLETE, EM_SEEN, EM_LOST, EM_INTERLOCK, EM_COUNT,
-              EM_ACTIVE, ALARM, ALARM_ACK, ALARM_RESET, TIMES_RESET, COUNTERS_RESET, SPEED,
-              PARAMETERS, PRODUCTS, REMOTE, INTERLOCK, ADVANCE, SHUTDOWN, RECIPE, EM_RECIPE,
-              CLOCK_STEP)
-}  # fmt: skip
+    for d in (
+        COMMAND,
+        MODE,
+        STEP,
+        EM_STATE_COMPLETE,
+        EM_SEEN,
+        EM_LOST,
+        EM_INTERLOCK,
+        EM_COUNT,
+        EM_ACTIVE,
+        ALARM,
+        ALARM_ACK,
+        ALARM_RESET,
+        TIMES_RESET,
+        COUNTERS_RESET,
+        SPEED,
+        PARAMETERS,
+        PRODUCTS,
+        REMOTE,
+        INTERLOCK,
+        ADVANCE,
+        SHUTDOWN,
+        RECIPE,
+        EM_RECIPE,
+        CLOCK_STEP,
+    )
+}
 #: Inputs an EM's reports cause (``packml replay --live`` sends the reports, not these).
 EM_INPUTS = frozenset(
     d.name for d in (EM_STATE_COMPLETE, EM_SEEN, EM_LOST, EM_INTERLOCK, EM_COUNT, EM_RECIPE)

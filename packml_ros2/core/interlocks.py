@@ -43,8 +43,7 @@ def interlock_source(key: str) -> str:
     return f"{INTERLOCK_KIND}:{holder}" if holder else INTERLOCK_KIND
 
 
-def external_refusal(held: Collection[str], active: bool, source: str,
-                     unit: str) -> Answer | None:  # fmt: skip
+def external_refusal(held: Collection[str], active: bool, source: str, unit: str) -> Answer | None:
     """Why ``set_interlock`` from ``source`` is refused, ``held``: the sources whose interlocks
     the unit holds (None: it is taken). Each source holds one interlock and clears only its own;
     a unit holds at most :data:`MAX_EXTERNAL`."""
@@ -66,8 +65,9 @@ def external_refusal(held: Collection[str], active: bool, source: str,
     return None
 
 
-def interlock_refusal(held: Collection[str], active: bool, source: str, remote_enabled: bool,
-                      unit: str) -> Answer | None:  # fmt: skip
+def interlock_refusal(
+    held: Collection[str], active: bool, source: str, remote_enabled: bool, unit: str
+) -> Answer | None:
     """Why ``set_interlock`` from ``source`` is refused, by a unit and a PLC bridge alike (None:
     it is taken). The remote lock guards *setting* one; *clearing* never asks for anything: a
     source releases its own hold (the coordinator, once downstream is free again, even after the

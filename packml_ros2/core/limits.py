@@ -50,8 +50,10 @@ def text_problem(field: str, value: str, limit: int | None = None) -> str | None
         return f"{field} is {len(value)} characters long (at most {bound})"
     if not value.isprintable():
         bad = next(c for c in value if not c.isprintable())
-        return (f"{field} holds the control character U+{ord(bad):04X} at {value.index(bad)} "
-                "(printable text only)")  # fmt: skip
+        return (
+            f"{field} holds the control character U+{ord(bad):04X} at {value.index(bad)} "
+            "(printable text only)"
+        )
     return None
 
 
@@ -73,8 +75,9 @@ def speed_limit(config: SpeedConfig) -> float | None:
     return config.mach_design_speed if config.mach_design_speed > 0 else None
 
 
-def speed_refusal(speed: float, config: SpeedConfig, limit: float | None = None,
-                  origin: str = "") -> str | None:  # fmt: skip
+def speed_refusal(
+    speed: float, config: SpeedConfig, limit: float | None = None, origin: str = ""
+) -> str | None:
     """Why machine speed ``speed`` is refused for the unit ``config`` (None: it is taken). The
     bound is ``limit`` (``origin`` says where it is configured), else :func:`speed_limit`."""
     if limit is None:
@@ -129,8 +132,9 @@ class LogLimiter:
     ``period`` seconds (the caller's clock); what is held back is summed up in one line when the
     period ends. The kinds remembered are bounded (the oldest forgotten)."""
 
-    def __init__(self, burst: int = 5, total: int = 50, period: float = 10.0,
-                 kinds: int = 256) -> None:  # fmt: skip
+    def __init__(
+        self, burst: int = 5, total: int = 50, period: float = 10.0, kinds: int = 256
+    ) -> None:
         self.burst, self.total, self.period, self.kinds = burst, total, period, kinds
         self._window = -math.inf
         self._counts: dict[str, int] = {}
@@ -158,8 +162,10 @@ class LogLimiter:
         summary = None
         if now - self._window >= self.period:
             if self.suppressed:
-                summary = (f"{self.suppressed} repeated log line(s) held back in the last "
-                           f"{self.period:g} s")  # fmt: skip
+                summary = (
+                    f"{self.suppressed} repeated log line(s) held back in the last "
+                    f"{self.period:g} s"
+                )
             self._window, self._counts, self._written, self.suppressed = now, {}, 0, 0
         key = self.kind(text)
         seen = self._counts.get(key, 0)

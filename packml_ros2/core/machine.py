@@ -160,14 +160,15 @@ class UnitMachine(ModeChanges):
         "remote_enabled", "cntrl_cmd", "mach_speed", "parameters", "products",
         "remote_commands",
         # parts
-        "config", "rules", "_clock", "store", "_durable", "_not_durable", "on_input", "restored", "alert", "stats",
-        "times",
+        "config", "rules", "_clock", "store", "_durable", "_not_durable", "on_input", "restored",
+        "alert", "stats", "times",
         "counters", "alarms", "equipment", "interlocks", "stops", "deadlines", "publication",
         "recipes",
         # the compiled rules the hot paths index, and configuration they test
         "_accepted", "_sc", "_timed",
         # evaluation
-        "_t", "_advance_to", "_frame", "_internal", "_step_winner", "_restart_detail", "_handlers", "_out",
+        "_t", "_advance_to", "_frame", "_internal", "_step_winner", "_restart_detail",
+        "_handlers", "_out",
         # caches
         "_valid_cache", "_rev", "_strays",
         # compatibility
@@ -338,8 +339,17 @@ class UnitMachine(ModeChanges):
             else:
                 answer = entry.answer
                 self.cntrl_cmd = entry.cmd
-                more = self._transition(entry.final, entry.trigger, entry.cmd, source,
-                                        entry.skipped, "", None, True, entry.entry)  # fmt: skip
+                more = self._transition(
+                    entry.final,
+                    entry.trigger,
+                    entry.cmd,
+                    source,
+                    entry.skipped,
+                    "",
+                    None,
+                    True,
+                    entry.entry,
+                )
             if not more:
                 # Nothing for _settle and nothing changed after the last transition, whose
                 # status is published with it: that is the baseline, and stays so until the
@@ -548,8 +558,14 @@ class UnitMachine(ModeChanges):
     def valid_commands(self, state: State | None = None) -> tuple[Cmd, ...]:
         """Commands an operator could issue now (cached per state, mode and situation)."""
         state = self.state if state is None else state
-        key = (state, self.mode, self.alarms.blocking_version, self.equipment.roster_version,
-               bool(self.interlocks.active), self.mode_change_in_process)  # fmt: skip
+        key = (
+            state,
+            self.mode,
+            self.alarms.blocking_version,
+            self.equipment.roster_version,
+            bool(self.interlocks.active),
+            self.mode_change_in_process,
+        )
         cached = self._valid_cache.get(key)
         if cached is None:
             bits = self.alert.bits
@@ -620,12 +636,22 @@ class UnitMachine(ModeChanges):
                 trigger = cause.trigger
             detail = cause.detail
         self._step_winner = (entry.cmd, source)
-        self._transition(entry.final, trigger, entry.cmd, source, entry.skipped, detail, cause,
-                         follow, entry.entry)  # fmt: skip
+        self._transition(
+            entry.final,
+            trigger,
+            entry.cmd,
+            source,
+            entry.skipped,
+            detail,
+            cause,
+            follow,
+            entry.entry,
+        )
         return entry.answer
 
-    def _reject(self, cmd: int, source: str, start_state: State, cause: _Cmd | None,
-                verdict: Verdict) -> Answer:  # fmt: skip
+    def _reject(
+        self, cmd: int, source: str, start_state: State, cause: _Cmd | None, verdict: Verdict
+    ) -> Answer:
         self.stats.commands_rejected += 1
         reason = verdict.reason
         winner = self._step_winner
@@ -636,13 +662,17 @@ class UnitMachine(ModeChanges):
         ):
             return Answer.no(
                 Reason.SUPERSEDED,
-                SUPERSEDED_SENTENCE.format(command=command_name(cmd),
-                                           winner=command_name(winner[0]), source=winner[1],
-                                           state=state_name(self.state)),
-            )  # fmt: skip
+                SUPERSEDED_SENTENCE.format(
+                    command=command_name(cmd),
+                    winner=command_name(winner[0]),
+                    source=winner[1],
+                    state=state_name(self.state),
+                ),
+            )
         where = f"{state_name(self.state)} in {self.mode_def.name} mode"
-        msg = self.rules.refusal_text(verdict, cmd, source, where, self.config.name,
-                                      self.mode_def.name, self.valid_commands())  # fmt: skip
+        msg = self.rules.refusal_text(
+            verdict, cmd, source, where, self.config.name, self.mode_def.name, self.valid_commands()
+        )
         if cause is not None or source.startswith("em:"):
             self._log("info", f"{source}: {msg}")
         return Answer.no(reason, msg)
@@ -733,8 +763,12 @@ class UnitMachine(ModeChanges):
                     self._entry_actions(to, skipped, trigger, cmd, source, cause)
                     special = interlocks.suspended
                     alarms_changed = alarms.version != self.publication.alarms_seen
-            out(("transition", (t, seq, (frm, to, mode, mode, trigger, cmd, source, skipped,
-                                         detail))))  # fmt: skip
+            out(
+                (
+                    "transition",
+                    (t, seq, (frm, to, mode, mode, trigger, cmd, source, skipped, detail)),
+                )
+            )
             if alarms_changed:  # the alarm list goes with the transition
                 self.publication.alarms_changed()
                 alarms_changed = False
@@ -775,8 +809,15 @@ class UnitMachine(ModeChanges):
             eq.begin(to, seq)  # (without EMs only whether the state aggregates matters)
         return more or interlocks.busy
 
-    def _entry_actions(self, to: State, skipped: tuple[State, ...], trigger: Trigger, cmd: int,
-                       source: str, cause: _Cmd | None) -> None:  # fmt: skip
+    def _entry_actions(
+        self,
+        to: State,
+        skipped: tuple[State, ...],
+        trigger: Trigger,
+        cmd: int,
+        source: str,
+        cause: _Cmd | None,
+    ) -> None:
         """The :data:`~.rules.ENTRY` actions of the skipped states and ``to``, in order, and the
         interlock's claim on the suspension."""
         for s in (*skipped, to) if skipped else (to,):
@@ -800,8 +841,9 @@ class UnitMachine(ModeChanges):
         if cause.alarm is not None:
             return cause.alarm
         if cause.trigger is Trigger.INTERLOCK:
-            return self.stops.of_interlock(cause.cmd, cause.source, cause.detail,
-                                           cause.stop_id or STOP_ID_BLOCKED, self._t)  # fmt: skip
+            return self.stops.of_interlock(
+                cause.cmd, cause.source, cause.detail, cause.stop_id or STOP_ID_BLOCKED, self._t
+            )
         return self.stops.of_command(cause.cmd, cause.source, self._t)
 
     def _planned(self) -> bool:
@@ -991,9 +1033,17 @@ class UnitMachine(ModeChanges):
     # -- persistence (core/durable.py) ------------------------------------------------------------
     def document(self) -> dict[str, Any]:
         """What persistence stores: everything of the admin data, never the state."""
-        return document(self.times, self.counters, self.alarms, self.stops, self.sequence,
-                        self.mach_speed, self._t, self._producing(),
-                        self.recipes.current.id)  # fmt: skip
+        return document(
+            self.times,
+            self.counters,
+            self.alarms,
+            self.stops,
+            self.sequence,
+            self.mach_speed,
+            self._t,
+            self._producing(),
+            self.recipes.current.id,
+        )
 
     def _producing(self) -> bool:
         """In Execute or on its way there, with the StopReason armed: a crash now is a stop
@@ -1072,15 +1122,23 @@ class UnitMachine(ModeChanges):
                 f"unit restarted (last saved {gap:.1f} s before)", now, source="unit"
             )
             if restored.producing:  # it crashed: why it stopped is that, not the last stop
-                self.stops.set(self.stops.of_crash(
-                    f"unit process ended without shutting down (crash or kill) while producing; "
-                    f"restarted {gap:.1f} s after its last save", now))  # fmt: skip
+                self.stops.set(
+                    self.stops.of_crash(
+                        f"unit process ended without shutting down (crash or kill) while producing; "
+                        f"restarted {gap:.1f} s after its last save",
+                        now,
+                    )
+                )
                 self.stops.armed = False
         sa = self.config.system_alarms
         for n, problem in enumerate(restored.problems, 1):
             self._log("warn", f"persistence: {problem}")
-            d = AlarmDef(sa.store_unreadable, n, f"persistence: {problem}"[:240],
-                         sa.store_unreadable_category)  # fmt: skip
+            d = AlarmDef(
+                sa.store_unreadable,
+                n,
+                f"persistence: {problem}"[:240],
+                sa.store_unreadable_category,
+            )
             self._raise(d, source="unit")
             self.alarms.clear(d.id, d.value, now)
 

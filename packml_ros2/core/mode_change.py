@@ -107,8 +107,26 @@ class ModeChanges:
         self.times.enter(self._t, self.mode, self.state, self._planned())
         self.equipment.end_aggregation()
         detail = f"{self._mode_name(frm)} -> {self.mode_def.name}"
-        self._out.append(("transition", (self._t, self.sequence, (self.state, self.state, frm,
-                          self.mode, Trigger.MODE, 0, self._mode_source, (), detail))))  # fmt: skip
+        self._out.append(
+            (
+                "transition",
+                (
+                    self._t,
+                    self.sequence,
+                    (
+                        self.state,
+                        self.state,
+                        frm,
+                        self.mode,
+                        Trigger.MODE,
+                        0,
+                        self._mode_source,
+                        (),
+                        detail,
+                    ),
+                ),
+            )
+        )
         self.publication.with_record()
         self._log(
             "info", f"mode {self._mode_name(frm)} -> {self.mode_def.name} ({self._mode_source})"

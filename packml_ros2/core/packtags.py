@@ -203,11 +203,21 @@ def _em_views(unit: UnitView, state: int, sequence: int) -> tuple[EmView, ...]:
     answers = unit.recipes.answers()
     none = (0, "")
     return tuple(
-        EmView(em.name, em.active, em.online, em.configured, em.last_report == cur,
-               em.last_report[1] if em.last_report else 0, em.command_request, em.blocked, em.starved,
-               em.stale_reports, *answers.get(em.name, none))
+        EmView(
+            em.name,
+            em.active,
+            em.online,
+            em.configured,
+            em.last_report == cur,
+            em.last_report[1] if em.last_report else 0,
+            em.command_request,
+            em.blocked,
+            em.starved,
+            em.stale_reports,
+            *answers.get(em.name, none),
+        )
         for em in unit.equipment.modules.values()
-    )  # fmt: skip
+    )
 
 
 def stack_light(unit: UnitView, state: int) -> StackLightView:

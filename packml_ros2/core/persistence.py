@@ -563,10 +563,14 @@ def document_problem(d: Any) -> str | None:
     counters = d.get("counters", {})
     if not isinstance(counters, dict) or not all(
         isinstance(v, list)
-        and all(isinstance(p, list) and len(p) == 2
-                and all(isinstance(x, int) and 0 <= x <= INT32_MAX for x in p) for p in v)
+        and all(
+            isinstance(p, list)
+            and len(p) == 2
+            and all(isinstance(x, int) and 0 <= x <= INT32_MAX for x in p)
+            for p in v
+        )
         for v in counters.values()
-    ):  # fmt: skip
+    ):
         return "counters are not lists of [Count, AccCount]"
     alarms = d.get("alarms", {})
     if not isinstance(alarms, dict) or not isinstance(alarms.get("history", []), list):

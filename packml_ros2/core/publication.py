@@ -44,8 +44,14 @@ class Publication:
     __slots__ = ("_admin_key_of", "_alarms", "_deadlines", "_emit", "_status_key_of",
                  "admin_due", "admin_key", "alarms_seen", "status_due", "status_key")  # fmt: skip
 
-    def __init__(self, emit: Callable[[tuple[str, Any]], None], deadlines: Deadlines,
-                 status_key: Key, admin_key: Key, alarms: Versioned) -> None:  # fmt: skip
+    def __init__(
+        self,
+        emit: Callable[[tuple[str, Any]], None],
+        deadlines: Deadlines,
+        status_key: Key,
+        admin_key: Key,
+        alarms: Versioned,
+    ) -> None:
         self._deadlines = deadlines
         self._status_key_of = status_key
         self._admin_key_of = admin_key

@@ -72,8 +72,7 @@ def report_problem(msg: Any, sequence: int) -> str | None:
         if msg.state not in _STATES:  # (a wait state too: EMs confirm mode changes so)
             return f"State Complete for state {msg.state}, which is not a state (1..17)"
         if msg.sequence > sequence:
-            return (f"State Complete for sequence {msg.sequence}, ahead of the unit's "
-                    f"{sequence}")  # fmt: skip
+            return f"State Complete for sequence {msg.sequence}, ahead of the unit's {sequence}"
         return None
     if kind == COMMAND_REQUEST:
         if not 0 <= msg.command <= max(Cmd):
@@ -108,8 +107,9 @@ class Writers:
         self._bound: dict[str, list[Any]] = {}  # name -> [writer, last report time]
         self.refused = 0
 
-    def claim(self, name: str, writer: bytes, now: float,
-              gone: Callable[[bytes], bool] | None = None) -> tuple[bool, str | None]:  # fmt: skip
+    def claim(
+        self, name: str, writer: bytes, now: float, gone: Callable[[bytes], bool] | None = None
+    ) -> tuple[bool, str | None]:
         """A report for ``name`` from ``writer`` at ``now``: whether to take it, and a note for
         the log (a writer taking the name over, or a refusal). ``gone(w)``: whether writer ``w``
         has left the graph (asked only when another writer reports)."""

@@ -302,8 +302,10 @@ def source_refusal(source: str) -> str | None:
     kind, colon, name = source.partition(":")
     if kind not in SOURCE_KINDS or not SOURCE_KINDS[kind].caller:
         shown = source if len(source) <= 40 and source.isprintable() else f"{source[:40]!r}..."
-        return (f"source {shown!r} is not one of {', '.join(CALLER_KINDS)} (as kind or "
-                "kind:name, lower case; empty = operator)")  # fmt: skip
+        return (
+            f"source {shown!r} is not one of {', '.join(CALLER_KINDS)} (as kind or "
+            "kind:name, lower case; empty = operator)"
+        )
     if colon and not is_source_name(name):
         return f"the name in source {kind}:... must be {SOURCE_NAME_GRAMMAR}"
     return None
@@ -346,17 +348,21 @@ def locked_refusal(what: str, source: str, remote_enabled: bool, unit: str) -> A
     (None: it passes the lock)."""
     if not remote_locked(source, remote_enabled):
         return None
-    return Answer(False, Reason.REMOTE_DISABLED,
-                  LOCKED_SENTENCE.format(what=what, source=source, unit=unit))  # fmt: skip
+    return Answer(
+        False, Reason.REMOTE_DISABLED, LOCKED_SENTENCE.format(what=what, source=source, unit=unit)
+    )
 
 
 def lock_change_refusal(source: str, unit: str) -> Answer | None:
     """The lock itself (``remote_commands_enabled``) is changed only from a local source."""
     if not is_remote(source):
         return None
-    return Answer(False, Reason.UNAUTHORIZED,
-                  f"remote_commands_enabled of {unit} is switched only from a local source "
-                  f"(the operator at the machine), not from {source}")  # fmt: skip
+    return Answer(
+        False,
+        Reason.UNAUTHORIZED,
+        f"remote_commands_enabled of {unit} is switched only from a local source "
+        f"(the operator at the machine), not from {source}",
+    )
 
 
 # ==================================================================================================
@@ -561,8 +567,7 @@ class AlarmLike(Protocol):
     def warning(self) -> bool: ...
 
 
-def override_refusal(d: AlarmLike, category: int, message: str,
-                     warning: bool | None) -> str | None:  # fmt: skip
+def override_refusal(d: AlarmLike, category: int, message: str, warning: bool | None) -> str | None:
     """A configured alarm keeps its category (so its reaction), its kind and its text, whoever
     raises it: why a raise that asks for others is refused (None: it asks for none, or for the
     configured ones; -1, '' and None mean "as configured")."""
@@ -576,8 +581,10 @@ def override_refusal(d: AlarmLike, category: int, message: str,
     if not asked:
         return None
     kind = "warning" if d.warning else "alarm"
-    return (f"it is a configured {kind} (category {d.category}): its category, reaction, kind and "
-            f"text are the configuration's, not {' and '.join(asked)}")  # fmt: skip
+    return (
+        f"it is a configured {kind} (category {d.category}): its category, reaction, kind and "
+        f"text are the configuration's, not {' and '.join(asked)}"
+    )
 
 
 #: A line interlock (an EM's Blocked/Starved, or one set from outside) asks for SUSPEND while the
@@ -645,8 +652,9 @@ REGISTRATION_AT_REST: frozenset[State] = frozenset({S.STOPPED, S.IDLE, S.ABORTED
 MAX_EMS = 64
 
 
-def registration_refusal(mode: int, state: State, allow_registration: bool,
-                         by_report: bool, count: int = 0) -> str | None:  # fmt: skip
+def registration_refusal(
+    mode: int, state: State, allow_registration: bool, by_report: bool, count: int = 0
+) -> str | None:
     """Why an unknown EM cannot register now (``by_report``: its own report asks; ``count``: the
     EMs the unit has), or None."""
     if not allow_registration:
@@ -774,9 +782,13 @@ class Rules:
     :meth:`valid_commands`, :meth:`target`, :meth:`settles_in`, :meth:`command_target`,
     :meth:`mode_change_refusal`, :meth:`chain`, :meth:`reach`."""
 
-    def __init__(self, table: TransitionTable, modes: Mapping[int, Any],
-                 interlock_reaction: int = C.SUSPEND,
-                 timed: frozenset[State] = frozenset()) -> None:  # fmt: skip
+    def __init__(
+        self,
+        table: TransitionTable,
+        modes: Mapping[int, Any],
+        interlock_reaction: int = C.SUSPEND,
+        timed: frozenset[State] = frozenset(),
+    ) -> None:
         self.table = table
         #: States with a timeout or a minimum dwell: no :data:`Run` goes through them.
         self.timed = timed
@@ -803,8 +815,10 @@ class Rules:
         table = self.table
         accepted: list[dict[int, Accepted]] = [{} for _ in range(NUM_STATES)]
         not_allowed: tuple[Reason, State | None, tuple[State, ...]] = (
-            Reason.COMMAND_NOT_ALLOWED, None, ()
-        )  # fmt: skip
+            Reason.COMMAND_NOT_ALLOWED,
+            None,
+            (),
+        )
         refused = [[not_allowed] * (len(COMMANDS) + 1) for _ in range(NUM_STATES)]
         for state in State:
             for cmd in COMMANDS:
@@ -819,15 +833,23 @@ class Rules:
                     True, Reason.ACCEPTED, f"{cmd.name} accepted: {state.name} -> {final.name}"
                 )
                 trigger = Trigger.SKIP if skipped else Trigger.COMMAND
-                accepted[state][cmd] = Accepted(final, skipped, answer, int(cmd), trigger,
-                                                self.watch[cmd], _entry_of(skipped, final))  # fmt: skip
+                accepted[state][cmd] = Accepted(
+                    final,
+                    skipped,
+                    answer,
+                    int(cmd),
+                    trigger,
+                    self.watch[cmd],
+                    _entry_of(skipped, final),
+                )
                 refused[state][cmd] = (Reason.ACCEPTED, final, skipped)
         steps: list[ScStep | None] = [None] * NUM_STATES
         for state, nxt in table.state_complete.items():
             final, skipped = resolve(nxt, disabled, table.state_complete)
             trigger = Trigger.SKIP if skipped else Trigger.STATE_COMPLETE
-            steps[state] = ScStep(final, skipped, trigger, final not in disabled,
-                                  _entry_of(skipped, final))  # fmt: skip
+            steps[state] = ScStep(
+                final, skipped, trigger, final not in disabled, _entry_of(skipped, final)
+            )
         for state, by_cmd in zip(State, accepted, strict=False):
             for key, a in by_cmd.items():
                 by_cmd[key] = a._replace(run=self._run(state, number, a, steps))
@@ -835,8 +857,9 @@ class Rules:
         self.refused[number] = refused
         self.sc[number] = steps
 
-    def _run(self, start: State, mode: int, accepted: Accepted, sc: list[ScStep | None]
-             ) -> Run | None:  # fmt: skip
+    def _run(
+        self, start: State, mode: int, accepted: Accepted, sc: list[ScStep | None]
+    ) -> Run | None:
         """The :data:`Run` after the command ``accepted`` took the unit from ``start`` (in
         ``mode``) into its final state."""
         steps: list[RecordTail] = []
@@ -858,10 +881,31 @@ class Rules:
             state = step.final
         if entry & Entry.STOP:
             return None
-        tail = (start, accepted.final, mode, mode, accepted.trigger, accepted.cmd, OPERATOR,
-                accepted.skipped, "")  # fmt: skip
-        return Run(start, mode, accepted.final, accepted.skipped, accepted.answer, accepted.cmd,
-                   accepted.trigger, tail, tuple(steps), tuple(between), state, entry)  # fmt: skip
+        tail = (
+            start,
+            accepted.final,
+            mode,
+            mode,
+            accepted.trigger,
+            accepted.cmd,
+            OPERATOR,
+            accepted.skipped,
+            "",
+        )
+        return Run(
+            start,
+            mode,
+            accepted.final,
+            accepted.skipped,
+            accepted.answer,
+            accepted.cmd,
+            accepted.trigger,
+            tail,
+            tuple(steps),
+            tuple(between),
+            state,
+            entry,
+        )
 
     # -- the table's verdict -----------------------------------------------------------------------
     def table_verdict(self, state: State, mode: int, cmd: int) -> Verdict:
@@ -871,8 +915,9 @@ class Rules:
         reason, final, skipped = self.refused[mode][state][cmd]
         return Verdict(reason, final, skipped)
 
-    def check(self, situation: Situation, state: State, mode: int, cmd: int,
-              source: str) -> Verdict:  # fmt: skip
+    def check(
+        self, situation: Situation, state: State, mode: int, cmd: int, source: str
+    ) -> Verdict:
         """The checked path: every guard in order around the table's verdict. (The engine's fast
         path accepts at once when the table does and no watched part is set.)"""
         if not 1 <= cmd <= 10:
@@ -892,12 +937,27 @@ class Rules:
                     return Verdict(g.reason, verdict.final, verdict.skipped, detail, g)
         return verdict
 
-    def refusal_text(self, verdict: Verdict, cmd: int, source: str, where: str, unit: str,
-                     mode_name: str, valid: Sequence[int]) -> str:  # fmt: skip
+    def refusal_text(
+        self,
+        verdict: Verdict,
+        cmd: int,
+        source: str,
+        where: str,
+        unit: str,
+        mode_name: str,
+        valid: Sequence[int],
+    ) -> str:
         """The sentence of a refusal, ending with the commands valid now."""
-        fields = {"command": command_name(cmd), "number": cmd, "source": source, "where": where,
-                  "unit": unit, "detail": verdict.detail, "mode": mode_name,
-                  "all": names_of(range(1, 11))}  # fmt: skip
+        fields = {
+            "command": command_name(cmd),
+            "number": cmd,
+            "source": source,
+            "where": where,
+            "unit": unit,
+            "detail": verdict.detail,
+            "mode": mode_name,
+            "all": names_of(range(1, 11)),
+        }
         if verdict.guard is not None:
             text = verdict.guard.sentence.format(**fields)
         else:

@@ -42,8 +42,10 @@ class ConfigError(ValueError):
 
     def __init__(self, file: str, problems: list[tuple[str, str]]) -> None:
         unique = list(dict.fromkeys(problems))
-        kept = [(_cut(p, MAX_PATH), _cut(" ".join(x.splitlines()), MAX_PROBLEM))
-                for p, x in unique[:MAX_PROBLEMS]]  # fmt: skip
+        kept = [
+            (_cut(p, MAX_PATH), _cut(" ".join(x.splitlines()), MAX_PROBLEM))
+            for p, x in unique[:MAX_PROBLEMS]
+        ]
         if len(unique) > MAX_PROBLEMS:
             kept.append(("", f"... and {len(unique) - MAX_PROBLEMS} more problems"))
         self.file = file = _cut(file, MAX_PATH)
@@ -198,9 +200,16 @@ def name(n: Node) -> str:
     """A ROS name component: ASCII letters, digits, underscores, not starting with a digit (rcl
     refuses any other character: a node named with it could not start)."""
     s = text(n)
-    if not s or not s.isascii() or not (s[0].isalpha() or s[0] == "_") or not all(c.isalnum() or c == "_" for c in s):  # fmt: skip
-        raise invalid(f"{shown(s)} is not a valid ROS name (ASCII letters, digits and _, not "
-                      "starting with a digit)")  # fmt: skip
+    if (
+        not s
+        or not s.isascii()
+        or not (s[0].isalpha() or s[0] == "_")
+        or not all(c.isalnum() or c == "_" for c in s)
+    ):
+        raise invalid(
+            f"{shown(s)} is not a valid ROS name (ASCII letters, digits and _, not "
+            "starting with a digit)"
+        )
     return s
 
 

@@ -108,10 +108,15 @@ def plain_secrets(document: Any) -> list[tuple[str, str]]:
 def _url_credentials(value: Any, path: str = "") -> list[tuple[str, str]]:
     if isinstance(value, str):
         if "@" in value and url_userinfo(value):
-            return [(path, "a URL never holds a user name or password (scheme://user:password@): "
-                           "the cell file is published on the units' ~/config topic and recorded "
-                           "in bags; give them with their own keys (user:, and password: as "
-                           "env:VARIABLE or file:PATH)")]  # fmt: skip
+            return [
+                (
+                    path,
+                    "a URL never holds a user name or password (scheme://user:password@): "
+                    "the cell file is published on the units' ~/config topic and recorded "
+                    "in bags; give them with their own keys (user:, and password: as "
+                    "env:VARIABLE or file:PATH)",
+                )
+            ]
         return []
     if isinstance(value, Mapping):
         return [
@@ -130,8 +135,13 @@ def _plain(document: Any, pattern: tuple[str, ...], hasher: str) -> list[tuple[s
         if value is None or value == "" or is_reference(value, bool(hasher)):
             continue  # (an empty value holds no secret: the key's own check refuses it)
         ways = "env:VARIABLE, file:PATH" + (f" or a hash ({hasher})" if hasher else "")
-        out.append((path, f"a secret is never written in the cell file (it is published "
-                          f"on the units' ~/config topic and recorded in bags): give {ways}"))  # fmt: skip
+        out.append(
+            (
+                path,
+                f"a secret is never written in the cell file (it is published "
+                f"on the units' ~/config topic and recorded in bags): give {ways}",
+            )
+        )
     return out
 
 
@@ -214,8 +224,10 @@ def check_hash(value: str) -> str:
     if not value.startswith(HASH_PREFIX) or len(parts) != 3 or not parts[0].isdigit():
         raise invalid("malformed password hash (expected pbkdf2_sha256$<n>$<salt>$<hash>)")
     if not MIN_HASH_ITERATIONS <= int(parts[0][:12]) <= MAX_HASH_ITERATIONS:
-        raise invalid(f"a password hash of {parts[0][:12]} iterations: give "
-                      f"{MIN_HASH_ITERATIONS} .. {MAX_HASH_ITERATIONS} (a login costs them)")  # fmt: skip
+        raise invalid(
+            f"a password hash of {parts[0][:12]} iterations: give "
+            f"{MIN_HASH_ITERATIONS} .. {MAX_HASH_ITERATIONS} (a login costs them)"
+        )
     return value
 
 

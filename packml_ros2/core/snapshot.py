@@ -112,8 +112,13 @@ def capture(unit: Unit) -> dict[str, Any]:
     """The engine state of ``unit`` between two inputs, as JSON values."""
     if unit._out or unit._internal:
         raise RuntimeError("a snapshot is taken between inputs, with the outputs drained")
-    alarms, eq, times, pub, dl = (unit.alarms, unit.equipment, unit.times, unit.publication,
-                                  unit.deadlines)  # fmt: skip
+    alarms, eq, times, pub, dl = (
+        unit.alarms,
+        unit.equipment,
+        unit.times,
+        unit.publication,
+        unit.deadlines,
+    )
     events: list[dict[str, Any]] = []
     index: dict[int, int] = {}
 
@@ -161,7 +166,9 @@ def capture(unit: Unit) -> dict[str, Any]:
             "history": [ref(ev) for ev in alarms.history],
             "history_dropped": alarms.history_dropped,
             "first_out": ref(alarms.first_out),
-            "first_out_by_category": [[c, ref(ev)] for c, ev in alarms.first_out_by_category.items()],
+            "first_out_by_category": [
+                [c, ref(ev)] for c, ev in alarms.first_out_by_category.items()
+            ],
             "first_out_by_em": [[em, ref(ev)] for em, ev in alarms.first_out_by_em.items()],
             "version": alarms.version,
             "blocking_version": alarms.blocking_version,
@@ -185,11 +192,15 @@ def capture(unit: Unit) -> dict[str, Any]:
         },
         "counters": {
             "version": unit.counters.version,
-            "values": {k: [[c.count, c.acc_count] for c in a] for k, a in unit.counters.arrays.items()},
+            "values": {
+                k: [[c.count, c.acc_count] for c in a] for k, a in unit.counters.arrays.items()
+            },
         },
         "equipment": {
-            "modules": [{f.name: getattr(em, f.name) for f in fields(EquipmentModule)}
-                        for em in eq.modules.values()],
+            "modules": [
+                {f.name: getattr(em, f.name) for f in fields(EquipmentModule)}
+                for em in eq.modules.values()
+            ],
             "state": int(eq.state),
             "sequence": eq.sequence,
             "current": list(eq.current),
@@ -199,14 +210,19 @@ def capture(unit: Unit) -> dict[str, Any]:
             "roster_version": eq.roster_version,
         },
         "interlocks": {
-            "active": [[k, reason, stop_id] for k, (reason, stop_id) in unit.interlocks.active.items()],
+            "active": [
+                [k, reason, stop_id] for k, (reason, stop_id) in unit.interlocks.active.items()
+            ],
             "suspended": unit.interlocks.suspended,
             "attempt": list(unit.interlocks.attempt),
             "busy": unit.interlocks.busy,
             "released": unit.interlocks.released,
         },
         "deadlines": {
-            "heap": [[when, order, kind.name.lower(), _plain(data)] for when, order, kind, data in dl.heap],
+            "heap": [
+                [when, order, kind.name.lower(), _plain(data)]
+                for when, order, kind, data in dl.heap
+            ],
             "counter": dl._counter,
         },
         "recipes": unit.recipes.to_dict(),
@@ -217,7 +233,7 @@ def capture(unit: Unit) -> dict[str, Any]:
             "admin_due": pub.admin_due,
             "alarms_seen": pub.alarms_seen,
         },
-    }  # fmt: skip
+    }
     document["events"] = events
     return document
 
@@ -244,8 +260,12 @@ _DEADLINE_DATA: Mapping[Due, Callable[[Any], Any]] = {
 
 
 # -- restore ---------------------------------------------------------------------------------------
-def restore(config: UnitConfig, clock: Callable[[], float], document: Mapping[str, Any],
-            store: StoreLike | None = None) -> Unit:  # fmt: skip
+def restore(
+    config: UnitConfig,
+    clock: Callable[[], float],
+    document: Mapping[str, Any],
+    store: StoreLike | None = None,
+) -> Unit:
     """A unit in the state ``document`` describes, on ``clock``; its outputs drained (none
     pending). :class:`SnapshotError` when the document cannot be restored."""
     from .unit import Unit
@@ -255,8 +275,12 @@ def restore(config: UnitConfig, clock: Callable[[], float], document: Mapping[st
         newer = isinstance(schema, int) and schema > SCHEMA
         raise SnapshotError(
             f"snapshot schema {schema!r}: this version reads schema {SCHEMA}"
-            + (" (the snapshot is newer: replay it with the version that recorded it)" if newer else "")
-        )  # fmt: skip
+            + (
+                " (the snapshot is newer: replay it with the version that recorded it)"
+                if newer
+                else ""
+            )
+        )
     if document.get("unit") != config.name:
         raise SnapshotError(
             f"the snapshot is of unit {document.get('unit')!r}, not {config.name!r}"
@@ -397,8 +421,10 @@ def _restore(unit: Unit, d: Mapping[str, Any]) -> None:
     interlocks.released = str(i.get("released", ""))
 
     dl = unit.deadlines
-    heap = [(float(w), int(o), Due[kind.upper()], _DEADLINE_DATA[Due[kind.upper()]](data))
-            for w, o, kind, data in d["deadlines"]["heap"]]  # fmt: skip
+    heap = [
+        (float(w), int(o), Due[kind.upper()], _DEADLINE_DATA[Due[kind.upper()]](data))
+        for w, o, kind, data in d["deadlines"]["heap"]
+    ]
     if any(heap[(j - 1) // 2][:2] > heap[j][:2] for j in range(1, len(heap))):
         raise SnapshotError("the deadlines are not a heap")
     dl.heap = heap

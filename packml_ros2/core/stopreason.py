@@ -61,30 +61,60 @@ class StopReasons:
         """The stop reason of an operator or remote command."""
         stop_id = STOP_ID_REMOTE if is_remote(source) else STOP_ID_OPERATOR
         return AlarmEvent(
-            stop_id, cmd, f"{command_name(cmd)} by {source}", 0, Kind.COMMAND, t,
-            source=source, reaction=cmd, trigger=False, latched=False,
-        )  # fmt: skip
+            stop_id,
+            cmd,
+            f"{command_name(cmd)} by {source}",
+            0,
+            Kind.COMMAND,
+            t,
+            source=source,
+            reaction=cmd,
+            trigger=False,
+            latched=False,
+        )
 
     @staticmethod
     def of_shutdown(message: str, t: float) -> AlarmEvent:
         """The stop reason of the unit's own process shutting down while producing."""
         return AlarmEvent(
-            STOP_ID_SHUTDOWN, 0, message, 9, Kind.EVENT, t,
-            source="unit", trigger=False, latched=False,
-        )  # fmt: skip
+            STOP_ID_SHUTDOWN,
+            0,
+            message,
+            9,
+            Kind.EVENT,
+            t,
+            source="unit",
+            trigger=False,
+            latched=False,
+        )
 
     @staticmethod
     def of_crash(message: str, t: float) -> AlarmEvent:
         """The stop reason of a unit whose process ended while producing without shutting down
         (a crash, SIGKILL, a power loss): found at its restart (core/durable.py)."""
         return AlarmEvent(
-            STOP_ID_CRASH, 0, message, 9, Kind.EVENT, t,
-            source="unit", trigger=False, latched=False,
-        )  # fmt: skip
+            STOP_ID_CRASH,
+            0,
+            message,
+            9,
+            Kind.EVENT,
+            t,
+            source="unit",
+            trigger=False,
+            latched=False,
+        )
 
     @staticmethod
     def of_interlock(cmd: int, source: str, detail: str, stop_id: int, t: float) -> AlarmEvent:
         return AlarmEvent(
-            stop_id, cmd, detail or "interlock", 0, Kind.EVENT, t,
-            source=source, reaction=cmd, trigger=False, latched=False,
-        )  # fmt: skip
+            stop_id,
+            cmd,
+            detail or "interlock",
+            0,
+            Kind.EVENT,
+            t,
+            source=source,
+            reaction=cmd,
+            trigger=False,
+            latched=False,
+        )

@@ -97,8 +97,14 @@ class TagInputs(UnitMachine):
                 self.products, items, lambda p: p.product_id, sizes.products, "product"
             )
 
-    def _merge(self, target: list[Any], items: list[Any], key: Callable[[Any], int], capacity: int,
-               what: str) -> Answer:  # fmt: skip
+    def _merge(
+        self,
+        target: list[Any],
+        items: list[Any],
+        key: Callable[[Any], int],
+        capacity: int,
+        what: str,
+    ) -> Answer:
         index = {key(x): i for i, x in enumerate(target)}
         new = {key(x) for x in items} - set(index)
         if len(target) + len(new) > capacity:

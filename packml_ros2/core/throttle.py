@@ -30,6 +30,7 @@ in a worker thread, so an event loop serving other clients is never held by it.
 from __future__ import annotations
 
 import asyncio
+import functools
 import ipaddress
 import logging
 import threading
@@ -285,3 +286,32 @@ async def attempt(
     else:
         throttle.failed(address, account, what)
     return ok
+
+
+@functools.cache
+def _unknown_user_hash() -> str:
+    from .secrets import hash_password
+
+    return hash_password("no such user")
+
+
+async def login(
+    throttle: Throttle, address: str, account: str, stored: str | None, password: str, what: str
+) -> bool | Blocked:
+    """A password login of ``account`` (its ``stored`` hash; None: no such user) from
+    ``address`` under ``throttle`` (:func:`attempt`). An unknown user name is checked against a
+    hash of the same cost, under the one account :data:`UNKNOWN`: the answer takes as long as a
+    known user's and tells nothing."""
+    from .secrets import check_password
+
+    if stored is None:
+        dummy = _unknown_user_hash()
+        return await attempt(
+            throttle,
+            address,
+            UNKNOWN,
+            lambda: check_password(password, dummy) and False,
+            "user name",
+        )
+    known = stored
+    return await attempt(throttle, address, account, lambda: check_password(password, known), what)

@@ -79,8 +79,9 @@ class ModeStateTimes:
             self.planned_stop += dt
         self._since = now
 
-    def enter_states(self, now: float, first: int, last: int, between: Sequence[int],
-                     planned: bool) -> None:  # fmt: skip
+    def enter_states(
+        self, now: float, first: int, last: int, between: Sequence[int], planned: bool
+    ) -> None:
         """The unit entered ``first``, the states ``between``, then ``last`` (maybe ``first``)
         in the current mode at ``now``: a command and the State Completes that followed at once,
         one call for them all. ``planned``: ``last`` is a planned stop (OEE)."""

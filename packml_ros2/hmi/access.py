@@ -48,8 +48,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..core.reasons import Reason
-from ..core.secrets import check_password, hash_password
-from ..core.throttle import UNKNOWN, Blocked, Throttle, attempt
+from ..core.throttle import Blocked, Throttle, login
 
 MAX_SESSIONS = 256
 LOGOUT_AFTER = 900.0  # s without an action before a login ends (hmi.logout_after)
@@ -161,8 +160,9 @@ def level_refusal(who: Principal, unit: str | None, action: str) -> Refusal | No
 # -- throttling ------------------------------------------------------------------------------------
 def throttled(blocked: Blocked) -> Refusal:
     """The HTTP refusal of an attempt the throttle blocks (429, with Retry-After)."""
-    return Refusal(429, Reason.UNAUTHORIZED, "THROTTLED", blocked.message,
-                   retry_after=blocked.retry_after)  # fmt: skip
+    return Refusal(
+        429, Reason.UNAUTHORIZED, "THROTTLED", blocked.message, retry_after=blocked.retry_after
+    )
 
 
 # -- sessions --------------------------------------------------------------------------------------
@@ -226,7 +226,6 @@ class Access:
             raise ValueError("an HMI has user logins or an access token, not both")
         self.throttle = throttle or Throttle("HMI", log=LOG)
         self.sessions = Sessions(logout_after)
-        self._dummy: str | None = None  # checked for unknown users: as slow as a known one
 
     @property
     def kind(self) -> str:
@@ -288,26 +287,23 @@ class Access:
         in a worker thread (a hash is slow on purpose); (session credential, who) or a refusal."""
         if not self.users:
             return Refusal(
-                400, Reason.INVALID_ARGUMENT, "NO_USERS",
-                "this HMI has no user logins (hmi.users)" + (
-                    ": it asks for the access token" if self._token is not None else ""),
-            )  # fmt: skip
+                400,
+                Reason.INVALID_ARGUMENT,
+                "NO_USERS",
+                "this HMI has no user logins (hmi.users)"
+                + (": it asks for the access token" if self._token is not None else ""),
+            )
         if not isinstance(name, str) or not isinstance(password, str) or len(password) > 1024:
             blocked = self.blocked(client)
-            return blocked or Refusal(400, Reason.INVALID_ARGUMENT, "BAD_ARGUMENT",
-                                      "give 'user' and 'password' as strings")  # fmt: skip
+            return blocked or Refusal(
+                400,
+                Reason.INVALID_ARGUMENT,
+                "BAD_ARGUMENT",
+                "give 'user' and 'password' as strings",
+            )
         user = self.users.get(name)
-        if user is None:
-            if self._dummy is None:
-                self._dummy = hash_password("no such user")
-            dummy = self._dummy  # (as slow as a known user: the answer tells nothing)
-            result = await attempt(self.throttle, client, UNKNOWN,
-                                   lambda: check_password(password, dummy) and False, "user name")  # fmt: skip
-        else:
-            stored = user.password
-            result = await attempt(self.throttle, client, user.name,
-                                   lambda: check_password(password, stored),
-                                   f"password for {user.name}")  # fmt: skip
+        stored = None if user is None else user.password
+        result = await login(self.throttle, client, name, stored, password, f"password for {name}")
         if isinstance(result, Blocked):
             return throttled(result)
         if not result or user is None:

@@ -321,8 +321,12 @@ def refusal(reason: Reason, message: str) -> dict[str, Any]:
 
 def _edge(e: Edge) -> list[Any]:
     """``[from, command or None (State Complete), to, [skipped states]]``"""
-    return [e.from_state.name, e.trigger.name if e.trigger else None, e.to_state.name,
-            [s.name for s in e.skipped]]  # fmt: skip
+    return [
+        e.from_state.name,
+        e.trigger.name if e.trigger else None,
+        e.to_state.name,
+        [s.name for s in e.skipped],
+    ]
 
 
 def unit_config_dict(name: str, u: UnitConfig) -> dict[str, Any]:
@@ -449,9 +453,12 @@ class Bridge:
         self.coordinator_presence: Presence | None = None
         if cell.coordinator.enabled:
             self.coordinator_presence = Presence(
-                self.node, [f"/{cell.cell}/coordinator"], self.lease,
-                on_change=self._on_presence, message_type=CellStatus,
-            )  # fmt: skip
+                self.node,
+                [f"/{cell.cell}/coordinator"],
+                self.lease,
+                on_change=self._on_presence,
+                message_type=CellStatus,
+            )
         self._coordinator: dict[str, Any] = {
             "command": self.node.create_client(
                 Command, f"/{cell.cell}/coordinator/command", callback_group=self._group
@@ -531,8 +538,14 @@ class Bridge:
         with self._lock:
             if path == f"/{self.cell.cell}/coordinator":
                 self._coordinator_presence = data = presence_dict(seen)
-                self._emit({"topic": "coordinator", "unit": None, "data": data,
-                            "received": time.time() * 1000.0})  # fmt: skip
+                self._emit(
+                    {
+                        "topic": "coordinator",
+                        "unit": None,
+                        "data": data,
+                        "received": time.time() * 1000.0,
+                    }
+                )
             elif name in self._units:
                 self._set_presence(name, seen)
 
@@ -540,8 +553,9 @@ class Bridge:
         unit = self._units[name]
         unit["online"] = seen.present is True
         unit["presence"] = data = presence_dict(seen)
-        self._emit({"topic": "online", "unit": name, "data": data,
-                    "received": time.time() * 1000.0})  # fmt: skip
+        self._emit(
+            {"topic": "online", "unit": name, "data": data, "received": time.time() * 1000.0}
+        )
 
     def _on_change(self, path: str, topic: str, msg: Any) -> None:
         received = time.time() * 1000.0
@@ -565,8 +579,9 @@ class Bridge:
                 data = transition_dict(msg)
                 unit["transitions"].append(data)
                 del unit["transitions"][:-TRANSITIONS_KEPT]
-                self._emit({"topic": "transition", "unit": name, "data": data,
-                            "received": received})  # fmt: skip
+                self._emit(
+                    {"topic": "transition", "unit": name, "data": data, "received": received}
+                )
                 return
             if topic == "status":
                 data = status_dict(msg)
@@ -585,8 +600,9 @@ class Bridge:
                 reasons = self._reasons(name, unit["status"], unit["alarms"])
                 if reasons != unit["why"]:
                     unit["why"] = reasons
-                    self._emit({"topic": "why", "unit": name, "data": reasons,
-                                "received": received})  # fmt: skip
+                    self._emit(
+                        {"topic": "why", "unit": name, "data": reasons, "received": received}
+                    )
 
     def _reasons(
         self, name: str, status: dict[str, Any] | None, alarms: dict[str, Any] | None
@@ -683,9 +699,16 @@ class Bridge:
         future.add_done_callback(finished)
         return done
 
-    def act_sync(self, unit: str | None, action: str, args: Mapping[str, Any] | None = None,
-                 token: str | None = None, timeout: float = CALL_TIMEOUT, *,
-                 who: Principal | None = None) -> dict[str, Any]:  # fmt: skip
+    def act_sync(
+        self,
+        unit: str | None,
+        action: str,
+        args: Mapping[str, Any] | None = None,
+        token: str | None = None,
+        timeout: float = CALL_TIMEOUT,
+        *,
+        who: Principal | None = None,
+    ) -> dict[str, Any]:
         """:meth:`act` and wait (not from the bridge's thread)."""
         try:
             return self.act(unit, action, args, token, who=who).result(timeout)
@@ -713,8 +736,9 @@ def _only(args: Mapping[str, Any], *keys: str) -> None:
         raise ValueError(f"unknown argument {shown(extra[0])} (it takes {takes})")
 
 
-def _int(args: Mapping[str, Any], key: str, default: int = 0, lo: int = INT32[0],
-         hi: int = INT32[1]) -> int:  # fmt: skip
+def _int(
+    args: Mapping[str, Any], key: str, default: int = 0, lo: int = INT32[0], hi: int = INT32[1]
+) -> int:
     value = args.get(key, default)
     if isinstance(value, bool) or not isinstance(value, int):
         raise ValueError(f"'{key}' must be an integer")

@@ -58,8 +58,7 @@ def dumps(value: Any) -> str:
     try:
         return json.dumps(value, separators=(",", ":"), allow_nan=False, ensure_ascii=False)
     except ValueError:
-        return json.dumps(finite(value), separators=(",", ":"), allow_nan=False,
-                          ensure_ascii=False)  # fmt: skip
+        return json.dumps(finite(value), separators=(",", ":"), allow_nan=False, ensure_ascii=False)
 
 
 class Json(JSONResponse):

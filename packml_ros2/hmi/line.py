@@ -90,12 +90,24 @@ def add_routes(app: FastAPI, bridge: Any, static: Any) -> None:
     @app.get("/api/line")
     async def line_data(request: Request, shift: str = "current") -> Json:
         if len(shift) > 80 or not SHIFT.match(shift):
-            return refuse(Refusal(400, Reason.INVALID_ARGUMENT, "BAD_ARGUMENT",
-                                  "shift is current, previous or 'YYYY-MM-DD name'"))  # fmt: skip
+            return refuse(
+                Refusal(
+                    400,
+                    Reason.INVALID_ARGUMENT,
+                    "BAD_ARGUMENT",
+                    "shift is current, previous or 'YYYY-MM-DD name'",
+                )
+            )
         try:
             return Json(await api.collect(shift))
         except LookupError as exc:
             return refuse(Refusal(404, Reason.INVALID_ARGUMENT, "NOT_FOUND", str(exc)))
         except (TimeoutError, Exception) as exc:  # the coordinator is not there (or not answering)
-            return refuse(Refusal(503, Reason.UNIT_UNAVAILABLE, "UNAVAILABLE",
-                                  f"the coordinator of {api.cell} does not answer ({type(exc).__name__})"))  # fmt: skip
+            return refuse(
+                Refusal(
+                    503,
+                    Reason.UNIT_UNAVAILABLE,
+                    "UNAVAILABLE",
+                    f"the coordinator of {api.cell} does not answer ({type(exc).__name__})",
+                )
+            )

@@ -109,17 +109,29 @@ class Hub:
         due = self.tickets.pop(ticket, None) if ticket else None
         if due is not None and due > time.monotonic():
             if self.operators >= OPERATOR_STREAMS and len(self.queues) >= MAX_STREAMS:
-                return True, Refusal(503, Reason.UNIT_UNAVAILABLE, "TOO_MANY_STREAMS",
-                                     f"{OPERATOR_STREAMS} operators' event streams are open: close a page")  # fmt: skip
+                return True, Refusal(
+                    503,
+                    Reason.UNIT_UNAVAILABLE,
+                    "TOO_MANY_STREAMS",
+                    f"{OPERATOR_STREAMS} operators' event streams are open: close a page",
+                )
             return True, None
         anonymous = len(self.queues) - self.operators
         if anonymous >= MAX_STREAMS - OPERATOR_STREAMS:
-            return False, Refusal(503, Reason.UNIT_UNAVAILABLE, "TOO_MANY_STREAMS",
-                                  f"{anonymous} event streams are open: close a page (an operator who "
-                                  "has logged in still gets one)")  # fmt: skip
+            return False, Refusal(
+                503,
+                Reason.UNIT_UNAVAILABLE,
+                "TOO_MANY_STREAMS",
+                f"{anonymous} event streams are open: close a page (an operator who "
+                "has logged in still gets one)",
+            )
         if self.clients.get(client, 0) >= MAX_STREAMS_PER_CLIENT:
-            return False, Refusal(429, Reason.UNIT_UNAVAILABLE, "TOO_MANY_STREAMS",
-                                  f"{MAX_STREAMS_PER_CLIENT} event streams are open from this address: close a page")  # fmt: skip
+            return False, Refusal(
+                429,
+                Reason.UNIT_UNAVAILABLE,
+                "TOO_MANY_STREAMS",
+                f"{MAX_STREAMS_PER_CLIENT} event streams are open from this address: close a page",
+            )
         return False, None
 
     def count(self, operator: bool, client: str, delta: int) -> None:
@@ -187,8 +199,13 @@ _STATUS_CODES = {404: "NOT_FOUND", 405: "METHOD_NOT_ALLOWED"}
 def create_app(bridge: Bridge, allowed_hosts: Iterable[str] = ()) -> FastAPI:
     """The HMI app for ``bridge`` (the caller spins the bridge and closes it); ``allowed_hosts``:
     host names besides IP addresses, localhost and this machine's name (:class:`.guard.HostGuard`)."""
-    app = FastAPI(title=f"PackML HMI {bridge.cell.cell}", docs_url=None, redoc_url=None,
-                  openapi_url=None, default_response_class=Json)  # fmt: skip
+    app = FastAPI(
+        title=f"PackML HMI {bridge.cell.cell}",
+        docs_url=None,
+        redoc_url=None,
+        openapi_url=None,
+        default_response_class=Json,
+    )
     hub = Hub(bridge)
     app.state.hub = hub
     app.state.bridge = bridge
@@ -205,8 +222,14 @@ def create_app(bridge: Bridge, allowed_hosts: Iterable[str] = ()) -> FastAPI:
     async def internal_error(request: Request, exc: Exception) -> Response:
         # a defect, never the user's fault: one line in the log, no traceback on the wire
         LOG.error("HMI: %s %s failed: %s", request.method, request.url.path, type(exc).__name__)
-        return refuse(Refusal(500, Reason.UNIT_UNAVAILABLE, "INTERNAL_ERROR",
-                              "the HMI server failed on this request (see its log)"))  # fmt: skip
+        return refuse(
+            Refusal(
+                500,
+                Reason.UNIT_UNAVAILABLE,
+                "INTERNAL_ERROR",
+                "the HMI server failed on this request (see its log)",
+            )
+        )
 
     @app.middleware("http")
     async def headers(request: Request, call_next: Any) -> Response:
@@ -318,9 +341,12 @@ def create_app(bridge: Bridge, allowed_hosts: Iterable[str] = ()) -> FastAPI:
         try:
             answer = await asyncio.wait_for(asyncio.wrap_future(future), timeout)
         except TimeoutError:
-            answer = {"accepted": False, "result": int(Reason.UNIT_UNAVAILABLE),
-                      "result_name": "UNIT_UNAVAILABLE",
-                      "message": f"{unit or 'the coordinator'}: no answer within {timeout:g} s"}  # fmt: skip
+            answer = {
+                "accepted": False,
+                "result": int(Reason.UNIT_UNAVAILABLE),
+                "result_name": "UNIT_UNAVAILABLE",
+                "message": f"{unit or 'the coordinator'}: no answer within {timeout:g} s",
+            }
         status = (
             403
             if answer.get("result") == Reason.UNAUTHORIZED
@@ -339,8 +365,17 @@ def create_app(bridge: Bridge, allowed_hosts: Iterable[str] = ()) -> FastAPI:
         return await run_action(None, action, request)
 
     def welcome(who: Principal, message: str, **more: Any) -> Json:
-        return Json({"accepted": True, "result": 0, "result_name": "ACCEPTED", "message": message,
-                     "user": who.name, "level": who.level, **more})  # fmt: skip
+        return Json(
+            {
+                "accepted": True,
+                "result": 0,
+                "result_name": "ACCEPTED",
+                "message": message,
+                "user": who.name,
+                "level": who.level,
+                **more,
+            }
+        )
 
     @app.post("/api/auth")
     async def auth(request: Request) -> Json:
@@ -367,8 +402,14 @@ def create_app(bridge: Bridge, allowed_hosts: Iterable[str] = ()) -> FastAPI:
     @app.post("/api/logout")
     async def logout(request: Request) -> Json:
         who = access.logout(_token(request))
-        return Json({"accepted": True, "result": 0, "result_name": "ACCEPTED",
-                     "message": f"{who.name} logged out" if who else "not logged in"})  # fmt: skip
+        return Json(
+            {
+                "accepted": True,
+                "result": 0,
+                "result_name": "ACCEPTED",
+                "message": f"{who.name} logged out" if who else "not logged in",
+            }
+        )
 
     line.add_routes(app, bridge, STATIC)  # the line page: hmi/line.py
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
@@ -406,8 +447,13 @@ class Server:
     """uvicorn serving the HMI app on ``sock``; :meth:`run` blocks (signals: Ctrl-C stops it when
     run in the main thread), :meth:`start` runs it in a thread, :meth:`stop` ends it."""
 
-    def __init__(self, bridge: Bridge, sock: socket.socket, log_level: str = "warning",
-                 allowed_hosts: Iterable[str] = ()) -> None:  # fmt: skip
+    def __init__(
+        self,
+        bridge: Bridge,
+        sock: socket.socket,
+        log_level: str = "warning",
+        allowed_hosts: Iterable[str] = (),
+    ) -> None:
         import uvicorn
 
         self.app = create_app(bridge, allowed_hosts)
@@ -456,5 +502,8 @@ class Server:
 
 def serve(bridge: Bridge, settings: HmiSettings) -> Server:
     """A :class:`Server` for ``bridge`` bound to ``settings.host``/``port`` (not started)."""
-    return Server(bridge, bind(settings.host, settings.port),
-                  allowed_hosts=(*settings.allowed_hosts, settings.host))  # fmt: skip
+    return Server(
+        bridge,
+        bind(settings.host, settings.port),
+        allowed_hosts=(*settings.allowed_hosts, settings.host),
+    )

@@ -68,8 +68,10 @@ class HmiSettings:
         loopback only, or logins or a token guard the commands)."""
         if self.loopback or self.token or self.users:
             return None
-        return (f"serving on {self.host} without logins or a token: every machine that reaches "
-                "it can operate the cell (set hmi.users, or hmi.token: env:VAR or file:PATH)")  # fmt: skip
+        return (
+            f"serving on {self.host} without logins or a token: every machine that reaches "
+            "it can operate the cell (set hmi.users, or hmi.token: env:VAR or file:PATH)"
+        )
 
 
 def _host(n: Node) -> str:

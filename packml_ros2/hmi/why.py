@@ -38,8 +38,9 @@ GUARD_REASONS = frozenset(g.reason for g in GUARDS)
 class StatusSituation:
     """A unit's situation as its status and alarm list show it (the rules' ``Situation``)."""
 
-    def __init__(self, config: UnitConfig, status: Mapping[str, Any],
-                 alarms: Mapping[str, Any] | None) -> None:  # fmt: skip
+    def __init__(
+        self, config: UnitConfig, status: Mapping[str, Any], alarms: Mapping[str, Any] | None
+    ) -> None:
         self.config = config
         self.status = status
         self.alarms = list(alarms.get("alarms", ())) if alarms else []
@@ -48,8 +49,9 @@ class StatusSituation:
             name for name, r in lost.items() if (config.em_lost_reaction if r is None else r) == 0
         }
         if config.em_lost_reaction == 0:  # registered EMs follow the unit's reaction
-            self._ignored |= {e["name"] for e in status.get("equipment_modules", ())
-                              if e.get("name") not in lost}  # fmt: skip
+            self._ignored |= {
+                e["name"] for e in status.get("equipment_modules", ()) if e.get("name") not in lost
+            }
 
     @property
     def remote_enabled(self) -> bool:
@@ -111,8 +113,9 @@ def _known(rules: Rules, status: Mapping[str, Any]) -> tuple[State, int] | str:
     return State(state), int(mode)
 
 
-def command_reasons(config: UnitConfig, status: Mapping[str, Any],
-                    alarms: Mapping[str, Any] | None, source: str) -> dict[str, dict[str, Any]]:  # fmt: skip
+def command_reasons(
+    config: UnitConfig, status: Mapping[str, Any], alarms: Mapping[str, Any] | None, source: str
+) -> dict[str, dict[str, Any]]:
     """``{command name: {reason, text, guard}}`` for every command the unit would not take from
     ``source`` now (not listed as valid, or locked): its reason code, the sentence the unit
     answers it with, and whether a guard refuses it (:data:`GUARD_REASONS`) rather than the state
@@ -217,8 +220,12 @@ def _state_text(state: Any) -> str:
     return state_name(state) if isinstance(state, int) else f"state {str(state)[:20]}"
 
 
-def reasons(config: UnitConfig, status: Mapping[str, Any] | None,
-            alarms: Mapping[str, Any] | None, source: str) -> dict[str, Any]:  # fmt: skip
+def reasons(
+    config: UnitConfig,
+    status: Mapping[str, Any] | None,
+    alarms: Mapping[str, Any] | None,
+    source: str,
+) -> dict[str, Any]:
     """``{commands: ..., modes: ..., ems: ...}`` (:func:`command_reasons` for ``source``,
     :func:`mode_reasons` and :func:`em_reasons` from ``source``); empty without a status."""
     if status is None:

@@ -287,14 +287,18 @@ class Methods:
 
     def _callback(self, path: str, handler: Handler) -> Callback:
         folder = path.rpartition("/")[0]
-        owner = ua.NodeId(f"{self.unit}.{folder.replace('/', '.')}" if folder else self.unit,
-                          INSTANCE_NS)  # fmt: skip
+        owner = ua.NodeId(
+            f"{self.unit}.{folder.replace('/', '.')}" if folder else self.unit, INSTANCE_NS
+        )
         method = EXTENSION_METHODS.get(path) or self.model.method(path)
 
         async def call(parent: ua.NodeId, *args: Any) -> ua.CallMethodResult:
             if parent != owner:  # OPC UA Part 4: the method must be a component of the object
-                return refuse(S.BadMethodInvalid, "INVALID_ARGUMENT",
-                              f"{method.name} is not a method of {parent.to_string()}")  # fmt: skip
+                return refuse(
+                    S.BadMethodInvalid,
+                    "INVALID_ARGUMENT",
+                    f"{method.name} is not a method of {parent.to_string()}",
+                )
             try:
                 values = check_arguments(self.model, method, args)
             except BadArguments as exc:

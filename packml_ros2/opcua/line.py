@@ -89,15 +89,26 @@ class LineFace:
             ua.NodeId(f"{cell}.Line.CurrentEpisode", NS), ua.QualifiedName("CurrentEpisode", NS)
         )
         for name, vtype in EPISODE.items():
-            default: Any = {ua.VariantType.Boolean: False, ua.VariantType.UInt32: 0,
-                            ua.VariantType.Double: 0.0, ua.VariantType.DateTime: dt.datetime(1970, 1, 1, tzinfo=dt.UTC)}.get(vtype, "")  # fmt: skip
+            default: Any = {
+                ua.VariantType.Boolean: False,
+                ua.VariantType.UInt32: 0,
+                ua.VariantType.Double: 0.0,
+                ua.VariantType.DateTime: dt.datetime(1970, 1, 1, tzinfo=dt.UTC),
+            }.get(vtype, "")
             if name == "AffectedUnits":
                 default = []
             await face._variable(episode, f"CurrentEpisode.{name}", vtype, default, waiting, name)
         return face
 
-    async def _variable(self, parent: Any, key: str, vtype: ua.VariantType, value: Any,
-                        status: ua.StatusCode, browse: str | None = None) -> None:  # fmt: skip
+    async def _variable(
+        self,
+        parent: Any,
+        key: str,
+        vtype: ua.VariantType,
+        value: Any,
+        status: ua.StatusCode,
+        browse: str | None = None,
+    ) -> None:
         name = browse or key
         variant = ua.Variant(value, vtype, is_array=isinstance(value, list))
         node = await parent.add_variable(
@@ -166,10 +177,15 @@ class LineFace:
         self._last_episode = msg
         when = _time(msg.stamp)
         values = {
-            "Open": msg.open, "Id": msg.id, "Start": _time(msg.start),
-            "DurationSeconds": msg.duration_ns / NANO, "RootCauseUnit": msg.root_unit or "cell",
-            "Bucket": msg.bucket, "Reason": msg.reason, "Source": msg.source,
+            "Open": msg.open,
+            "Id": msg.id,
+            "Start": _time(msg.start),
+            "DurationSeconds": msg.duration_ns / NANO,
+            "RootCauseUnit": msg.root_unit or "cell",
+            "Bucket": msg.bucket,
+            "Reason": msg.reason,
+            "Source": msg.source,
             "AffectedUnits": [f"{a.unit} ({a.how})" for a in msg.affected],
-        }  # fmt: skip
+        }
         for name, vtype in EPISODE.items():
             await self._set(f"CurrentEpisode.{name}", vtype, values[name], when)

@@ -154,9 +154,16 @@ def alarm(a: Any | None) -> Struct:
     if a is None:
         return Struct(
             "PackMLAlarmDataType",
-            {"ID": 0, "Value": 0, "Message": "", "Category": 0, "DateTime": NULL_TIME,
-             "AckDateTime": NULL_TIME, "Trigger": False},
-        )  # fmt: skip
+            {
+                "ID": 0,
+                "Value": 0,
+                "Message": "",
+                "Category": 0,
+                "DateTime": NULL_TIME,
+                "AckDateTime": NULL_TIME,
+                "Trigger": False,
+            },
+        )
     return Struct(
         "PackMLAlarmDataType",
         {

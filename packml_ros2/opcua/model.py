@@ -208,8 +208,13 @@ class AddressSpace:
             ua.NodeClass.Variable, nodeid, bname, parent, ref, attrs, typedef, description
         )
 
-    async def enum(self, nodeid: ua.NodeId, bname: ua.QualifiedName, values: Mapping[int, str],
-                   values_id: ua.NodeId) -> ua.NodeId:  # fmt: skip
+    async def enum(
+        self,
+        nodeid: ua.NodeId,
+        bname: ua.QualifiedName,
+        values: Mapping[int, str],
+        values_id: ua.NodeId,
+    ) -> ua.NodeId:
         """An enumeration DataType with explicit values (gaps allowed: user modes 4..31)."""
         node = await create_data_type(self.server.get_node(ua.NodeId(I.Enumeration)), nodeid, bname)
         edef = ua.EnumDefinition()
@@ -222,10 +227,15 @@ class AddressSpace:
             ua.EnumValueType(Value=v, DisplayName=ua.LocalizedText(n)) for v, n in values.items()
         ]
         await self.var(
-            values_id, ua.QualifiedName("EnumValues", 0), node.nodeid, ua.NodeId(I.EnumValueType),
-            ua.Variant(enum_values, ua.VariantType.ExtensionObject), 1, I.PropertyType,
+            values_id,
+            ua.QualifiedName("EnumValues", 0),
+            node.nodeid,
+            ua.NodeId(I.EnumValueType),
+            ua.Variant(enum_values, ua.VariantType.ExtensionObject),
+            1,
+            I.PropertyType,
             I.HasProperty,
-        )  # fmt: skip
+        )
         return node.nodeid
 
     # -- instantiation (OPC UA Part 3, 6.2.6) ------------------------------------------------------
@@ -285,28 +295,51 @@ class AddressSpace:
                     [ua.AttributeIds.DataType, ua.AttributeIds.ValueRank, ua.AttributeIds.Value]
                 )
                 node = await self.var(
-                    nodeid, ref.BrowseName, parent,
-                    overrides.get(child_path, dtype.Value.Value), value.Value,
-                    rank.Value.Value, ref.TypeDefinition, ref.ReferenceTypeId, description,
-                )  # fmt: skip
+                    nodeid,
+                    ref.BrowseName,
+                    parent,
+                    overrides.get(child_path, dtype.Value.Value),
+                    value.Value,
+                    rank.Value.Value,
+                    ref.TypeDefinition,
+                    ref.ReferenceTypeId,
+                    description,
+                )
                 nodes.variables[child_path] = node
             elif ref.NodeClass == ua.NodeClass.Object:
                 attrs = ua.ObjectAttributes()
                 attrs.EventNotifier = 0
-                node = await self._add(ua.NodeClass.Object, nodeid, ref.BrowseName, parent,
-                                       ref.ReferenceTypeId, attrs, ref.TypeDefinition, description)  # fmt: skip
+                node = await self._add(
+                    ua.NodeClass.Object,
+                    nodeid,
+                    ref.BrowseName,
+                    parent,
+                    ref.ReferenceTypeId,
+                    attrs,
+                    ref.TypeDefinition,
+                    description,
+                )
             elif ref.NodeClass == ua.NodeClass.Method:
                 attrs = ua.MethodAttributes()
                 attrs.Executable = attrs.UserExecutable = True
-                node = await self._add(ua.NodeClass.Method, nodeid, ref.BrowseName, parent,
-                                       ref.ReferenceTypeId, attrs, None, description)  # fmt: skip
+                node = await self._add(
+                    ua.NodeClass.Method,
+                    nodeid,
+                    ref.BrowseName,
+                    parent,
+                    ref.ReferenceTypeId,
+                    attrs,
+                    None,
+                    description,
+                )
                 nodes.methods[child_path] = node
                 if child_path in callbacks:
                     self.server.link_method(self.server.get_node(node), callbacks[child_path])
             else:
                 continue
-            await self.instantiate(nodes, child_path, node, ref.NodeId, ref.TypeDefinition,
-                                   overrides, callbacks)  # fmt: skip
+            await self.instantiate(
+                nodes, child_path, node, ref.NodeId, ref.TypeDefinition, overrides, callbacks
+            )
 
     # -- units -------------------------------------------------------------------------------------
     async def build_unit(
@@ -326,19 +359,31 @@ class AddressSpace:
         ``recipes``: the nodes below Status/Recipe (:func:`.mapping.recipe_members`)."""
         u = self.u
         root = await self._add(
-            ua.NodeClass.Object, ua.NodeId(unit, u), ua.QualifiedName(unit, u),
-            self.pid(self.model.objects_folder), I.Organizes, ua.ObjectAttributes(),
-            self.pid(self.model.base_object_type), description or unit,
-        )  # fmt: skip
+            ua.NodeClass.Object,
+            ua.NodeId(unit, u),
+            ua.QualifiedName(unit, u),
+            self.pid(self.model.objects_folder),
+            I.Organizes,
+            ua.ObjectAttributes(),
+            self.pid(self.model.base_object_type),
+            description or unit,
+        )
         nodes = UnitNodes(unit, root)
         nodes.mode_enum = await self.enum(
-            ua.NodeId(f"{unit}.UnitModeEnum", u), ua.QualifiedName(f"{unit}UnitModeEnum", u),
-            {0: "Invalid", **modes}, ua.NodeId(f"{unit}.UnitModeEnum.EnumValues", u),
-        )  # fmt: skip
+            ua.NodeId(f"{unit}.UnitModeEnum", u),
+            ua.QualifiedName(f"{unit}UnitModeEnum", u),
+            {0: "Invalid", **modes},
+            ua.NodeId(f"{unit}.UnitModeEnum.EnumValues", u),
+        )
         await self.instantiate(
-            nodes, "", root, ua.NodeId(), self.pid(self.model.base_object_type),
-            {"Status/UnitModeCurrent": nodes.mode_enum}, callbacks,
-        )  # fmt: skip
+            nodes,
+            "",
+            root,
+            ua.NodeId(),
+            self.pid(self.model.base_object_type),
+            {"Status/UnitModeCurrent": nodes.mode_enum},
+            callbacks,
+        )
         constants = {
             "TagID": ua.Variant(tag_id, ua.VariantType.String),
             "PackMLVersion": ua.Variant(version, ua.VariantType.String),
@@ -453,13 +498,18 @@ class AddressSpace:
             name = f"{frm}To{to}"
             tpath = f"{path}/{name}"
             node = await self._add(
-                ua.NodeClass.Object, ua.NodeId(f"{nodes.unit}.{tpath.replace('/', '.')}", self.u),
-                ua.QualifiedName(name, self.u), ua.NodeId(f"{nodes.unit}.{path.replace('/', '.')}", self.u),
-                I.HasComponent, ua.ObjectAttributes(), I.TransitionType,
+                ua.NodeClass.Object,
+                ua.NodeId(f"{nodes.unit}.{tpath.replace('/', '.')}", self.u),
+                ua.QualifiedName(name, self.u),
+                ua.NodeId(f"{nodes.unit}.{path.replace('/', '.')}", self.u),
+                I.HasComponent,
+                ua.ObjectAttributes(),
+                I.TransitionType,
                 f"{frm} -> {to}: a transition of this unit's rules (packml_ros2 extension)",
-            )  # fmt: skip
-            await self.instantiate(nodes, tpath, node, ua.NodeId(), ua.NodeId(I.TransitionType),
-                                   {}, {})  # fmt: skip
+            )
+            await self.instantiate(
+                nodes, tpath, node, ua.NodeId(), ua.NodeId(I.TransitionType), {}, {}
+            )
             await self._ref(node, self.pid(machine.state(frm).id), I.FromState)
             await self._ref(node, self.pid(machine.state(to).id), I.ToState)
             if f"{path}/{cause}" in nodes.methods:

@@ -187,17 +187,26 @@ class _Reader:
                 number = self.child(c, "StateNumber")
                 value = self.value(number) if number is not None else None
                 states.append(
-                    StateDef(_name(c), _numeric(c.get("NodeId", ""))[1], int(value.text or 0) if value is not None else 0)
-                )  # fmt: skip
+                    StateDef(
+                        _name(c),
+                        _numeric(c.get("NodeId", ""))[1],
+                        int(value.text or 0) if value is not None else 0,
+                    )
+                )
                 if next(self.refs(c, _HAS_SUBSTATEMACHINE), None):
                     sub_state = _name(c)
             elif kind == _TRANSITION_TYPE:
                 ends = [_name(self.nodes[next(self.refs(c, k))]) for k in (_FROM_STATE, _TO_STATE)]
                 cause = next(self.refs(c, _HAS_CAUSE), "")
                 transitions.append(
-                    TransitionDef(_name(c), _numeric(c.get("NodeId", ""))[1], ends[0], ends[1],
-                                  _name(self.nodes[cause]) if cause else "")
-                )  # fmt: skip
+                    TransitionDef(
+                        _name(c),
+                        _numeric(c.get("NodeId", ""))[1],
+                        ends[0],
+                        ends[1],
+                        _name(self.nodes[cause]) if cause else "",
+                    )
+                )
         return MachineDef(
             name,
             path,
@@ -230,8 +239,11 @@ def load(path: Path = NODESET) -> PackMLModel:
     base = r.by_name("PackMLBaseObjectType")
     machines = []
     parent, prefix = base, ""
-    for type_name in ("PackMLBaseStateMachineType", "PackMLMachineStateMachineType",
-                      "PackMLExecuteStateMachineType"):  # fmt: skip
+    for type_name in (
+        "PackMLBaseStateMachineType",
+        "PackMLMachineStateMachineType",
+        "PackMLExecuteStateMachineType",
+    ):
         type_node = r.by_name(type_name)
         decl = next(c for c in r.children(parent) if r.typedef(c) == type_node.get("NodeId"))
         prefix = f"{prefix}/{_name(decl)}" if prefix else _name(decl)

@@ -39,8 +39,8 @@ from asyncua.server import uaprocessor
 from asyncua.ua.ua_binary import nodeid_from_binary, struct_from_binary, struct_to_binary
 
 from ..core.rules import source_of
-from ..core.throttle import UNKNOWN, Blocked, Throttle, attempt, shown
-from .config import ANONYMOUS, OpcUaConfig, check_password, hash_password
+from ..core.throttle import Blocked, Throttle, login, shown
+from .config import ANONYMOUS, OpcUaConfig
 
 _logger = logging.getLogger(__name__)
 
@@ -78,7 +78,6 @@ class Users:
         self.config = config
         self._certificates = {der: name for name, der in certificates.items()}
         self.throttle = Throttle("OPC UA", log=_logger)
-        self._dummy: str | None = None  # checked for unknown users: as slow as a known one
 
     async def judge(self, processor: Any, body: Buffer) -> tuple[str, bool | Blocked] | None:
         """The verdict on the user name and password of an ActivateSession request (``body``
@@ -96,16 +95,9 @@ class Users:
         peer = processor.name
         address = str(peer[0]) if isinstance(peer, tuple) and peer else "unknown"
         stored = self.config.users.get(name)
-        if stored is None:
-            if self._dummy is None:
-                self._dummy = hash_password("no such user")
-            dummy = self._dummy  # (the answer takes as long as a known user's: it tells nothing)
-            verdict = await attempt(self.throttle, address, UNKNOWN,
-                                    lambda: check_password(password, dummy) and False, "user name")  # fmt: skip
-        else:
-            verdict = await attempt(self.throttle, address, name,
-                                    lambda: check_password(password, stored),
-                                    f"password for user {shown(name)!r}")  # fmt: skip
+        verdict = await login(
+            self.throttle, address, name, stored, password, f"password for user {shown(name)!r}"
+        )
         if isinstance(verdict, Blocked):
             _logger.warning("OPC UA: refused a login: %s", verdict.message)
         return name, verdict

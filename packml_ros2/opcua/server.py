@@ -120,8 +120,11 @@ async def own_certificate(folder: Path, app_uri: str, name: str, host: str) -> t
             ]
             _logger.warning(
                 "%s: the certificate made before cannot be used (%s): moved aside (%s), a new "
-                "one is made", folder, one_line(os_reason(exc)), ", ".join(moved),
-            )  # fmt: skip
+                "one is made",
+                folder,
+                one_line(os_reason(exc)),
+                ", ".join(moved),
+            )
     folder.mkdir(parents=True, exist_ok=True)
     key = cert_gen.generate_private_key()
     names: list[x509.GeneralName] = [
@@ -135,9 +138,13 @@ async def own_certificate(folder: Path, app_uri: str, name: str, host: str) -> t
     except ValueError:
         names.append(x509.DNSName(host))
     cert = cert_gen.generate_self_signed_app_certificate(
-        key, name, {"organizationName": "packml_ros2"}, list(dict.fromkeys(names)),
-        [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH], days=3650,
-    )  # fmt: skip
+        key,
+        name,
+        {"organizationName": "packml_ros2"},
+        list(dict.fromkeys(names)),
+        [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH],
+        days=3650,
+    )
     key_file.write_bytes(cert_gen.dump_private_key_as_pem(key))
     key_file.chmod(0o600)
     cert_file.write_bytes(cert.public_bytes(Encoding.DER))
@@ -226,9 +233,13 @@ class PackMLServer:
         self.space = space = AddressSpace(server)
         await space.load_nodeset()
         await server.set_build_info(
-            "urn:packml_ros2", "packml_ros2", "packml_ros2",
-            f"OPC 30050 PackML {space.model.version}", "0", dt.datetime.now(dt.UTC),
-        )  # fmt: skip
+            "urn:packml_ros2",
+            "packml_ros2",
+            "packml_ros2",
+            f"OPC 30050 PackML {space.model.version}",
+            "0",
+            dt.datetime.now(dt.UTC),
+        )
         for name in config.units:
             unit = self.cell.units[name]
             methods = Methods(unit, config, space.model, ros=lambda: self.ros)
@@ -390,7 +401,7 @@ class PackMLServer:
             f"  the line: Objects/Lines/{config.cell} (OEE of the shift, the current stop episode)",
             f"  security policies: {policies}",
             f"  anonymous: {anonymous}; users for commands: {users}",
-        ]  # fmt: skip
+        ]
         lines += [f"  WARNING: {w}" for w in warnings(config)]
         return "\n".join(lines)
 

@@ -245,8 +245,15 @@ class Mirror:
         verdict = rules.check(situation, self.state, mode, cmd, source)
         if verdict.reason is Reason.ACCEPTED:
             return None
-        text = rules.refusal_text(verdict, cmd, source, self.where(), self.config.name,
-                                  self.mode_name(mode), self.valid_commands())  # fmt: skip
+        text = rules.refusal_text(
+            verdict,
+            cmd,
+            source,
+            self.where(),
+            self.config.name,
+            self.mode_name(mode),
+            self.valid_commands(),
+        )
         return verdict.reason, text
 
     def refusal(self, cmd: int) -> str | None:

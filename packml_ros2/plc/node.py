@@ -119,8 +119,13 @@ class PlcUnitNode(GuardedNode):
         self.lost_since: float | None = time.time()
         self.lost_reason = "not connected yet"
         self.retry_reason = ""
-        self.remote_lock = RemoteLock(self, config.name, config.remote_commands_enabled,
-                                      self._on_remote_lock, callback_group=self._group)  # fmt: skip
+        self.remote_lock = RemoteLock(
+            self,
+            config.name,
+            config.remote_commands_enabled,
+            self._on_remote_lock,
+            callback_group=self._group,
+        )
         self.remote_enabled = config.remote_commands_enabled
         self.pub_diagnostics = interface.create_publisher(self, "/diagnostics")
         self.pub_config = interface.create_publisher(self, "config")
@@ -449,9 +454,13 @@ class PlcUnitNode(GuardedNode):
             "query_alarms": self._srv_query_alarms,
         }
         interface.create_services(
-            self, handlers, self._srv_trigger, self._srv_unsupported,
-            skip=[RemoteLock.SERVICE], callback_group=self._group,
-        )  # fmt: skip
+            self,
+            handlers,
+            self._srv_trigger,
+            self._srv_unsupported,
+            skip=[RemoteLock.SERVICE],
+            callback_group=self._group,
+        )
 
     def _call(self, method: str, args: Sequence[ua.Variant]) -> Outcome:
         """Call a method of the PLC from a service thread (blocks it, never the executor)."""

@@ -110,8 +110,12 @@ class EmTestUnit(UnitClient):
     def recent(self, n: int = 4) -> str:
         """The last ``n`` transitions, for a failure's message."""
         last = list(self.transitions.messages)[-n:]
-        steps = [f"{t.from_state_name}->{t.to_state_name} ({t.trigger_name} {t.source} {t.detail})".replace(" )", ")")
-                 for t in last]  # fmt: skip
+        steps = [
+            f"{t.from_state_name}->{t.to_state_name} ({t.trigger_name} {t.source} {t.detail})".replace(
+                " )", ")"
+            )
+            for t in last
+        ]
         return "last transitions: " + "; ".join(steps)
 
     def to_execute(self, timeout: float = 10.0) -> None:

@@ -69,8 +69,20 @@ class Network:
             ip("netns", "add", ns)
             self.created.append(ns)
             # both ends are created inside namespaces: nothing appears on the machine itself
-            ip("link", "add", port, "netns", self.bridge, "type", "veth",
-               "peer", "name", "eth0", "netns", ns)  # fmt: skip
+            ip(
+                "link",
+                "add",
+                port,
+                "netns",
+                self.bridge,
+                "type",
+                "veth",
+                "peer",
+                "name",
+                "eth0",
+                "netns",
+                ns,
+            )
             ip("-n", self.bridge, "link", "set", port, "master", "br0", "up")
             ip("-n", ns, "link", "set", "lo", "up")
             ip("-n", ns, "addr", "add", f"{self.address[host]}/24", "dev", "eth0")
@@ -94,9 +106,12 @@ class Network:
         out = {}
         for host, port in self.port.items():
             s = by_port[port]
-            out[host] = {"sent_bytes": s["rx"]["bytes"], "sent_packets": s["rx"]["packets"],
-                         "delivered_bytes": s["tx"]["bytes"],
-                         "delivered_packets": s["tx"]["packets"]}  # fmt: skip
+            out[host] = {
+                "sent_bytes": s["rx"]["bytes"],
+                "sent_packets": s["rx"]["packets"],
+                "delivered_bytes": s["tx"]["bytes"],
+                "delivered_packets": s["tx"]["packets"],
+            }
         return out
 
     def teardown(self) -> list[str]:
@@ -120,9 +135,17 @@ class NsProcess:
     With ``pipe``, a peer that answers one JSON line on its stdout for each JSON request line on
     its stdin (:meth:`ask`) and ends at the end of its input."""
 
-    def __init__(self, net: Network, host: str, name: str, cmd: Sequence[str],
-                 env: dict[str, str], log_dir: Path, pipe: bool = False,
-                 cwd: Path | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        net: Network,
+        host: str,
+        name: str,
+        cmd: Sequence[str],
+        env: dict[str, str],
+        log_dir: Path,
+        pipe: bool = False,
+        cwd: Path | None = None,
+    ) -> None:
         self.name = name
         self.log = log_dir / f"{name}.log"
         self._log = self.log.open("ab")

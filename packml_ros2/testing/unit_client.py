@@ -63,9 +63,11 @@ class UnitClient:
         unit leaves on its own: ``status`` keeps only the newest message (depth 1), so a status of
         a short state can be overtaken before it is taken; every transition is kept (depth 100)."""
         return self.transitions.wait_for(
-            lambda t: t.to_state_name == state, timeout, f"a transition into {state}",
+            lambda t: t.to_state_name == state,
+            timeout,
+            f"a transition into {state}",
             self._transitions_since,
-        )  # fmt: skip
+        )
 
     def wait_status(self, predicate: Any, timeout: float = 10.0, what: str = "") -> Status:
         """A status for which ``predicate`` holds, from the last one before the last call on."""

@@ -93,8 +93,15 @@ class Calendar:
         """ns of ``seconds`` after midnight of ``day`` (seconds may exceed a day)."""
         extra, seconds = divmod(seconds, DAY_S)
         d = day + _dt.timedelta(days=extra)
-        local = _dt.datetime(d.year, d.month, d.day, seconds // 3600, seconds // 60 % 60,
-                             seconds % 60, tzinfo=self.zone)  # fmt: skip
+        local = _dt.datetime(
+            d.year,
+            d.month,
+            d.day,
+            seconds // 3600,
+            seconds // 60 % 60,
+            seconds % 60,
+            tzinfo=self.zone,
+        )
         return int(local.timestamp()) * NS
 
     @lru_cache(maxsize=64)  # noqa: B019 (the calendar lives as long as its line)
@@ -109,12 +116,22 @@ class Calendar:
             for b in shift.breaks:  # (validated to lie inside the shift)
                 offset = (b.start - shift.start) % DAY_S
                 length = (b.end - b.start) % DAY_S
-                breaks.append((b.name, self._at(day, shift.start + offset),
-                               self._at(day, shift.start + offset + length)))  # fmt: skip
+                breaks.append(
+                    (
+                        b.name,
+                        self._at(day, shift.start + offset),
+                        self._at(day, shift.start + offset + length),
+                    )
+                )
             out.append(
-                Instance(f"{day.isoformat()} {shift.name}", shift.name,
-                         self._at(day, shift.start), self._at(day, end_s), tuple(breaks))
-            )  # fmt: skip
+                Instance(
+                    f"{day.isoformat()} {shift.name}",
+                    shift.name,
+                    self._at(day, shift.start),
+                    self._at(day, end_s),
+                    tuple(breaks),
+                )
+            )
         return tuple(sorted(out, key=lambda i: i.start))
 
     def instances(self, a: int, b: int) -> Iterator[Instance]:

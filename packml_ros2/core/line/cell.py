@@ -285,7 +285,9 @@ class Cell:
         effects += self.reconcile_interlocks(now)
         return True, effects
 
-    def on_diagnostics(self, name: str, stale: bool, message: str, now: float) -> tuple[bool, list[Effect]]:  # fmt: skip
+    def on_diagnostics(
+        self, name: str, stale: bool, message: str, now: float
+    ) -> tuple[bool, list[Effect]]:
         """The unit's ``packml: <unit>`` entry on /diagnostics: (changed, effects)."""
         unit = self.units.get(name)
         if unit is None or self.closed:
@@ -335,8 +337,15 @@ class Cell:
         if was_online and reaction:
             for other in self.units.values():
                 if other is not unit and other.online:
-                    effects.append(Call(other.name, "command", {"command": reaction, "source": SOURCE},
-                                        "reaction", f"{Cmd(reaction).name} to {other.name} because {unit.name} was lost"))  # fmt: skip
+                    effects.append(
+                        Call(
+                            other.name,
+                            "command",
+                            {"command": reaction, "source": SOURCE},
+                            "reaction",
+                            f"{Cmd(reaction).name} to {other.name} because {unit.name} was lost",
+                        )
+                    )
         return effects
 
     def tick(self, now: float) -> list[Effect]:
@@ -413,16 +422,28 @@ class Cell:
                 continue
             if unit.interlock_sent is want and (not want or reason == unit.interlock_reason):
                 continue
-            out.append(Call(unit.name, "set_interlock",
-                            {"active": want, "reason": reason if want else (unit.interlock_reason or "cleared"),
-                             "source": INTERLOCK_SOURCE}, "interlock", reason))  # fmt: skip
+            out.append(
+                Call(
+                    unit.name,
+                    "set_interlock",
+                    {
+                        "active": want,
+                        "reason": reason if want else (unit.interlock_reason or "cleared"),
+                        "source": INTERLOCK_SOURCE,
+                    },
+                    "interlock",
+                    reason,
+                )
+            )
         return out
 
     def interlock_sending(self, name: str) -> None:
         """The node sends the call (the service was there)."""
         self.units[name].interlock_pending = True
 
-    def interlock_done(self, name: str, want: bool, reason: str, error: str | None, now: float) -> list[Effect]:  # fmt: skip
+    def interlock_done(
+        self, name: str, want: bool, reason: str, error: str | None, now: float
+    ) -> list[Effect]:
         """The answer of a set_interlock call (``error``: why it failed, None: accepted)."""
         unit = self.units[name]
         unit.interlock_pending = False
@@ -465,16 +486,20 @@ class Cell:
             and s is not None
             and s.state_current in (State.SUSPENDING, State.SUSPENDED)
         )
-        return UnitSummaryView(unit.name, unit.online, s, len(ems), sum(1 for e in ems if e.online),
-                               suspended, health)  # fmt: skip
+        return UnitSummaryView(
+            unit.name, unit.online, s, len(ems), sum(1 for e in ems if e.online), suspended, health
+        )
 
     def cell_commands_valid(self) -> tuple[int, ...]:
         """The cell commands the units' rules accept now: all or nothing (every online unit
         takes it or is at its target), STOP and ABORT when some unit can take them."""
         units = list(self.units.values())
         if not units or not all(u.online and u.status is not None for u in units):
-            return tuple(int(c) for c in (Cmd.STOP, Cmd.ABORT)
-                         if any(u.online and c in u.valid_commands() for u in units))  # fmt: skip
+            return tuple(
+                int(c)
+                for c in (Cmd.STOP, Cmd.ABORT)
+                if any(u.online and c in u.valid_commands() for u in units)
+            )
         out = []
         for cmd in Cmd:
             if not cmd:

@@ -106,8 +106,11 @@ def _shift(name: str, n: Node) -> Shift | None:
         n.child("breaks", None).error(f"{len(nodes)} breaks, at most {MAX_BREAKS}")
     for e in nodes[:MAX_BREAKS]:
         e.check_keys({"name", "start", "end"})
-        b = Break(e.get("name", sc.text, "break") or "break", e.get("start", time_of_day, 0),
-                  e.get("end", time_of_day, 0))  # fmt: skip
+        b = Break(
+            e.get("name", sc.text, "break") or "break",
+            e.get("start", time_of_day, 0),
+            e.get("end", time_of_day, 0),
+        )
         offset = (b.start - start) % DAY_S
         b_length = (b.end - b.start) % DAY_S
         if not b_length or offset + b_length > length:
@@ -167,16 +170,25 @@ def default_order(units: Sequence[str], rules: Sequence[InterlockLike]) -> tuple
     order: list[str] = []
     placed: set[str] = set()
     while len(order) < len(units):
-        ready = [u for u in units if u not in placed and not any(
-            u in after[p] for p in units if p not in placed)]  # fmt: skip
+        ready = [
+            u
+            for u in units
+            if u not in placed and not any(u in after[p] for p in units if p not in placed)
+        ]
         nxt = ready[0] if ready else next(u for u in units if u not in placed)  # a cycle
         order.append(nxt)
         placed.add(nxt)
     return tuple(order)
 
 
-def parse_line(n: Node, cell: str, units: Sequence[str], rules: Sequence[InterlockLike],
-               base_dir: Path, default_store: str | None) -> LineConfig:  # fmt: skip
+def parse_line(
+    n: Node,
+    cell: str,
+    units: Sequence[str],
+    rules: Sequence[InterlockLike],
+    base_dir: Path,
+    default_store: str | None,
+) -> LineConfig:
     """Validate the ``line:`` block (``n.value`` may be None: the defaults). ``default_store``:
     the store's path when the block names none (beside the units' stores; None: no unit has one,
     the line keeps its losses in memory)."""

@@ -88,19 +88,32 @@ class Episode:
         return root_cause(self.departures, order)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"id": self.id, "start": self.start, "end": self.end,
-                "departures": [d.to_dict() for d in self.departures],
-                "stop_reason": self.stop_reason}  # fmt: skip
+        return {
+            "id": self.id,
+            "start": self.start,
+            "end": self.end,
+            "departures": [d.to_dict() for d in self.departures],
+            "stop_reason": self.stop_reason,
+        }
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Episode:
-        return cls(int(d["id"]), int(d["start"]), None if d.get("end") is None else int(d["end"]),
-                   [Departure.from_dict(x) for x in d.get("departures", [])],
-                   d.get("stop_reason"))  # fmt: skip
+        return cls(
+            int(d["id"]),
+            int(d["start"]),
+            None if d.get("end") is None else int(d["end"]),
+            [Departure.from_dict(x) for x in d.get("departures", [])],
+            d.get("stop_reason"),
+        )
 
     def copy(self) -> Episode:
-        return Episode(self.id, self.start, self.end, [replace(d) for d in self.departures],
-                       dict(self.stop_reason) if self.stop_reason else None)  # fmt: skip
+        return Episode(
+            self.id,
+            self.start,
+            self.end,
+            [replace(d) for d in self.departures],
+            dict(self.stop_reason) if self.stop_reason else None,
+        )
 
 
 def explained(d: Departure, before: Sequence[Departure], position: Mapping[str, int]) -> bool:

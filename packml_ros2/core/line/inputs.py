@@ -46,49 +46,89 @@ def ns(stamp: Any) -> int:
 def status_fields(unit: str, s: Any) -> dict[str, Any]:
     ems = [e for e in s.equipment_modules if e.active]
     return {
-        "unit": unit, "sequence": int(s.sequence), "time": ns(s.stamp),
-        "state": int(s.state_current), "mode": int(s.unit_mode_current),
+        "unit": unit,
+        "sequence": int(s.sequence),
+        "time": ns(s.stamp),
+        "state": int(s.state_current),
+        "mode": int(s.unit_mode_current),
         "stop_reason_id": int(s.stop_reason_id),
-        "blocked": any(e.blocked for e in ems), "starved": any(e.starved for e in ems),
-    }  # fmt: skip
+        "blocked": any(e.blocked for e in ems),
+        "starved": any(e.starved for e in ems),
+    }
 
 
 def transition_fields(unit: str, t: Any) -> dict[str, Any]:
     return {
-        "unit": unit, "sequence": int(t.sequence), "time": ns(t.stamp),
-        "from_state": int(t.from_state), "to_state": int(t.to_state),
-        "from_mode": int(t.from_mode), "to_mode": int(t.to_mode), "trigger": int(t.trigger),
-        "command": int(t.command), "source": str(t.source), "detail": str(t.detail),
-    }  # fmt: skip
+        "unit": unit,
+        "sequence": int(t.sequence),
+        "time": ns(t.stamp),
+        "from_state": int(t.from_state),
+        "to_state": int(t.to_state),
+        "from_mode": int(t.from_mode),
+        "to_mode": int(t.to_mode),
+        "trigger": int(t.trigger),
+        "command": int(t.command),
+        "source": str(t.source),
+        "detail": str(t.detail),
+    }
 
 
 def admin_fields(unit: str, a: Any) -> dict[str, Any]:
     reason = None
     if a.stop_reason_extent:
         r = a.stop_reason
-        reason = {"id": int(r.id), "value": int(r.value), "message": str(r.message),
-                  "category": int(r.category), "source": str(r.source), "em": str(r.em),
-                  "time": ns(r.stamp)}  # fmt: skip
+        reason = {
+            "id": int(r.id),
+            "value": int(r.value),
+            "message": str(r.message),
+            "category": int(r.category),
+            "source": str(r.source),
+            "em": str(r.em),
+            "time": ns(r.stamp),
+        }
     return {
-        "unit": unit, "time": ns(a.stamp),
+        "unit": unit,
+        "time": ns(a.stamp),
         "processed": sum(int(c.acc_count) for c in a.prod_processed_count),
         "defective": sum(int(c.acc_count) for c in a.prod_defective_count),
         "stop_reason": reason,
-    }  # fmt: skip
+    }
 
 
 # -- applying --------------------------------------------------------------------------------------
 def _status(p: Performance, t: int, f: Mapping[str, Any]) -> None:
-    p.status(t, f["unit"], StatusSnap(int(f["sequence"]), int(f["time"]), int(f["state"]),
-                                      int(f["mode"]), int(f["stop_reason_id"]),
-                                      bool(f["blocked"]), bool(f["starved"])))  # fmt: skip
+    p.status(
+        t,
+        f["unit"],
+        StatusSnap(
+            int(f["sequence"]),
+            int(f["time"]),
+            int(f["state"]),
+            int(f["mode"]),
+            int(f["stop_reason_id"]),
+            bool(f["blocked"]),
+            bool(f["starved"]),
+        ),
+    )
 
 
 def _transition(p: Performance, t: int, f: Mapping[str, Any]) -> None:
-    p.transition(t, f["unit"], TransitionSnap(
-        int(f["sequence"]), int(f["time"]), int(f["from_state"]), int(f["to_state"]),
-        int(f["from_mode"]), int(f["to_mode"]), int(f["trigger"]), int(f["command"]),
-        str(f["source"]), str(f["detail"])))  # fmt: skip
+    p.transition(
+        t,
+        f["unit"],
+        TransitionSnap(
+            int(f["sequence"]),
+            int(f["time"]),
+            int(f["from_state"]),
+            int(f["to_state"]),
+            int(f["from_mode"]),
+            int(f["to_mode"]),
+            int(f["trigger"]),
+            int(f["command"]),
+            str(f["source"]),
+            str(f["detail"]),
+        ),
+    )
 
 
 def _admin(p: Performance, t: int, f: Mapping[str, Any]) -> None:

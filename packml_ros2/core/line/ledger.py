@@ -78,8 +78,9 @@ def add_clipped(out: dict[str, Totals], fact: Fact, a: int | None, b: int | None
         if hi > lo:
             out.setdefault(fact.scope, Totals()).add_time(fact.bucket, fact.reason, hi - lo)
     elif (a is None or fact.t >= a) and (b is None or fact.t < b):
-        out.setdefault(fact.scope, Totals()).add_count(fact.processed, fact.defective, fact.net,
-                                                       fact.good)  # fmt: skip
+        out.setdefault(fact.scope, Totals()).add_count(
+            fact.processed, fact.defective, fact.net, fact.good
+        )
 
 
 class History(Protocol):

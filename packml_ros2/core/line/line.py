@@ -130,8 +130,13 @@ class BoundedHistory(MemoryHistory):
 class Line:
     """See the module docstring."""
 
-    def __init__(self, cell: CellConfig, monotonic: Callable[[], float], wall: Callable[[], int],
-                 store: LineStore | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        cell: CellConfig,
+        monotonic: Callable[[], float],
+        wall: Callable[[], int],
+        store: LineStore | None = None,
+    ) -> None:
         self.config = cell
         self.monotonic = monotonic
         self.wall = wall
@@ -152,8 +157,12 @@ class Line:
         state = self._restore(store) if store is not None else None
         now = wall()
         keep = [i.key for i in (self.calendar.instance_at(now), self.calendar.previous(now)) if i]
-        self._record(inputs.START, "", {"schema": inputs.SCHEMA, "state": state,
-                                        "ledger": self.perf.ledger.base(keep)}, now)  # fmt: skip
+        self._record(
+            inputs.START,
+            "",
+            {"schema": inputs.SCHEMA, "state": state, "ledger": self.perf.ledger.base(keep)},
+            now,
+        )
 
     def _restore(self, store: LineStore) -> dict[str, Any] | None:
         """The open state and the ledger from the store; a store whose content does not restore
@@ -201,7 +210,10 @@ class Line:
         effects = self.cell.tick(self.monotonic())
         self._presence()
         now = self.wall()
-        if any(t.ahead is not None and now - t.ahead[1] >= AHEAD_WAIT for t in self.perf.trackers.values()):  # fmt: skip
+        if any(
+            t.ahead is not None and now - t.ahead[1] >= AHEAD_WAIT
+            for t in self.perf.trackers.values()
+        ):
             self._input(inputs.TICK, "", {}, now)
         return effects
 
@@ -239,8 +251,15 @@ class Line:
     def interlock_sending(self, call: Call) -> None:
         """The node sends an interlock ``call`` (the unit's service is there)."""
         self.cell.interlock_sending(call.unit)
-        self._input(inputs.INTERLOCK, call.unit, {"unit": call.unit, "active": bool(call.fields["active"]),
-                                                  "reason": str(call.fields["reason"])})  # fmt: skip
+        self._input(
+            inputs.INTERLOCK,
+            call.unit,
+            {
+                "unit": call.unit,
+                "active": bool(call.fields["active"]),
+                "reason": str(call.fields["reason"]),
+            },
+        )
 
     def interlock_done(self, unit: str, want: bool, reason: str, error: str | None) -> list[Effect]:
         return self.cell.interlock_done(unit, want, reason, error, self.monotonic())
@@ -252,7 +271,9 @@ class Line:
     # ==============================================================================================
     # Cell commands and mode changes
     # ==============================================================================================
-    def begin_command(self, cmd: Cmd, caller: str, asked: float | None = None) -> tuple[int, Run] | Outcome | StopWaits:  # fmt: skip
+    def begin_command(
+        self, cmd: Cmd, caller: str, asked: float | None = None
+    ) -> tuple[int, Run] | Outcome | StopWaits:
         """A run for cell command ``cmd`` (registered), or why not. ABORT cancels what runs and
         begins at once; STOP cancels the sequence that runs and waits for it to end
         (:class:`StopWaits`; ``asked``: when it was first asked, given back when asking again),
@@ -333,7 +354,9 @@ class Line:
     # ==============================================================================================
     # Performance
     # ==============================================================================================
-    def _changed_input(self, name: str, unit: str, fields: dict[str, Any], ignore: Sequence[str]) -> None:  # fmt: skip
+    def _changed_input(
+        self, name: str, unit: str, fields: dict[str, Any], ignore: Sequence[str]
+    ) -> None:
         digest = tuple(v for k, v in sorted(fields.items()) if k not in ignore)
         key = (name, unit)
         if self._digests.get(key) != digest:
@@ -362,8 +385,12 @@ class Line:
         joins: (index, time ns, JSON object with the state, the input log's schema and
         ``published``: how many messages the node had published per line output topic)."""
         now = self.wall()
-        doc = {"schema": snapshot.SCHEMA, "line": snapshot.capture(self.perf, now),
-               "input_schema": inputs.SCHEMA, "published": dict(published)}  # fmt: skip
+        doc = {
+            "schema": snapshot.SCHEMA,
+            "line": snapshot.capture(self.perf, now),
+            "input_schema": inputs.SCHEMA,
+            "published": dict(published),
+        }
         return self.index, now, doc
 
     def _row(self, e: Episode) -> tuple[Episode, str, str, str]:
@@ -386,8 +413,9 @@ class Line:
     def _summaries(self, totals: Mapping[str, Totals]) -> tuple[Summary, ...]:
         return summaries(self.perf, totals)
 
-    def query_losses(self, window: str, since: int = 0, until: int = 0, step: float = 0.0,
-                     count: int = 0) -> tuple[list[LossesView], str]:  # fmt: skip
+    def query_losses(
+        self, window: str, since: int = 0, until: int = 0, step: float = 0.0, count: int = 0
+    ) -> tuple[list[LossesView], str]:
         """The windows asked for (see ``QueryLosses.srv``), or [] and why not."""
         now = self.wall()
         window = window.strip() or "shift"
@@ -476,15 +504,23 @@ class Line:
             return "until must be after since"
         return ""
 
-    def query_episodes(self, since: int = 0, until: int = 0, unit: str = "", reason: str = "",
-                       bucket: str = "", open_only: bool = False,
-                       limit: int = 100) -> tuple[list[EpisodeView], int]:  # fmt: skip
+    def query_episodes(
+        self,
+        since: int = 0,
+        until: int = 0,
+        unit: str = "",
+        reason: str = "",
+        bucket: str = "",
+        open_only: bool = False,
+        limit: int = 100,
+    ) -> tuple[list[EpisodeView], int]:
         now = self.wall()
         limit = min(max(limit, 1) if limit else 100, MAX_EPISODES)
         root_unit = None if not unit else ("" if unit == "cell" else unit)
         if self.store is not None:
-            found, total = self.store.episodes(since or None, until or None, root_unit, reason,
-                                               bucket, open_only, limit)  # fmt: skip
+            found, total = self.store.episodes(
+                since or None, until or None, root_unit, reason, bucket, open_only, limit
+            )
             return [EpisodeView(e, self.perf.root(e), now) for e in found], total
         candidates = [*self.perf.closed, *([self.perf.episode] if self.perf.episode else [])]
         out = []

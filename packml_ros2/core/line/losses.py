@@ -73,8 +73,10 @@ class Totals:
         return out
 
     def to_dict(self) -> dict[str, Any]:
-        return {"time": [[b, r, ns] for (b, r), ns in sorted(self.time.items())],
-                "counts": [self.processed, self.defective, self.net, self.good]}  # fmt: skip
+        return {
+            "time": [[b, r, ns] for (b, r), ns in sorted(self.time.items())],
+            "counts": [self.processed, self.defective, self.net, self.good],
+        }
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Totals:
@@ -137,8 +139,11 @@ def summarize(scope: str, totals: Totals, design_speed: float) -> Summary:
         performance: float | None = net / running if running else 0.0
     else:  # no design speed: no speed loss can be told; quality still splits the running time
         net = running
-        good = (running * (totals.processed - totals.defective) // totals.processed
-                if totals.processed else running)  # fmt: skip
+        good = (
+            running * (totals.processed - totals.defective) // totals.processed
+            if totals.processed
+            else running
+        )
         performance = None
     speed_loss = running - net
     quality_loss = net - good
@@ -146,8 +151,10 @@ def summarize(scope: str, totals: Totals, design_speed: float) -> Summary:
     availability = running / planned_production if planned_production > 0 else 0.0
     quality = (totals.processed - totals.defective) / totals.processed if totals.processed else 0.0
     oee = good / planned_production if planned_production > 0 else 0.0
-    ordered = sorted(((b, r, ns) for (b, r), ns in totals.time.items() if ns),
-                     key=lambda x: (BUCKETS.index(x[0]), -x[2], x[1]))  # fmt: skip
+    ordered = sorted(
+        ((b, r, ns) for (b, r), ns in totals.time.items() if ns),
+        key=lambda x: (BUCKETS.index(x[0]), -x[2], x[1]),
+    )
     return Summary(
         scope=scope,
         elapsed=elapsed,

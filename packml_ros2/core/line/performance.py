@@ -163,8 +163,18 @@ class Tracker:
         return d
 
     def restore(self, d: Mapping[str, Any]) -> None:
-        for key in ("started", "online", "lost_why", "since", "blocked", "starved", "processed",
-                    "defective", "last_alive", "restart_time"):  # fmt: skip
+        for key in (
+            "started",
+            "online",
+            "lost_why",
+            "since",
+            "blocked",
+            "starved",
+            "processed",
+            "defective",
+            "last_alive",
+            "restart_time",
+        ):
             if key in d:
                 setattr(self, key, d[key])
         self.step = None if d.get("step") is None else Step(**d["step"])
@@ -201,18 +211,23 @@ class Performance:
     :meth:`online`, :meth:`lost`, :meth:`cell_command`, :meth:`interlock`, :meth:`reset`,
     :meth:`tick`; outputs: :meth:`take` (new facts and changed episodes), :meth:`windows`."""
 
-    def __init__(self, config: LineConfig, units: Mapping[str, UnitLike],
-                 ledger: Ledger | None = None) -> None:  # fmt: skip
+    def __init__(
+        self, config: LineConfig, units: Mapping[str, UnitLike], ledger: Ledger | None = None
+    ) -> None:
         self.config = config
         self.calendar: Calendar = config.calendar
         self.order = config.order or tuple(units)
         self.units = units
         self.output = config.output_unit or self.order[-1]
         self.trackers: dict[str, Tracker] = {
-            name: Tracker(name, self.order.index(name) if name in self.order else i,
-                          units[name].mach_design_speed, units[name].planned_stop_ids)
+            name: Tracker(
+                name,
+                self.order.index(name) if name in self.order else i,
+                units[name].mach_design_speed,
+                units[name].planned_stop_ids,
+            )
             for i, name in enumerate(units)
-        }  # fmt: skip
+        }
         self.ledger = ledger or Ledger()
         self.changeover_modes = frozenset(m.lower() for m in config.changeover_modes)
         self.started: int | None = None  #: when the line's accounting began
@@ -289,8 +304,15 @@ class Performance:
             if tr.ahead is not None and tr.ahead[0].sequence <= new.sequence:
                 tr.ahead = None
 
-    def admin(self, now: int, unit: str, t: int, processed: int, defective: int,
-              stop_reason: Mapping[str, Any] | None) -> None:  # fmt: skip
+    def admin(
+        self,
+        now: int,
+        unit: str,
+        t: int,
+        processed: int,
+        defective: int,
+        stop_reason: Mapping[str, Any] | None,
+    ) -> None:
         """Admin data: ``processed``/``defective`` are the AccCount totals; ``stop_reason`` the
         StopReason (id, value, message, category, source, em) or None."""
         tr = self.trackers[unit]
@@ -309,7 +331,12 @@ class Performance:
         if ep is not None and stop_reason:
             root = ep.root(self.order)
             d = root.departure
-            if d is not None and d.unit == unit and int(stop_reason.get("time", t)) >= d.time - 10**9 and ep.stop_reason != stop_reason:  # fmt: skip
+            if (
+                d is not None
+                and d.unit == unit
+                and int(stop_reason.get("time", t)) >= d.time - 10**9
+                and ep.stop_reason != stop_reason
+            ):
                 ep.stop_reason = dict(stop_reason)
                 self._changed(ep)
 
@@ -353,8 +380,11 @@ class Performance:
                 s, _ = tr.ahead
                 tr.ahead = None
                 if tr.step is None or s.sequence > tr.step.sequence:
-                    self._step(now, tr, Step(s.sequence, s.time, s.state, s.mode,
-                                             reason_id=s.stop_reason_id))  # fmt: skip
+                    self._step(
+                        now,
+                        tr,
+                        Step(s.sequence, s.time, s.state, s.mode, reason_id=s.stop_reason_id),
+                    )
 
     # ==============================================================================================
     # Outputs
@@ -413,9 +443,13 @@ class Performance:
         if s.state in HOLD_STATES:
             return HELD
         if s.state in SUSPEND_STATES and cause is not None:
-            if cause.kind == OWN_BLOCKED or (cause.kind == PROPAGATED and cause.condition == "blocked"):  # fmt: skip
+            if cause.kind == OWN_BLOCKED or (
+                cause.kind == PROPAGATED and cause.condition == "blocked"
+            ):
                 return BLOCKED
-            if cause.kind == OWN_STARVED or (cause.kind == PROPAGATED and cause.condition == "starved"):  # fmt: skip
+            if cause.kind == OWN_STARVED or (
+                cause.kind == PROPAGATED and cause.condition == "starved"
+            ):
                 return STARVED
         if planned_stop(tr.planned_ids, s.reason_id, s.mode, s.state):
             return PLANNED
@@ -472,7 +506,12 @@ class Performance:
         if s is None or s.sequence != d.sequence:
             return
         d.trigger, d.command, d.source, d.detail, d.reason_id = (
-            s.trigger, s.command, s.source, s.detail, s.reason_id)  # fmt: skip
+            s.trigger,
+            s.command,
+            s.source,
+            s.detail,
+            s.reason_id,
+        )
         d.label = step_label(s, self._mode_names(tr))
         if s.mode != Mode.PRODUCTION:
             d.kind = INTERNAL if s.trigger >= 0 else PENDING
@@ -488,7 +527,11 @@ class Performance:
             d.kind = OWN_BLOCKED
         elif s.trigger == Trigger.INTERLOCK and "starved" in s.detail:
             d.kind = OWN_STARVED
-        elif s.state in SUSPEND_STATES and s.source != COORDINATOR_SOURCE and (tr.blocked or tr.starved):  # fmt: skip
+        elif (
+            s.state in SUSPEND_STATES
+            and s.source != COORDINATOR_SOURCE
+            and (tr.blocked or tr.starved)
+        ):
             d.kind = OWN_BLOCKED if tr.blocked else OWN_STARVED
         elif s.source == COORDINATOR_SOURCE:
             gone = [u.name for u in self.trackers.values() if not u.online and u.step is not None]
@@ -681,8 +724,15 @@ class Performance:
 
     def _count(self, scope: str, at: int, dp: int, dd: int, design: float) -> None:
         inst = self.calendar.instance_at(at)
-        fact = Count(scope, at, dp, dd, at_speed(dp, design), at_speed(dp - dd, design),
-                     inst.key if inst else "")  # fmt: skip
+        fact = Count(
+            scope,
+            at,
+            dp,
+            dd,
+            at_speed(dp, design),
+            at_speed(dp - dd, design),
+            inst.key if inst else "",
+        )
         self._facts_out([fact])
 
     def _facts_out(self, facts: list[Fact]) -> None:

@@ -138,8 +138,9 @@ class Run:
         if not unit.online or unit.status is None:
             raise Failed(Reason.UNIT_UNAVAILABLE, self.cell.offline_text(unit, now))
 
-    def _poll_call(self, call: _Call, now: float, ready: Ready, out: list[UnitCall],
-                   cancellable: bool = True) -> float:  # fmt: skip
+    def _poll_call(
+        self, call: _Call, now: float, ready: Ready, out: list[UnitCall], cancellable: bool = True
+    ) -> float:
         """Advance ``call``: the calls to send go to ``out``; the time to wait (raises Failed)."""
         unit = self.cell.units[call.unit]
         self._check(unit, now, cancellable)
@@ -349,7 +350,11 @@ class AbortRun(Run):
             self.began = True
             for unit in self.cell.units.values():
                 status = unit.status
-                if status is not None and status.state_requested == unit.target(Cmd.ABORT) and unit.online:  # fmt: skip
+                if (
+                    status is not None
+                    and status.state_requested == unit.target(Cmd.ABORT)
+                    and unit.online
+                ):
                     self.results[unit.name] = f"{unit.name} already {status.state_current_name}"
                 elif not ready(unit.name, "command"):  # lost units too: try whoever is there
                     self._failed(unit.name, Reason.UNIT_UNAVAILABLE, f"{unit.name} unreachable")
@@ -494,7 +499,14 @@ class ModeRun(Run):
             unit = self.cell.units[b.unit]
             if b.call is None:
                 status = unit.status
-                if status is not None and (status.unit_mode_change_in_process or status.unit_mode_current != self.number) and now < b.deadline:  # fmt: skip
+                if (
+                    status is not None
+                    and (
+                        status.unit_mode_change_in_process
+                        or status.unit_mode_current != self.number
+                    )
+                    and now < b.deadline
+                ):
                     return min(POLL, b.deadline - now)
                 b.call = _Call(
                     b.unit,
@@ -518,8 +530,10 @@ class ModeRun(Run):
         assert self.refused is not None
         result, text = self.refused
         undone = ", ".join(self.notes)
-        message = (f"mode {self.wanted} not set: {text}; "
-                   f"{'changed back: ' + undone if self.changed else 'no unit changed'}")  # fmt: skip
+        message = (
+            f"mode {self.wanted} not set: {text}; "
+            f"{'changed back: ' + undone if self.changed else 'no unit changed'}"
+        )
         self.outcome = Outcome(False, result, message, self.old)
         return None
 

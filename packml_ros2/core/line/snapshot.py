@@ -56,8 +56,12 @@ def restore(config: LineConfig, units: Mapping[str, UnitLike], document: Any) ->
         newer = isinstance(schema, int) and schema > SCHEMA
         raise SnapshotError(
             f"line snapshot schema {schema!r}: this version reads schema {SCHEMA}"
-            + (" (the snapshot is newer: replay it with the version that recorded it)" if newer else "")
-        )  # fmt: skip
+            + (
+                " (the snapshot is newer: replay it with the version that recorded it)"
+                if newer
+                else ""
+            )
+        )
     perf = Performance(config, units, Ledger())
     try:
         state = document["state"]

@@ -103,8 +103,10 @@ class LineStore:
             raise self._cannot_open(exc) from None
 
     def _cannot_open(self, exc: BaseException) -> StoreError:
-        return StoreError(f"{self.path}: cannot open the line store of {self.cell}: {os_reason(exc)} "
-                          "(line.store of the cell file; store: false keeps it in memory)")  # fmt: skip
+        return StoreError(
+            f"{self.path}: cannot open the line store of {self.cell}: {os_reason(exc)} "
+            "(line.store of the cell file; store: false keeps it in memory)"
+        )
 
     def _open(self) -> sqlite3.Connection:
         db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
@@ -164,8 +166,12 @@ class LineStore:
         self.db = self._open()
 
     # -- writing -----------------------------------------------------------------------------------
-    def commit(self, facts: Sequence[Fact], episodes: Sequence[tuple[Episode, str, str, str]],
-               state: Mapping[str, Any] | None) -> None:  # fmt: skip
+    def commit(
+        self,
+        facts: Sequence[Fact],
+        episodes: Sequence[tuple[Episode, str, str, str]],
+        state: Mapping[str, Any] | None,
+    ) -> None:
         """One input's facts, episodes ((episode, root unit, bucket, reason)) and open state, in
         one transaction. A store that cannot be written (a full disk) keeps them in
         :attr:`pending` (:attr:`failing` says why) and writes them with the next commit that
@@ -204,8 +210,12 @@ class LineStore:
             self.failing = f"{self.path.name} cannot be written ({one_line(exc)})"
             self._hold(facts, episodes, state)
 
-    def _hold(self, facts: Sequence[Fact], episodes: Sequence[tuple[Episode, str, str, str]],
-              state: Mapping[str, Any] | None) -> None:  # fmt: skip
+    def _hold(
+        self,
+        facts: Sequence[Fact],
+        episodes: Sequence[tuple[Episode, str, str, str]],
+        state: Mapping[str, Any] | None,
+    ) -> None:
         """Keep an input's writes until the store takes them again (at most :data:`PENDING_MAX`
         inputs: the oldest beyond are dropped and counted)."""
         self.pending.append((list(facts), list(episodes), state))
@@ -213,8 +223,12 @@ class LineStore:
             del self.pending[0]
             self.pending_dropped += 1
 
-    def _write(self, facts: Sequence[Fact], episodes: Sequence[tuple[Episode, str, str, str]],
-               state: Mapping[str, Any] | None) -> None:  # fmt: skip
+    def _write(
+        self,
+        facts: Sequence[Fact],
+        episodes: Sequence[tuple[Episode, str, str, str]],
+        state: Mapping[str, Any] | None,
+    ) -> None:
         db = self.db
         db.execute("BEGIN")
         try:
@@ -233,8 +247,10 @@ class LineStore:
             if counts:
                 db.executemany("INSERT INTO counts VALUES (?, ?, ?, ?, ?, ?, ?)", counts)
             for ep, unit, bucket, reason in episodes:
-                db.execute("INSERT OR REPLACE INTO episodes VALUES (?, ?, ?, ?, ?, ?, ?)",
-                           (ep.id, ep.start, ep.end, unit, bucket, reason, json.dumps(ep.to_dict())))  # fmt: skip
+                db.execute(
+                    "INSERT OR REPLACE INTO episodes VALUES (?, ?, ?, ?, ?, ?, ?)",
+                    (ep.id, ep.start, ep.end, unit, bucket, reason, json.dumps(ep.to_dict())),
+                )
             if state is not None:
                 db.execute(
                     "INSERT OR REPLACE INTO state VALUES ('performance', ?)", (json.dumps(state),)
@@ -254,8 +270,10 @@ class LineStore:
             if value is None:
                 self.db.execute("DELETE FROM meta WHERE key = ?", (f"note:{key}",))
             else:
-                self.db.execute("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)",
-                                (f"note:{key}", json.dumps(value)))  # fmt: skip
+                self.db.execute(
+                    "INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)",
+                    (f"note:{key}", json.dumps(value)),
+                )
         except sqlite3.Error as exc:
             if not not_writable(exc):
                 raise
@@ -283,11 +301,15 @@ class LineStore:
         out: dict[str, Totals] = {}
         for scope, bucket, reason, ns in self.db.execute(
             "SELECT scope, bucket, reason, SUM(MIN(end, ?2) - MAX(start, ?1)) FROM segments"
-            " WHERE end > ?1 AND start < ?2 GROUP BY scope, bucket, reason", (lo, hi)):  # fmt: skip
+            " WHERE end > ?1 AND start < ?2 GROUP BY scope, bucket, reason",
+            (lo, hi),
+        ):
             out.setdefault(scope, Totals()).add_time(bucket, reason, int(ns))
         for scope, p, d, net, good in self.db.execute(
             "SELECT scope, SUM(processed), SUM(defective), SUM(net), SUM(good) FROM counts"
-            " WHERE t >= ?1 AND t < ?2 GROUP BY scope", (lo, hi)):  # fmt: skip
+            " WHERE t >= ?1 AND t < ?2 GROUP BY scope",
+            (lo, hi),
+        ):
             out.setdefault(scope, Totals()).add_count(int(p), int(d), int(net), int(good))
         return out
 
@@ -296,14 +318,16 @@ class LineStore:
         wanted = None if keys is None else set(keys)
         for shift, scope, bucket, reason, ns in self.db.execute(
             "SELECT shift, scope, bucket, reason, SUM(end - start) FROM segments WHERE shift != ''"
-            " GROUP BY shift, scope, bucket, reason"):  # fmt: skip
+            " GROUP BY shift, scope, bucket, reason"
+        ):
             if wanted is None or shift in wanted:
                 out.setdefault(shift, {}).setdefault(scope, Totals()).add_time(
                     bucket, reason, int(ns)
                 )
         for shift, scope, p, d, net, good in self.db.execute(
             "SELECT shift, scope, SUM(processed), SUM(defective), SUM(net), SUM(good) FROM counts"
-            " WHERE shift != '' GROUP BY shift, scope"):  # fmt: skip
+            " WHERE shift != '' GROUP BY shift, scope"
+        ):
             if wanted is None or shift in wanted:
                 out.setdefault(shift, {}).setdefault(scope, Totals()).add_count(
                     int(p), int(d), int(net), int(good)
@@ -331,16 +355,33 @@ class LineStore:
         ledger.shifts = self.shift_totals()
         ledger.latest = int(latest or 0)
         horizon = ledger.latest - RECENT
-        recent: list[Fact] = [Segment(*r) for r in self.db.execute(
-            "SELECT scope, start, end, bucket, reason, shift FROM segments WHERE end >= ? ORDER BY rowid", (horizon,))]  # fmt: skip
-        recent += [Count(*r) for r in self.db.execute(
-            "SELECT scope, t, processed, defective, net, good, shift FROM counts WHERE t >= ? ORDER BY rowid", (horizon,))]  # fmt: skip
+        recent: list[Fact] = [
+            Segment(*r)
+            for r in self.db.execute(
+                "SELECT scope, start, end, bucket, reason, shift FROM segments WHERE end >= ? ORDER BY rowid",
+                (horizon,),
+            )
+        ]
+        recent += [
+            Count(*r)
+            for r in self.db.execute(
+                "SELECT scope, t, processed, defective, net, good, shift FROM counts WHERE t >= ? ORDER BY rowid",
+                (horizon,),
+            )
+        ]
         ledger.recent.clear()
         ledger.recent.extend(sorted(recent, key=lambda f: f.end if isinstance(f, Segment) else f.t))
 
-    def episodes(self, since: int | None = None, until: int | None = None, unit: str | None = None,
-                 reason: str = "", bucket: str = "", open_only: bool = False,
-                 limit: int = 100) -> tuple[list[Episode], int]:  # fmt: skip
+    def episodes(
+        self,
+        since: int | None = None,
+        until: int | None = None,
+        unit: str | None = None,
+        reason: str = "",
+        bucket: str = "",
+        open_only: bool = False,
+        limit: int = 100,
+    ) -> tuple[list[Episode], int]:
         """Episodes newest first, filtered (see ``QueryEpisodes.srv``); and how many matched."""
         where: list[str] = []
         args: list[Any] = []
