@@ -44,8 +44,14 @@ def _ems_online(status, names) -> bool:  # type: ignore[no-untyped-def]
     return all(n in ems and ems[n].online for n in names)
 
 
+def _kill(proc: subprocess.Popen[str]) -> None:
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait(10)
+
+
 def test_a_wall_clock_step_back_and_forward_neither_silences_nor_aborts_the_cell(
-    ros, processes: Processes, tmp_path: Path
+    ros, processes: Processes, tmp_path: Path, request: pytest.FixtureRequest
 ) -> None:
     offset = tmp_path / "faketime"
     offset.write_text("+0\n")
@@ -70,6 +76,7 @@ def test_a_wall_clock_step_back_and_forward_neither_silences_nor_aborts_the_cell
     bag = tmp_path / "steps"
     recorder = subprocess.Popen([*PACKML, "record", f"{cell}/u", "-o", str(bag)], cwd=ROOT,
                                 stderr=subprocess.PIPE, text=True)  # fmt: skip
+    request.addfinalizer(lambda: _kill(recorder))  # (a failing test leaves no recorder behind)
     recording = Output(recorder)
     recording.wait_for(f"receiving /{cell}/u", 30)
     for command, state in (("reset", "IDLE"), ("start", "EXECUTE")):
