@@ -197,8 +197,9 @@ def pipelined(ros: Any, clients: dict[tuple[Any, str], Any], base: str,
     return [(future.result(), what, expected) for future, what, expected in futures]
 
 
-def rss_mb() -> float:
-    with open(f"/proc/{os.getpid()}/status") as f:
+def rss_mb(pid: int | None = None) -> float:
+    """The resident memory of process ``pid`` (this one by default), MB."""
+    with open(f"/proc/{pid or os.getpid()}/status") as f:
         return int(next(line for line in f if line.startswith("VmRSS")).split()[1]) / 1024
 
 
