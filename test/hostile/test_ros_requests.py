@@ -197,6 +197,17 @@ def pipelined(ros: Any, clients: dict[tuple[Any, str], Any], base: str,
     return [(future.result(), what, expected) for future, what, expected in futures]
 
 
+def all_refused(answered: list[tuple[Any, str, Any]], counts: dict[int, int]) -> None:
+    """Each (response, what, the results it may have) is a refusal with one of them and a
+    printable sentence; ``counts`` counts the results."""
+    for resp, what, expected in answered:
+        text = resp.message_out if hasattr(resp, "message_out") else resp.message
+        assert not resp.accepted, f"{what} accepted: {text}"
+        assert resp.result in expected, f"{what}: result {resp.result}: {text}"
+        assert 10 < len(text) < 600 and text.isprintable(), f"{what}: {text[:300]!r}"
+        counts[resp.result] = counts.get(resp.result, 0) + 1
+
+
 def rss_mb(pid: int | None = None) -> float:
     """The resident memory of process ``pid`` (this one by default), MB."""
     with open(f"/proc/{pid or os.getpid()}/status") as f:
@@ -229,12 +240,7 @@ def test_thousands_of_hostile_service_requests_and_reports_change_nothing(
         if sent >= WARM_UP and not rss_before:
             rss_before = rss_mb()
         batch = [next(requests) for _ in range(BATCH)]
-        for resp, what, expected in pipelined(ros, clients, unit.base, batch):
-            text = resp.message_out if hasattr(resp, "message_out") else resp.message
-            assert not resp.accepted, f"{what} accepted: {text}"
-            assert resp.result in expected, f"{what}: result {resp.result}: {text}"
-            assert 10 < len(text) < 600 and text.isprintable(), f"{what}: {text[:300]!r}"
-            counts[resp.result] = counts.get(resp.result, 0) + 1
+        all_refused(pipelined(ros, clients, unit.base, batch), counts)
         sent += len(batch)
     rss_after = rss_mb()
 
