@@ -78,11 +78,13 @@ class EquipmentInputs(UnitMachine):
                 return Answer.no(Reason.NOTHING_TO_DO, f"EM {name!r} is not online")
             em.online = False
             self.equipment.changed_roster()
+            why = f" ({detail})" if detail else ""
+            if self.recipes.changeover is not None:
+                self._em_gone_from_changeover(name, f"lost{why}")
             # Inactive EMs are ignored (docs/packml.md §4): off for diagnosis, their loss is no fault.
             reaction = self._lost_reaction(em.lost_reaction) if em.active else 0
             if self.state in EXCUSE_OFFLINE or not reaction:
                 self.equipment.excuse(name)
-            why = f" ({detail})" if detail else ""
             category = CATEGORY_OF_REACTION[reaction]
             definition = AlarmDef(
                 id=self.config.system_alarms.em_lost,

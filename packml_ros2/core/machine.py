@@ -595,6 +595,11 @@ class UnitMachine(ModeChanges):
             return None
         return f"alarm {blocker.label()} with reaction {command_name(blocker.reaction)}"
 
+    def _em_gone_from_changeover(self, name: str, reason: str) -> None:
+        """EM ``name`` is lost while a changeover runs: if the changeover waits for its answer,
+        that counts as its refusal now, not at the changeover's timeout
+        (:class:`~.recipe_inputs.RecipeInputs` decides; a unit without it has no changeover)."""
+
     def recipe_change_text(self) -> str:
         c = self.recipes.changeover
         return "" if c is None else f"the changeover to recipe {c.requested.label} is in process"

@@ -94,6 +94,15 @@ class RecipeInputs(UnitMachine):
             self._decide(c)
             return Answer.ok("answer taken")
 
+    def _em_gone_from_changeover(self, name: str, reason: str) -> None:
+        c = self.recipes.changeover
+        if c is None or c.answers.get(name, (None, ""))[0] is not EmAnswer.PENDING:
+            return
+        c.answers[name] = (EmAnswer.REFUSED, reason)
+        self._rev += 1
+        self._log("warn", f"EM {name} {reason} while its answer to {c.sent.label} was awaited")
+        self._decide(c)
+
     def _on_recipe_timeout(self, order: int) -> None:
         c = self.recipes.changeover
         if c is None or c.order != order:
@@ -112,6 +121,12 @@ class RecipeInputs(UnitMachine):
             if refused:
                 em, why = refused[0]
                 self._send(self.recipes.rollback(f"EM {em} refused it: {why}", self._t))
+                modules = self.equipment.modules
+                gone = [n for n in c.answers if n not in modules or not modules[n].online]
+                for n in gone:  # (a lost EM cannot answer the rollback: its refusal stands)
+                    c.answers[n] = (EmAnswer.REFUSED, c.answers[n][1] or "lost")
+                if gone:
+                    self._decide(c)
                 return
             if c.pending:
                 return

@@ -470,6 +470,7 @@ class Recipes:
         """The clock stepped by ``offset``: a running changeover keeps its time to its timeout."""
         if self.changeover is not None:
             self.changeover.deadline += offset
+            self.changeover.started += offset
 
     def rollback(self, refusal: str, now: float) -> Changeover:
         c = self.changeover

@@ -230,6 +230,39 @@ def test_no_answer_within_the_timeout_is_a_refusal() -> None:
     assert "not by robot, gripper, vision" in view.recipe_result
 
 
+def test_an_em_lost_during_a_changeover_refuses_it_at_once() -> None:
+    """Not at the changeover's timeout: the lost EM cannot answer, and while the changeover runs
+    the unit refuses Reset (an operator would wait out ``recipe_timeout``)."""
+    clock = FakeClock()
+    unit = make(clock)
+    assert unit.set_recipe(2).accepted
+    n = order(unit)
+    assert unit.em_recipe("robot", n, True).accepted
+    assert unit.em_lost("gripper", "left").accepted  # (its reaction: the unit aborts)
+    c = unit.recipes.changeover
+    assert c is not None and c.order == n + 1, "rolled back at once"
+    assert c.refusal == "EM gripper refused it: lost (left)"
+    for em in ("robot", "vision"):
+        assert unit.em_recipe(em, n + 1, True).accepted
+    view = unit.status()
+    assert not view.recipe_change_in_process and view.recipe_current == 0
+    assert "not by gripper: lost (left)" in view.recipe_result
+
+
+def test_an_em_lost_during_a_rollback_ends_it() -> None:
+    clock = FakeClock()
+    unit = make(clock)
+    assert unit.set_recipe(2).accepted
+    n = order(unit)
+    assert unit.em_recipe("gripper", n, False, "wrong fingers").accepted
+    assert unit.em_recipe("robot", n + 1, True).accepted
+    assert unit.em_recipe("gripper", n + 1, True).accepted
+    assert unit.em_lost("vision", "no report for 2 s").accepted
+    view = unit.status()
+    assert not view.recipe_change_in_process, "no answer awaited from a lost EM"
+    assert "not by vision: lost (no report for 2 s)" in view.recipe_result
+
+
 def test_a_recipe_change_in_execute_is_refused_with_its_reason() -> None:
     clock = FakeClock()
     unit = Unit(cell_unit({"recipes": RECIPES}), clock)
