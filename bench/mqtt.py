@@ -62,7 +62,6 @@ def main() -> None:
 
     from packml_ros2 import qos
     from packml_ros2.core import Cmd
-    from packml_ros2.mqtt import sparkplug as sp
     from packml_ros2.testing.harness import RosHarness
     from packml_ros2.testing.processes import Processes
     from test.mqtt.host import Broker
@@ -105,13 +104,13 @@ def main() -> None:
             kind = m.topic.split("/")[2]
             if kind not in ("DBIRTH", "DDATA"):
                 return
-            for metric in _metrics(sp, m.payload):
-                if kind == "DBIRTH" and metric.name:
-                    alias[metric.alias] = metric.name
-                name = metric.name or alias.get(metric.alias or -1)
+            for named, number, value in _metrics(m.payload):
+                if kind == "DBIRTH" and named:
+                    alias[number] = named
+                name = named or alias.get(number or -1)
                 if name == "State/Current":
                     with lock:
-                        mqtt_at.append((metric.value, now))
+                        mqtt_at.append((value, now))
                         lock.notify_all()
 
         ros.node.create_subscription(Status, f"/{cell}/filler/status", on_status, qos.STATUS)
@@ -195,11 +194,20 @@ def main() -> None:
     print(json.dumps(out, indent=1))
 
 
-def _metrics(sp: Any, raw: bytes) -> tuple[Any, ...]:
+def _metrics(raw: bytes) -> list[tuple[str, int, Any]]:
+    """(name, alias, value) of each metric, read as a host application reads them (Eclipse Tahu's
+    protobuf, as the tests do): a birth carries more metrics than the edge takes in a command, so
+    the edge's own bounded decoder is not the reader here."""
+    from google.protobuf.message import DecodeError
+
+    from test.mqtt.host import Payload, metric_value
+
+    payload = Payload()
     try:
-        return tuple(sp.decode(raw).metrics)
-    except sp.PayloadError:
-        return ()
+        payload.ParseFromString(raw)
+    except DecodeError:
+        return []
+    return [(m.name, m.alias, metric_value(m)) for m in payload.metrics]
 
 
 def wait(cond: threading.Condition, predicate: Any, timeout: float, what: str) -> None:
