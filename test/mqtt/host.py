@@ -9,6 +9,7 @@ aliases of each birth, as a Sparkplug host application does.
 
 from __future__ import annotations
 
+import contextlib
 import getpass
 import json
 import shutil
@@ -17,10 +18,10 @@ import ssl
 import subprocess
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, TypeVar
 
 import paho.mqtt.client as paho
 from pysparkplug._protobuf import Payload  # Eclipse Tahu's sparkplug_b.proto, generated
@@ -292,3 +293,21 @@ def close_all(host: Host, procs: Any, broker: Broker) -> str:
     failures: str = procs.close()
     broker.kill()
     return failures
+
+
+class _Closes(Protocol):
+    def close(self) -> str: ...
+
+
+F = TypeVar("F", bound=_Closes)
+
+
+@contextlib.contextmanager
+def closed_cleanly(face: F) -> Iterator[F]:
+    """A test's MQTT setup (its ``close()`` returns its processes' failures), closed at the end of
+    the test; a process that failed fails the test."""
+    try:
+        yield face
+    finally:
+        failures = face.close()
+        assert not failures, failures

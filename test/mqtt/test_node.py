@@ -24,7 +24,7 @@ from packml_interfaces.srv import SetAlarm
 
 from packml_ros2.testing.processes import Processes
 from packml_ros2.testing.unit_client import UnitClient
-from test.mqtt.host import Broker, Host, Seen, close_all
+from test.mqtt.host import Broker, Host, Seen, close_all, closed_cleanly
 from test.ros.cells import start_em_process, start_unit_process, write_cell
 
 pytestmark = pytest.mark.ros
@@ -107,12 +107,8 @@ class Face:
 
 @pytest.fixture
 def face(tmp_path: Path) -> Iterator[Face]:
-    f = Face(tmp_path)
-    try:
+    with closed_cleanly(Face(tmp_path)) as f:
         yield f
-    finally:
-        failures = f.close()
-        assert not failures, failures
 
 
 @pytest.mark.timeout(400)

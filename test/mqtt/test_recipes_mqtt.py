@@ -26,7 +26,7 @@ import pytest
 import yaml
 
 from packml_ros2.testing.processes import NodeProcess, Processes, wait_until
-from test.mqtt.host import Broker, Host, Seen, close_all
+from test.mqtt.host import Broker, Host, Seen, close_all, closed_cleanly
 from test.recipe_cell import recipe_cell
 from test.ros.cells import UnitClient
 
@@ -113,12 +113,8 @@ class Face:
 
 @pytest.fixture
 def face(tmp_path: Path) -> Iterator[Face]:
-    f = Face(tmp_path)
-    try:
+    with closed_cleanly(Face(tmp_path)) as f:
         yield f
-    finally:
-        failures = f.close()
-        assert not failures, failures
 
 
 def _answer(seen: Seen) -> tuple[Any, ...]:
