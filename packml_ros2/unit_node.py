@@ -75,6 +75,9 @@ INPUT_LOG_DELAY = 0.05
 #: A jump of the wall clock against the monotonic one larger than this (seconds) is a step (NTP
 #: steps at 0.128 s and slews below; a step this small moves nothing that matters)
 CLOCK_STEP = 0.25
+#: s: the wall clock is compared with the monotonic one only when both were read within this of
+#: each other (a thread held between the reads, on a loaded host, is not a step of the clock)
+CLOCK_READ = 0.01
 #: s: a wake-up for a lease is armed this much after it expires (``Liveliness.expired`` is strict)
 LEASE_SLACK = 0.001
 DIAGNOSTICS_PERIOD = 1.0
@@ -240,10 +243,14 @@ class UnitNode(GuardedNode):
         clock (NTP): the wall clock's distance to the monotonic clock jumped by more than
         :data:`CLOCK_STEP`. Slewing (NTP's small corrections) is followed without a step. Under
         simulated time a jump of /clock is time passing, not a step."""
-        now = self._now()
         if self.uses_sim_time():
+            return self._now()
+        before = time.monotonic()
+        now = self._now()
+        after = time.monotonic()
+        if after - before > CLOCK_READ:  # (the thread was held between the reads: no measure)
             return now
-        offset = now - time.monotonic()
+        offset = now - after
         last, self._wall_offset = self._wall_offset, offset
         if last is not None and abs(offset - last) > CLOCK_STEP:
             self.driver.clock_step(now, offset - last)

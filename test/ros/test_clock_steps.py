@@ -25,7 +25,9 @@ from diagnostic_msgs.msg import DiagnosticArray
 from packml_interfaces.srv import SetMachSpeed
 
 from packml_ros2 import qos
+from packml_ros2.core import load_cell
 from packml_ros2.testing.processes import Processes
+from packml_ros2.unit_node import CLOCK_STEP, UnitNode
 from test.ros.cells import UnitClient, write_cell
 from test.test_replay import PACKML, ROOT, Output, packml
 
@@ -132,3 +134,37 @@ def test_a_wall_clock_step_back_and_forward_neither_silences_nor_aborts_the_cell
     assert recorder.returncode == 0 and "Traceback" not in text, text
     replayed = packml("replay", str(bag), timeout=120)
     assert replayed.returncode == 0, replayed.stdout + replayed.stderr
+
+
+def _steps(node: UnitNode) -> list[str]:
+    return [e.message for e in node.unit.alarms.history if "wall clock stepped" in e.message]
+
+
+def test_a_thread_held_between_the_clock_reads_is_not_a_step(ros, tmp_path: Path) -> None:
+    """On a loaded host the node's thread can be held for longer than CLOCK_STEP between its
+    read of the wall clock and of the monotonic one: that is no step of the clock, and the
+    engine must not move its deadlines (a false step back fired them early). A real step read
+    promptly is still one."""
+    cell_file, _ = write_cell(tmp_path, {"u": {"equipment_modules": {}}})
+    node = UnitNode(load_cell(cell_file).units["u"], context=ros.context)
+    try:
+        wall = node._now
+        node._time()  # (the first read: the offset to compare with)
+
+        def held() -> float:  # the wall clock read, then the thread held 0.4 s
+            now = wall()
+            time.sleep(2 * CLOCK_STEP - 0.1)
+            return now
+
+        node._now = held  # type: ignore[method-assign]
+        node._time()
+        node._now = wall  # type: ignore[method-assign]
+        node._time()
+        assert _steps(node) == []
+
+        node._now = lambda: wall() + 60.0  # type: ignore[method-assign]
+        node._time()
+        (step,) = _steps(node)
+        assert "stepped +60." in step, step
+    finally:
+        node.destroy_node()
