@@ -36,10 +36,9 @@ from packml_interfaces.srv import (
 )
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.event_handler import PublisherEventCallbacks, QoSPublisherMatchedInfo
-from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.subscription import MessageInfo, Subscription
+from rclpy.subscription import MessageInfo
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
@@ -81,8 +80,10 @@ CLOCK_READ = 0.01
 #: s: a wake-up for a lease is armed this much after it expires (``Liveliness.expired`` is strict)
 LEASE_SLACK = 0.001
 DIAGNOSTICS_PERIOD = 1.0
-#: messages of a subscription a wake-up takes before it judges the leases (_take_waiting)
-MAX_TAKEN = 256
+#: s: a lease found expired is judged this much later, once: what the executor holds for the
+#: unit by then (heartbeats that arrived in time and wait behind the wake-up, in a loaded unit)
+#: is handled first
+LEASE_SETTLE = 0.005
 #: s: an EM that leaves (shuts down in order) is lost this long after its goodbye, unless the
 #: unit shuts down meanwhile: a cell stopped with Ctrl-C, every process at once, records no fault.
 EM_LEAVE_GRACE = 1.0
@@ -177,6 +178,8 @@ class UnitNode(GuardedNode):
         self._wake = self.create_timer(3600.0, self._on_wake)
         self._wake.cancel()
         self._wake_at: tuple[float, float] | None = None  # (engine due, steady due) armed
+        #: steady time of the wake-up that judges a lease found expired (LEASE_SETTLE)
+        self._settling: float | None = None
         self._timers = [
             self._wake,
             self.create_timer(DIAGNOSTICS_PERIOD, self._publish_diagnostics),
@@ -513,38 +516,27 @@ class UnitNode(GuardedNode):
         self._wake.cancel()
         if run.shutting_down():
             return  # this process is stopping: EMs going silent now are no news
-        # what has arrived but waits behind this wake-up in the executor's queue (a loaded
-        # unit) counts before any lease is judged: a heartbeat received in time renews it
-        self._take_waiting(self._beats, self._on_heartbeat)
-        self._take_waiting(self._reports, self._on_report)
         now, tick = self._time(), self.steady()
         self._apply_leaves(now, tick)
-        for name, lease in self.liveliness.expired(tick):
-            self.writers.release(name)
-            self.beat_writers.release(name)
-            self._leaving.pop(name, None)
-            self.driver.call(now, self.unit.em_lost, name, f"no report for {lease:g} s")
+        if self._settling is None and self.liveliness.next_expiry() < tick:
+            # A lease ran out: judged at the next wake-up, after what waits in the executor's
+            # queue (a heartbeat that arrived in time renews it). The wake-up does not take
+            # those messages itself: a subscription read outside the executor stopped being
+            # served by rclpy's EventsExecutor (a unit deaf to its EMs for good).
+            self._settling = tick + LEASE_SETTLE
+        else:
+            self._settling = None
+            for name, lease in self.liveliness.expired(tick):
+                self.writers.release(name)
+                self.beat_writers.release(name)
+                self._leaving.pop(name, None)
+                self.driver.call(now, self.unit.em_lost, name, f"no report for {lease:g} s")
         summary = self._log_limiter.due(tick)
         if summary is not None:
             self.get_logger().warning(summary)
         self.driver.catch_up(now)
         self._flush_inputs()
         self._arm(now)
-
-    def _take_waiting(
-        self, subscription: Subscription[EmReport], handle: Callable[[EmReport, Any], None]
-    ) -> None:
-        """Handle the messages DDS holds for ``subscription`` now, at most :data:`MAX_TAKEN`
-        (the executor finds them taken and calls nothing for them)."""
-        for _ in range(MAX_TAKEN):
-            try:
-                with subscription.handle:
-                    taken: Any = subscription.handle.take_message(subscription.msg_type, False)
-            except InvalidHandle:
-                return
-            if taken is None:
-                return
-            handle(*taken)
 
     def _arm(self, now: float) -> None:
         """Arm the wake-up timer for the next thing due (nothing: no timer runs). The engine's
@@ -556,6 +548,8 @@ class UnitNode(GuardedNode):
             # time that inputs do not move, so the EMs' reports do not reset the timer one by one
             due = min(due, self._inputs[0][0] + INPUT_LOG_DELAY)
         steady_due = self.liveliness.next_expiry() + LEASE_SLACK
+        if self._settling is not None:
+            steady_due = min(steady_due, self._settling)
         for leave_at, _ in self._leaving.values():
             steady_due = min(steady_due, leave_at)
         if (due, steady_due) == self._wake_at or self._closed:

@@ -3,8 +3,10 @@
 Under 12 000 fuzzed requests a unit declared an EM lost once: its executor ran the lease wake-up
 before the EM's heartbeats that had arrived in time and waited in its queue. Here the unit's own
 executor is held (as a loaded one is) while the EM, in the test's executor, beats on; once the
-unit has processed no heartbeat for longer than its lease, its wake-up runs first. The EM stays
-online (before: "no report for 1 s", the EM lost)."""
+unit has processed no heartbeat for longer than its lease, its wake-up runs first. It judges the
+lease only after what waits in the executor's queue: the EM stays online (before: "no report for
+1 s", the EM lost). The wake-up reads no topic itself (a read outside the executor left rclpy's
+EventsExecutor serving those topics no more, now and then: a unit deaf to its EMs)."""
 
 from __future__ import annotations
 
@@ -41,6 +43,12 @@ def test_a_heartbeat_waiting_in_the_queue_renews_the_lease(ros: Any, tmp_path: P
             time.sleep(0.01)  # (waiting for the unit's clock: the condition above)
         assert unit.liveliness.last_seen["robot"] == seen  # nothing was processed meanwhile
         unit._on_wake()  # the wake-up runs first, as in the loaded executor
+        assert "robot" in unit.liveliness.alive  # judged after the queue: not yet
+        while unit.liveliness.last_seen["robot"] == seen:  # the queue, then the next wake-up
+            assert time.monotonic() < deadline + 20, "no heartbeat was handled"
+            executor.spin_once(timeout_sec=0.05)
+        for _ in range(20):
+            executor.spin_once(timeout_sec=0.01)
         assert "robot" in unit.liveliness.alive
         assert unit.liveliness.last_seen["robot"] > seen + LEASE
         assert unit.unit.equipment.modules["robot"].online
