@@ -518,13 +518,13 @@ class UnitNode(GuardedNode):
             return  # this process is stopping: EMs going silent now are no news
         now, tick = self._time(), self.steady()
         self._apply_leaves(now, tick)
-        if self._settling is None and self.liveliness.next_expiry() < tick:
-            # A lease ran out: judged at the next wake-up, after what waits in the executor's
-            # queue (a heartbeat that arrived in time renews it). The wake-up does not take
-            # those messages itself: a subscription read outside the executor stopped being
-            # served by rclpy's EventsExecutor (a unit deaf to its EMs for good).
+        # A lease that ran out is judged LEASE_SETTLE later, after what waits in the executor's
+        # queue (a heartbeat that arrived in time renews it); the wake-up reads no topic itself
+        if self.liveliness.next_expiry() >= tick:
+            self._settling = None
+        elif self._settling is None:
             self._settling = tick + LEASE_SETTLE
-        else:
+        if self._settling is not None and tick >= self._settling:
             self._settling = None
             for name, lease in self.liveliness.expired(tick):
                 self.writers.release(name)
