@@ -341,6 +341,41 @@ def test_replaying_the_input_log_reproduces_episodes_and_facts_exactly() -> None
     assert [replayed.root(e).unit for e in replayed.closed] == ["filler"]
 
 
+@pytest.mark.parametrize("admin_first", [False, True])
+def test_the_stop_reason_explains_the_episode_whichever_topic_comes_first(
+    admin_first: bool,
+) -> None:
+    """Admin data and status are separate topics: an executor serving the admin subscription
+    first hands the StopReason over before the status that opens the episode (once seen in CI)."""
+    sim = started(cell_doc())
+    sim.at(20.5, lambda: sim.alarm("filler", "infeed", 202, True))
+    sim.at(30, lambda: sim.alarm("filler", "infeed", 202, False))
+    sim.at(31, lambda: sim.command("filler", Cmd.RESET))
+    sim.at(33, lambda: sim.command("filler", Cmd.START))
+    sim.run_until(40)
+    sim.take()
+    log = [(r.name, r.t, json.loads(r.args_json)) for r in sim.records[1:]]
+    told = next(i for i, (n, _, f) in enumerate(log) if n == "admin" and f["stop_reason"])
+    departed = next(i for i, (n, _, f) in enumerate(log) if n == "transition" and f["to_state"] == State.STOPPING)  # fmt: skip
+    assert departed < told
+    if admin_first:
+        log.insert(departed, log.pop(told))
+    replayed = Performance(sim.cell.line, sim.cell.units, Ledger())
+    for name, t, fields in log:
+        inputs.apply(replayed, name, t, fields)
+    [episode] = replayed.closed
+    assert replayed.root(episode).unit == "filler"
+    assert episode.stop_reason is not None
+    assert (episode.stop_reason["id"], episode.stop_reason["message"]) == (202, "Infeed jam")
+    if admin_first:  # a StopReason set long before the departure explains nothing
+        reason = log[departed][2]["stop_reason"]
+        log[departed][2]["stop_reason"] = {**reason, "time": at(10)}
+        stale = Performance(sim.cell.line, sim.cell.units, Ledger())
+        for name, t, fields in log:
+            inputs.apply(stale, name, t, fields)
+        assert [e.stop_reason for e in stale.closed] == [None]
+
+
 def test_a_bag_of_the_line_replays_to_the_same_episodes_and_losses(tmp_path: Path) -> None:
     import yaml
 

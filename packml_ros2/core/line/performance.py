@@ -142,6 +142,10 @@ class Tracker:
     defective: int | None = None
     last_alive: int = 0
     restart_time: int = 0
+    #: the StopReason of its last admin data and when it was set (it may arrive before the
+    #: status that opens the episode it explains)
+    stop_reason: dict[str, Any] | None = None
+    stop_reason_at: int = 0
     #: transitions that arrived before the first status (the latched history), in order
     pending: list[TransitionSnap] = field(default_factory=list)
     #: a status ahead of the transitions (sequence, when it arrived): applied if they never come
@@ -174,6 +178,8 @@ class Tracker:
             "defective",
             "last_alive",
             "restart_time",
+            "stop_reason",
+            "stop_reason_at",
         ):
             if key in d:
                 setattr(self, key, d[key])
@@ -327,18 +333,23 @@ class Performance:
                 if unit == self.output and self.started is not None and at >= self.started:
                     self._count(LINE, at, dp, dd, tr.design)
         tr.processed, tr.defective = processed, defective
-        ep = self.episode
-        if ep is not None and stop_reason:
-            root = ep.root(self.order)
-            d = root.departure
-            if (
-                d is not None
-                and d.unit == unit
-                and int(stop_reason.get("time", t)) >= d.time - 10**9
-                and ep.stop_reason != stop_reason
-            ):
-                ep.stop_reason = dict(stop_reason)
-                self._changed(ep)
+        if stop_reason:
+            tr.stop_reason, tr.stop_reason_at = dict(stop_reason), int(stop_reason.get("time", t))
+        else:
+            tr.stop_reason = None
+        if self.episode is not None:
+            self._explain(self.episode)
+
+    def _explain(self, ep: Episode) -> None:
+        """The episode's StopReason: its root unit's, when set at most 1 s before it departed.
+        Admin data and status are separate topics, so either may come first."""
+        d = ep.root(self.order).departure
+        tr = None if d is None else self.trackers.get(d.unit)
+        if d is None or tr is None or not tr.stop_reason:
+            return
+        if tr.stop_reason_at >= d.time - 10**9 and ep.stop_reason != tr.stop_reason:
+            ep.stop_reason = dict(tr.stop_reason)
+            self._changed(ep)
 
     def online(self, now: int, unit: str) -> None:
         """Something of ``unit`` arrived after it was lost (its status follows)."""
@@ -691,6 +702,8 @@ class Performance:
             for d in departed:
                 ep.departures.append(d)
                 self._changed(ep)
+            if departed:
+                self._explain(ep)
             if producing:
                 self._close_line(at)
                 ep.end = at
@@ -703,6 +716,7 @@ class Performance:
             ep = self.episode = Episode(self.next_id, at, None, list(departed))
             self.next_id += 1
             self._changed(ep)
+            self._explain(ep)
         elif producing and not self.producing:
             self._close_line(at)
         self.producing = producing
