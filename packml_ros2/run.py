@@ -16,7 +16,6 @@ import rclpy
 from rclpy.executors import (
     Executor,
     ExternalShutdownException,
-    MultiThreadedExecutor,
     ShutdownException,
     SingleThreadedExecutor,
 )
@@ -25,6 +24,7 @@ from rclpy.node import Node
 from .core import discovery
 from .core.discovery import DiscoveryConfig
 from .core.safe_yaml import read_document
+from .executors import MultiThreadedExecutor
 from .paths import fastdds_profile
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)

@@ -322,10 +322,11 @@ def replay_live(
     """Feed the recording at ``path`` to the running units (see the module docstring)."""
     import rclpy
     from rclpy.context import Context
-    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+    from rclpy.executors import ExternalShutdownException
 
     from .. import run
     from ..boundary import GuardedNode as Node
+    from ..executors import MultiThreadedExecutor
 
     if speed <= 0:
         raise ValueError("--speed must be > 0")

@@ -13,11 +13,12 @@ from typing import Any
 
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 
 from .. import run
 from ..boundary import GuardedNode
 from ..client import CellProxy, Unavailable, UnitProxy, discover_cells
+from ..executors import MultiThreadedExecutor
 
 
 class Session:

@@ -25,11 +25,12 @@ import time
 import rclpy
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from std_srvs.srv import SetBool
 from test_msgs.action import Fibonacci
+
+from packml_ros2.executors import MultiThreadedExecutor
 
 
 class Drivers(Node):

@@ -258,12 +258,13 @@ def _to_data(value: Any) -> Any:
 
 def _observe(cell: str, units: list[str]) -> int:
     import rclpy
-    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+    from rclpy.executors import ExternalShutdownException
     from rclpy.node import Node
     from std_srvs.srv import Trigger
 
     from packml_ros2 import run
     from packml_ros2.client import CellProxy
+    from packml_ros2.executors import MultiThreadedExecutor
 
     run.default_environment()
     rclpy.init()
