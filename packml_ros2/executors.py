@@ -17,17 +17,20 @@ whose threads are all busy delays the next hand-off by at most that long, as bef
 
 from __future__ import annotations
 
+import contextlib
 import threading
 from collections.abc import Callable
 from typing import Any
 
 from rclpy.executors import (
     ConditionReachedException,
+    Executor,
     ExternalShutdownException,
     ShutdownException,
     TimeoutException,
 )
 from rclpy.executors import MultiThreadedExecutor as _RclpyMultiThreaded
+from rclpy.node import Node
 
 HAND_OFF = 1.0  #: seconds the spinning thread waits for a pool thread to take a callback
 
@@ -64,3 +67,18 @@ class MultiThreadedExecutor(_RclpyMultiThreaded):
             if future.done():
                 self._futures.remove(future)
                 future.result()  # raises what the callback raised, as rclpy's does
+
+
+def spin_in_thread(executor: Executor, *nodes: Node) -> threading.Thread:
+    """Add ``nodes`` and spin ``executor`` in a daemon thread until it or its context is shut
+    down (the end is not an error)."""
+    for node in nodes:
+        executor.add_node(node)
+
+    def spin() -> None:
+        with contextlib.suppress(ExternalShutdownException, ShutdownException):
+            executor.spin()
+
+    thread = threading.Thread(target=spin, name="packml-spin", daemon=True)
+    thread.start()
+    return thread

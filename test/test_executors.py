@@ -7,7 +7,6 @@ delivered such messages 0.1 ms to 3 s after DDS received them (p50 about 200 ms 
 
 from __future__ import annotations
 
-import contextlib
 import statistics
 import threading
 import time
@@ -16,27 +15,15 @@ from typing import Any
 import pytest
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from packml_ros2.executors import MultiThreadedExecutor
+from packml_ros2.executors import MultiThreadedExecutor, spin_in_thread
 
 pytestmark = pytest.mark.ros
 CALLS = 40
-
-
-def _spun(context: Context, executor: Any, node: Node) -> threading.Thread:
-    executor.add_node(node)
-
-    def spin() -> None:
-        with contextlib.suppress(ExternalShutdownException, rclpy.executors.ShutdownException):
-            executor.spin()
-
-    thread = threading.Thread(target=spin, daemon=True)
-    thread.start()
-    return thread
 
 
 def test_a_message_reaches_its_callback_while_service_calls_are_answered(ros_domain: int) -> None:
@@ -66,7 +53,7 @@ def test_a_message_reaches_its_callback_while_service_calls_are_answered(ros_dom
     client = user.create_client(Trigger, f"{base}/ping")
     executors = [SingleThreadedExecutor(context=contexts[0]),
                  MultiThreadedExecutor(num_threads=4, context=contexts[1])]  # fmt: skip
-    threads = [_spun(c, e, n) for c, e, n in zip(contexts, executors, (server, user), strict=True)]
+    threads = [spin_in_thread(e, n) for e, n in zip(executors, (server, user), strict=True)]
     try:
         assert client.wait_for_service(timeout_sec=30)
         # the subscription matched: one answer's message arrives (discovery, not timed)

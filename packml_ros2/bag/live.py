@@ -26,7 +26,6 @@ behaviour (EM leases, state timeouts, dwell times) happens in real time on the l
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import threading
@@ -322,11 +321,10 @@ def replay_live(
     """Feed the recording at ``path`` to the running units (see the module docstring)."""
     import rclpy
     from rclpy.context import Context
-    from rclpy.executors import ExternalShutdownException
 
     from .. import run
     from ..boundary import GuardedNode as Node
-    from ..executors import MultiThreadedExecutor
+    from ..executors import MultiThreadedExecutor, spin_in_thread
 
     if speed <= 0:
         raise ValueError("--speed must be > 0")
@@ -344,14 +342,7 @@ def replay_live(
     rclpy.init(**kwargs)
     node = Node(f"packml_replay_live_{threading.get_ident() % 100000}", context=context)
     executor = MultiThreadedExecutor(context=context)
-    executor.add_node(node)
-
-    def spin() -> None:
-        with contextlib.suppress(ExternalShutdownException, rclpy.executors.ShutdownException):
-            executor.spin()
-
-    thread = threading.Thread(target=spin, daemon=True)
-    thread.start()
+    thread = spin_in_thread(executor, node)
     try:
         return _run(rec.path, node, chosen, speed, timeout, settle, t_start)
     finally:

@@ -22,7 +22,6 @@ started in them are removed at teardown, also when the test fails.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import signal
@@ -258,27 +257,19 @@ def _to_data(value: Any) -> Any:
 
 def _observe(cell: str, units: list[str]) -> int:
     import rclpy
-    from rclpy.executors import ExternalShutdownException
     from rclpy.node import Node
     from std_srvs.srv import Trigger
 
     from packml_ros2 import run
     from packml_ros2.client import CellProxy
-    from packml_ros2.executors import MultiThreadedExecutor
+    from packml_ros2.executors import MultiThreadedExecutor, spin_in_thread
 
     run.default_environment()
     rclpy.init()
     node = Node(f"observer_{os.getpid()}")
     proxy = CellProxy(node, cell, units)
     executor = MultiThreadedExecutor(num_threads=4)
-    executor.add_node(node)
-
-    def spin() -> None:
-        with contextlib.suppress(ExternalShutdownException, rclpy.executors.ShutdownException):
-            executor.spin()
-
-    thread = threading.Thread(target=spin, daemon=True)
-    thread.start()
+    thread = spin_in_thread(executor, node)
     clients: dict[str, Any] = {}
 
     def trigger(name: str, timeout: float = 20.0) -> dict[str, Any]:
