@@ -56,6 +56,7 @@ from typing import Any, TypeVar
 
 from builtin_interfaces.msg import Time
 from packml_interfaces.msg import EmReport, RecipeOrder, Status
+from rclpy.duration import Duration
 from rclpy.serialization import deserialize_message
 
 from . import run
@@ -91,6 +92,7 @@ FAULT_ALARM_ID = 9100  # default ID of the alarm raised when a hook fails
 #: Heartbeats per lease on ``em_heartbeats`` (best effort): a cut of the link up to the lease less
 #: one period (and the transit) never loses the EM.
 BEATS_PER_LEASE = 10
+LEAVE_ACK = 1.0  #: seconds a closing EM waits for its goodbye to be acknowledged
 _STATUS_FIELDS = ["state_current", "sequence", "unit_mode_current", "unit_mode_requested",
                   "unit_mode_change_in_process"]  # fmt: skip
 _EM_FIELDS = ["name", "active", "state_complete"]
@@ -486,6 +488,9 @@ class EquipmentModule(GuardedNode):
             return  # nobody to tell any more
         with contextlib.suppress(Exception):
             self._send(EmReport.KIND_LEAVE)
+            # the process ends next: a goodbye lost on the way would not be sent again, and the
+            # unit would wait the whole lease instead of the grace (seen in CI)
+            self._pub.wait_for_all_acked(Duration(seconds=LEAVE_ACK))
         reason = run.shutdown_reason() or "node closed"
         self.get_logger().info(f"EM {self.em_name} left unit {self.unit_name} ({reason})")
 

@@ -62,6 +62,8 @@ class Cell:
         )
         for client in self.units.values():
             client.ready()
+            # its latched start-up transition too: marks() count from there
+            client.transitions.wait_for(lambda t: True, 10, "the latched transition")
         self.status.wait_for(lambda m: m.all_online, 10, "every unit online at the coordinator")
         ros.wait_for_service(Trigger, f"/{self.name}/coordinator/reset")
 

@@ -14,6 +14,7 @@ from packml_interfaces.srv import SetEmActive
 from packml_ros2 import qos
 from packml_ros2.core import Cmd, State
 from packml_ros2.equipment_module import EquipmentModule, StateContext
+from packml_ros2.testing.processes import wait_until
 from packml_ros2.unit_node import UnitNode
 from test.ros.cells import UnitClient, unit_config_of, write_cell
 
@@ -130,7 +131,8 @@ def test_state_complete_is_reported_when_the_hook_returns(ros, cell) -> None:
     client.trigger("start")
     execute = client.wait_state("EXECUTE")
     assert robot.names()[:2] == ["starting", "started"]
-    starting = next(t for t in client.transitions.messages if t.to_state_name == "EXECUTE")
+    # (status and transitions are two topics: the transition may come after the status)
+    starting = client.transitions.wait_for(lambda t: t.to_state_name == "EXECUTE", 5, "into Execute")  # fmt: skip
     assert starting.sequence == execute.sequence
     client.admin.wait_for(lambda a: a.prod_processed_count[0].count >= 1, 5, "a counted move")
 
@@ -291,6 +293,8 @@ def test_bytes_on_the_status_topic_that_are_no_status_are_refused_and_change_not
     cell_name, client = cell
     robot = em(ros, Robot, cell_name)
     online(client)
+    # online at the unit = its first report arrived; the unit's status reaches the EM on its own
+    wait_until(lambda: robot.status is not None, 10, what="the unit's status at the EM")
     before = robot.status
     assert before is not None and robot.state.name == "STOPPED"
     writer = ros.node.create_publisher(Status, f"/{cell_name}/u/status", qos.STATUS)
