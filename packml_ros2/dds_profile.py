@@ -104,25 +104,6 @@ def profile_xml(interfaces: Sequence[str]) -> str:
         <useBuiltinTransports>false</useBuiltinTransports>
       </rtps>
     </participant>
-    <!-- Every endpoint as rmw_fastrtps makes it (RMW_FASTRTPS_USE_QOS_FROM_XML=1 hands these
-         to this file: dds_profile.apply sets it), but readers: DYNAMIC, a received
-         sample's buffer is freed once taken. rmw_fastrtps's PREALLOCATED_WITH_REALLOC keeps, in
-         each slot of a reader's history (a service's: 256), a buffer the size of the largest
-         sample it ever held: oversized requests, refused at the boundary, stayed resident
-         (issue 25 item 14: +19 MB a service for 200 requests of 100 000 characters). -->
-    <data_writer profile_name="packml_writer" is_default_profile="true">
-      <qos>
-        <publishMode><kind>SYNCHRONOUS</kind></publishMode>
-        <data_sharing><kind>OFF</kind></data_sharing>
-      </qos>
-      <historyMemoryPolicy>PREALLOCATED_WITH_REALLOC</historyMemoryPolicy>
-    </data_writer>
-    <data_reader profile_name="packml_reader" is_default_profile="true">
-      <qos>
-        <data_sharing><kind>OFF</kind></data_sharing>
-      </qos>
-      <historyMemoryPolicy>DYNAMIC</historyMemoryPolicy>
-    </data_reader>
   </profiles>
 </dds>
 """
@@ -149,5 +130,4 @@ def apply(cell: CellConfig) -> Path | None:
     temporary.write_text(profile_xml(here), encoding="utf-8")
     temporary.replace(path)  # (another launcher of the cell reads a whole file)
     os.environ["FASTDDS_DEFAULT_PROFILES_FILE"] = str(path)
-    os.environ["RMW_FASTRTPS_USE_QOS_FROM_XML"] = "1"  # its endpoint profiles (paths.py)
     return path

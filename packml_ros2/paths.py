@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import sys
-from collections.abc import MutableMapping
 from pathlib import Path
 
 PACKAGE = "packml_ros2"
@@ -45,13 +44,3 @@ def fastdds_profile(discovery_range: str = "") -> Path:
     if discovery_range.strip().upper() == "LOCALHOST":
         return config_dir() / "fastdds_loopback.xml"
     return config_dir() / "fastdds_localhost.xml"
-
-
-def endpoint_profiles(env: MutableMapping[str, str]) -> None:
-    """With a profile of this package selected (config/fastdds_*.xml), rmw_fastrtps takes the
-    history memory policy of every endpoint from it (readers free each sample's buffer: no
-    request of any size stays resident, issue 25 item 14). A profile of the user's own keeps
-    rmw_fastrtps's settings; an explicit RMW_FASTRTPS_USE_QOS_FROM_XML wins."""
-    chosen = env.get("FASTDDS_DEFAULT_PROFILES_FILE", "")
-    if chosen in (str(fastdds_profile("LOCALHOST")), str(fastdds_profile())):
-        env.setdefault("RMW_FASTRTPS_USE_QOS_FROM_XML", "1")

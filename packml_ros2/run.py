@@ -25,7 +25,7 @@ from .core import discovery
 from .core.discovery import DiscoveryConfig
 from .core.safe_yaml import read_document
 from .executors import MultiThreadedExecutor
-from .paths import endpoint_profiles, fastdds_profile
+from .paths import fastdds_profile
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
@@ -70,7 +70,6 @@ def default_environment(tool: bool = False) -> None:
     profile = fastdds_profile(discovery_range)  # LOCALHOST: transports on loopback only
     if profile.exists():
         os.environ.setdefault("FASTDDS_DEFAULT_PROFILES_FILE", str(profile))
-    endpoint_profiles(os.environ)
     if tool and os.environ.get("ROS_DISCOVERY_SERVER", "").strip():
         os.environ.setdefault("ROS_SUPER_CLIENT", "TRUE")
 

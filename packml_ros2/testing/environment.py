@@ -16,7 +16,7 @@ import random
 from pathlib import Path
 from typing import IO
 
-from ..paths import endpoint_profiles, fastdds_profile
+from ..paths import fastdds_profile
 
 LOCK_DIR = Path(os.environ.get("PACKML_DOMAIN_LOCK_DIR", "/tmp/packml_ros2_domains"))
 DOMAINS = range(10, 100)  # Fast DDS ports for 0..101 fit under 32768; keep 0..9 for people
@@ -31,7 +31,6 @@ def localhost_environment(env: dict[str, str] | None = None) -> dict[str, str]:
     profile = fastdds_profile("LOCALHOST")  # transports on loopback only
     if profile.exists():
         target.setdefault("FASTDDS_DEFAULT_PROFILES_FILE", str(profile))
-    endpoint_profiles(target)
     return dict(target)
 
 
