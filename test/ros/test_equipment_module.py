@@ -327,6 +327,8 @@ def test_a_status_from_a_second_writer_does_not_drive_the_em(ros, cell) -> None:
     cell_name, client = cell
     robot = em(ros, Resetter, cell_name)
     online(client)
+    # the EM binds the first status writer it hears: the unit's, before the forger writes
+    wait_until(lambda: robot.status is not None, 10, what="the unit's status at the EM")
     real = client.status.last
     assert real is not None and real.state_current_name == "STOPPED"
     forger = ros.node.create_publisher(Status, f"/{cell_name}/u/status", qos.STATUS)
