@@ -5,7 +5,7 @@ pool and returns to its wait loop at once. Until a pool thread has *started* tha
 loop yields the same task again (it is neither executing nor done), submits it once more and
 waits on a wait set that its own guard condition keeps waking: the spinning thread runs hot and
 holds the GIL, and the pool threads that would run the callback hardly get it. Measured here
-(``test/ros/test_executors.py``; a unit's status while the test's service call was answered): a
+(``test/test_executors.py``; a unit's status while the test's service call was answered): a
 subscription's message, received by DDS within a millisecond, reached its callback 0.1 ms to
 3 s later (p50 about 200 ms); with this executor 0.1 to 0.3 ms. The CLI, the coordinator's
 blocking services, live replay and the tests' harness all spin with it.

@@ -333,10 +333,10 @@ class Performance:
                 if unit == self.output and self.started is not None and at >= self.started:
                     self._count(LINE, at, dp, dd, tr.design)
         tr.processed, tr.defective = processed, defective
-        if stop_reason:
-            tr.stop_reason, tr.stop_reason_at = dict(stop_reason), int(stop_reason.get("time", t))
-        else:
+        if not stop_reason:
             tr.stop_reason = None
+            return  # (the root unit's reason, if any, was taken when it came or the root changed)
+        tr.stop_reason, tr.stop_reason_at = dict(stop_reason), int(stop_reason.get("time", t))
         if self.episode is not None:
             self._explain(self.episode)
 
