@@ -11,6 +11,7 @@ from typing import Any, Generic, TypeVar
 
 import rclpy
 from rclpy.context import Context
+from rclpy.event_handler import QoSSubscriptionMatchedInfo, SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
@@ -21,11 +22,26 @@ M = TypeVar("M")
 
 
 class Collector(Generic[M]):
-    """Messages of one subscription, with waiting."""
+    """Messages of one subscription, with waiting. A wait that times out says how many writers
+    the subscription had matched and how many the graph held (:meth:`RosHarness.subscribe`):
+    a writer seen but never matched is a discovery that went one way, one matched that sent
+    nothing a writer or a transport that failed."""
 
     def __init__(self) -> None:
         self.messages: list[M] = []
         self._cond = threading.Condition()
+        self.matched = 0  #: writers matched now (the subscription's matched event)
+        self._graph: Callable[[], int] | None = None  # writers of the topic in the graph
+
+    def on_matched(self, info: QoSSubscriptionMatchedInfo) -> None:
+        self.matched = info.current_count
+
+    def _writers(self) -> str:
+        try:
+            graph = self._graph() if self._graph is not None else "?"
+        except Exception:  # the node is gone: the count is what is missing, not the message
+            graph = "?"
+        return f"writers matched {self.matched}, in the graph {graph}"
 
     def __call__(self, msg: M) -> None:
         with self._cond:
@@ -58,7 +74,8 @@ class Collector(Generic[M]):
                 if remaining <= 0:
                     tail = self.messages[-3:]
                     raise TimeoutError(
-                        f"no message {what or 'matching'} within {timeout:g} s; last: {tail}"
+                        f"no message {what or 'matching'} within {timeout:g} s "
+                        f"({self._writers()}); last: {tail}"
                     )
                 self._cond.wait(remaining)
 
@@ -143,7 +160,14 @@ class RosHarness:
 
     def subscribe(self, msg_type: type[M], topic: str, qos: QoSProfile | int = 10) -> Collector[M]:
         collector: Collector[M] = Collector()
-        self.node.create_subscription(msg_type, topic, collector, qos)
+        sub = self.node.create_subscription(
+            msg_type,
+            topic,
+            collector,
+            qos,
+            event_callbacks=SubscriptionEventCallbacks(matched=collector.on_matched),
+        )
+        collector._graph = lambda: self.node.count_publishers(sub.topic_name)
         return collector
 
     def call(self, srv_type: Any, name: str, request: Any = None, timeout: float = 10.0) -> Any:

@@ -13,7 +13,7 @@ ROS domain of its own (per run and per pytest-xdist worker). Fixtures:
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from pathlib import Path
 
 import pytest
@@ -44,8 +44,23 @@ def ros(ros_domain: int) -> Iterator[object]:
         harness.close()
 
 
+@pytest.hookimpl(wrapper=True, tryfirst=True)
+def pytest_runtest_makereport(
+    item: pytest.Item, call: pytest.CallInfo[None]
+) -> Generator[None, pytest.TestReport, pytest.TestReport]:
+    """Keep each phase's report on the item: the ``processes`` fixture reads whether the test
+    failed."""
+    report = yield
+    setattr(item, f"packml_report_{call.when}", report)
+    return report
+
+
+#: characters of each process's log printed when a test fails (its last ones)
+LOG_TAIL = 4000
+
+
 @pytest.fixture
-def processes(tmp_path: Path) -> Iterator[object]:
+def processes(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[object]:
     from .processes import Processes
 
     log_dir = tmp_path / "logs"
@@ -54,6 +69,12 @@ def processes(tmp_path: Path) -> Iterator[object]:
     try:
         yield procs
     finally:
+        report = getattr(request.node, "packml_report_call", None)
+        if report is not None and report.failed:
+            # what the nodes said is what a failure in CI needs (tmp_path is gone by then)
+            for proc in procs.started:
+                print(f"--- {proc.name} (pid {proc.pid}) log, last {LOG_TAIL} characters ---")
+                print(proc.output()[-LOG_TAIL:])
         failures = procs.close()
         if failures:
             print(failures)
