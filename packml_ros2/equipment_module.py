@@ -96,6 +96,10 @@ LEAVE_ACK = 1.0  #: seconds a closing EM waits for its goodbye to be acknowledge
 _STATUS_FIELDS = ["state_current", "sequence", "unit_mode_current", "unit_mode_requested",
                   "unit_mode_change_in_process"]  # fmt: skip
 _EM_FIELDS = ["name", "active", "state_complete"]
+#: leases the unit's status writer may be on the graph before an EM that heard no status from it
+#: says so (the status is latched: it arrives as soon as the two have matched)
+SILENCE = 2.0
+
 #: What an EM reads of each status, straight from its bytes (a quarter of a full decode's time;
 #: the full message is decoded only for who reads :attr:`EquipmentModule.unit_status`).
 _read_status = field_reader(Status, _STATUS_FIELDS, {"equipment_modules": _EM_FIELDS})
@@ -291,6 +295,7 @@ class EquipmentModule(GuardedNode):
         restart, core.reports.Writers)."""
         self._send(EmReport.KIND_HEARTBEAT)
         self._watch_unit()
+        self._watch_silence()
         reported, status = self._reported, self.status
         if reported is None or status is None:
             return
@@ -319,6 +324,8 @@ class EquipmentModule(GuardedNode):
         self._unit_writer = Writers()
         self._candidate: tuple[bytes, bytes] | None = None  # (writer, raw) last refused
         self.unit_lost = False  # the unit's status writer is gone: in the safe state
+        self._silent_since = time.monotonic()  # for the silence of a unit seen on the graph
+        self.silence_warned = False
         status = interface.TOPIC["status"]
         self._status_sub = self.create_subscription(
             status.type, status.name, with_info(self._on_status_from), status.qos, raw=True
@@ -363,6 +370,26 @@ class EquipmentModule(GuardedNode):
             self._on_status_from_bound(candidate[1])
             return
         self._unit_gone()
+
+    def _watch_silence(self) -> None:
+        """Timer: the unit's status writer has been on the graph for :data:`SILENCE` leases and
+        no status reached this EM (the status is latched: one arrives as soon as the two
+        match): say so once, with what the EM knows. A unit that is not there yet is no news."""
+        if self.status is not None or self.silence_warned or self.unit_lost:
+            return
+        writers = self.get_publishers_info_by_topic(self._status_sub.topic_name)
+        if not writers:
+            self._silent_since = time.monotonic()  # (counted from when the unit shows up)
+            return
+        waited = time.monotonic() - self._silent_since
+        if waited < SILENCE * self.lease:
+            return
+        self.silence_warned = True
+        self.get_logger().warning(
+            f"unit {self.unit_name}: {len(writers)} status writer(s) on the graph, but no "
+            f"status reached this EM in {waited:.1f} s ({self.refused_statuses} refused); "
+            "it cannot follow the unit until one does"
+        )
 
     def _on_status_from_bound(self, raw: bytes) -> None:
         if self.unit_lost:

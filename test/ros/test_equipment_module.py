@@ -400,3 +400,33 @@ def test_stop_during_a_move_then_another_ems_alarm_does_not_cut_the_move(
     assert names[last_begin:] == ["move begin", "move end", "stopping"], names
     assert arm.when("move end") >= arm.when("move begin") + 1.5
     assert stopping_at.state_current_name == "STOPPING"
+
+
+def test_an_em_that_hears_no_status_from_a_unit_on_the_graph_says_so(ros, tmp_path: Path) -> None:
+    """A unit's status writer on the graph whose status never reaches the EM (here: a writer
+    that can never match it, best effort against the EM's reliable reader) is said once after
+    SILENCE leases; a unit that is not there yet is no news."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from packml_ros2.equipment_module import SILENCE
+
+    _, cell_name = write_cell(tmp_path, {"u": {"equipment_modules": {"robot": {}}}})
+    robot = em(ros, Resetter, cell_name, lease=0.4)
+    time.sleep(SILENCE * 0.4 + 0.5)  # longer than the silence allowed: nobody writes yet
+    assert not robot.silence_warned
+    deaf = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+    writer = ros.node.create_publisher(Status, f"/{cell_name}/u/status", deaf)
+    seen = time.monotonic()
+    wait_until(lambda: robot.silence_warned, 10, what="the EM saying it hears nothing")
+    assert time.monotonic() - seen >= SILENCE * 0.4 - 0.3  # counted from the writer's arrival
+    assert robot.status is None and writer.get_subscription_count() == 0
+
+
+def test_an_em_that_follows_its_unit_says_nothing_of_silence(ros, cell) -> None:
+    from packml_ros2.equipment_module import SILENCE
+
+    cell_name, _client = cell
+    robot = em(ros, Resetter, cell_name, lease=0.4)
+    wait_until(lambda: robot.status is not None, 10, what="the unit's status at the EM")
+    time.sleep(SILENCE * 0.4 + 0.5)
+    assert not robot.silence_warned
