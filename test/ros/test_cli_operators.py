@@ -127,11 +127,11 @@ def lines_as_they_come(
                     line, buffer = buffer.split(b"\n", 1)
                     lines.append((now, line.decode().rstrip("\r")))
                 continue
-        if proc.poll() is not None and not ready:
-            ended = ended or time.monotonic()
+            ended = now  # end of file: the process closed its output (it ends with it)
             break
         if proc.poll() is not None:
-            ended = ended or time.monotonic()
+            ended = time.monotonic()
+            break
     if tty:
         os.close(master)
     code = proc.wait(10)
