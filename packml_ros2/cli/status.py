@@ -83,10 +83,20 @@ def wait_cell(cell: CellProxy, timeout: float) -> dict[str, str]:
         changed.wait(min(remaining, 0.25))  # (a lease the coordinator ends sends a cell status)
     lost = lost_units(cell)
     return {
-        u.name: lost.get(u.name, f"no status within {timeout:g} s (not reachable?)")
+        u.name: lost.get(u.name, f"no status within {timeout:g} s ({_writers(u)})")
         for u in cell.units.values()
         if u.status is None or u.name in lost
     }
+
+
+def _writers(unit: UnitProxy) -> str:
+    """Why a unit's status may not have come: whether its status writer is on the graph and
+    matched (none on the graph: the unit is not reachable; on it but not matched: discovery
+    went one way)."""
+    graph = unit.node.count_publishers(f"{unit.path}/status")
+    if not graph:
+        return "not reachable: no status writer on the graph"
+    return f"its status writer is on the graph, {unit.publishers('status')} matched"
 
 
 def counts(unit: UnitProxy) -> str:

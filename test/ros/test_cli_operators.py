@@ -176,3 +176,25 @@ def test_a_cell_stop_shows_each_units_progress_as_it_happens(
     assert ended - first >= 1.0, (
         f"the first progress line came {ended - first:.2f} s before the end:\n{text}"
     )
+
+
+def test_status_of_a_unit_not_started_says_no_writer_is_on_the_graph(
+    ros: Any, processes: Any, tmp_path: Path
+) -> None:
+    """A unit of the cell file that was never started: after the timeout, ``packml status``
+    says why there is no status (no writer on the graph), not a question."""
+    units = {name: {} for name in ("infeed", "filler")}
+    # a lease longer than the test: the coordinator has not given filler up yet (then it is lost)
+    cell_file, cell = write_cell(tmp_path, units, {"unit_lease": 60.0})
+    start_unit_process(processes, cell_file, "infeed")
+    processes.module("coordinator", "packml_ros2.coordinator_node", str(cell_file))
+    status: Collector[CellStatus] = ros.subscribe(
+        CellStatus, f"/{cell}/coordinator/status", qos.CELL_STATUS
+    )
+    status.wait_for(lambda m: len(m.units) == 2, 30, "the coordinator listing both units")
+    result, _ = packml("status", "--cell", cell, "--timeout", "2")
+    assert result.returncode == 3, result.stdout + result.stderr
+    assert "filler: no status within 2 s (not reachable: no status writer on the graph)" in (
+        result.stderr
+    ), result.stderr
+    assert "infeed" not in result.stderr, result.stderr
