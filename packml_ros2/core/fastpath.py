@@ -18,6 +18,7 @@ from typing import Any
 
 from .reasons import Answer
 from .rules import OPERATOR, Entry, Rules, Run
+from .times import ModeStateTimes
 
 #: A generated run: (unit, source) -> its answer, or None (the general loop decides).
 Go = Callable[[Any, str], Answer | None]
@@ -61,8 +62,14 @@ def source_of(run: Run) -> str:
         f"    unit.sequence = seq = seq + {n + 1}",
         "    unit.state = FINAL",
         "    unit.entered_at = t",
-        "    unit.times.enter_states(t, FIRST, FINAL, BETWEEN,"
-        " stops.planned_reason and stops.planned(MODE, FINAL))",
+        "    tm = unit.times",
+    ]
+    planned = "stops.planned_reason and stops.planned(MODE, FINAL)"
+    times = ModeStateTimes.enter_states_source(
+        "tm", "t", run.first, run.final, run.between, planned
+    )
+    lines += ["    " + line for line in times]
+    lines += [
         "    equipment = unit.equipment",
         "    if equipment.aggregating:  # (a run ends where the unit waits)",
         "        equipment.begin(FINAL, seq)",

@@ -104,6 +104,32 @@ class ModeStateTimes:
         self._state = last
         self._planned = planned
 
+    @staticmethod
+    def enter_states_source(
+        times: str, now: str, first: int, last: int, between: Sequence[int], planned: str
+    ) -> list[str]:
+        """:meth:`enter_states` as lines of code for a generated run (core/fastpath.py), with
+        its states as constants: the same updates without a call, on this hottest path. ``times``,
+        ``now`` and ``planned`` are the expressions the generated code passes (the differential
+        test of the fast path, test_a_compiled_run_does_what_the_general_loop_does, holds the
+        two equal)."""
+        return [
+            f"current = {times}.state_current",
+            f"base = {times}._base",
+            f"dt = {now} - {times}._since",
+            "if dt > 0.0:",
+            f"    i = base + {times}._state",
+            f"    {times}.mode_current[{times}._mode] += dt",
+            "    current[i] += dt",
+            f"    {times}.state_cumulative[i] += dt",
+            f"    if {times}._planned:",
+            f"        {times}.planned_stop += dt",
+            f"    {times}._since = {now}",
+            *(f"current[base + {int(state)}] = 0.0" for state in (first, *between, last)),
+            f"{times}._state = {int(last)}",
+            f"{times}._planned = {planned}",
+        ]
+
     def enter(self, now: float, mode: int, state: int, planned: bool = False) -> None:
         """The unit entered ``state`` and/or ``mode`` at ``now``: restart their current times."""
         self._close(now)
