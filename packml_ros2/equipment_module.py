@@ -99,6 +99,8 @@ _EM_FIELDS = ["name", "active", "state_complete"]
 #: leases the unit's status writer may be on the graph before an EM that heard no status from it
 #: says so (the status is latched: it arrives as soon as the two have matched)
 SILENCE = 2.0
+#: times an EM that hears no status subscribes again (every SILENCE leases), at most
+RESUBSCRIBE = 3
 
 #: What an EM reads of each status, straight from its bytes (a quarter of a full decode's time;
 #: the full message is decoded only for who reads :attr:`EquipmentModule.unit_status`).
@@ -326,8 +328,13 @@ class EquipmentModule(GuardedNode):
         self.unit_lost = False  # the unit's status writer is gone: in the safe state
         self._silent_since = time.monotonic()  # for the silence of a unit seen on the graph
         self.silence_warned = False
+        #: status subscriptions made again because none of them heard the unit (_watch_silence)
+        self.status_resubscribed = 0
+        self._status_sub = self._subscribe_status()
+
+    def _subscribe_status(self) -> Any:
         status = interface.TOPIC["status"]
-        self._status_sub = self.create_subscription(
+        return self.create_subscription(
             status.type, status.name, with_info(self._on_status_from), status.qos, raw=True
         )
 
@@ -374,8 +381,10 @@ class EquipmentModule(GuardedNode):
     def _watch_silence(self) -> None:
         """Timer: the unit's status writer has been on the graph for :data:`SILENCE` leases and
         no status reached this EM (the status is latched: one arrives as soon as the two
-        match): say so once, with what the EM knows. A unit that is not there yet is no news."""
-        if self.status is not None or self.silence_warned or self.unit_lost:
+        match): say so once, and subscribe again (up to :data:`RESUBSCRIBE` times, every
+        SILENCE leases). Seen in CI: an EM whose reader never got the status of a unit that had
+        its heartbeats. A unit that is not there yet is no news."""
+        if self.status is not None or self.unit_lost:
             return
         writers = self.get_publishers_info_by_topic(self._status_sub.topic_name)
         if not writers:
@@ -384,12 +393,21 @@ class EquipmentModule(GuardedNode):
         waited = time.monotonic() - self._silent_since
         if waited < SILENCE * self.lease:
             return
-        self.silence_warned = True
-        self.get_logger().warning(
-            f"unit {self.unit_name}: {len(writers)} status writer(s) on the graph, but no "
-            f"status reached this EM in {waited:.1f} s ({self.refused_statuses} refused); "
-            "it cannot follow the unit until one does"
-        )
+        if not self.silence_warned:
+            self.silence_warned = True
+            self.get_logger().warning(
+                f"unit {self.unit_name}: {len(writers)} status writer(s) on the graph, but no "
+                f"status reached this EM in {waited:.1f} s ({self.refused_statuses} refused): "
+                "subscribing again"
+            )
+        if self.status_resubscribed >= RESUBSCRIBE:
+            return
+        # A new reader matches the writer afresh and takes the latched status at once. The old
+        # one stays (destroying a subscription under rclpy 9.1's EventsExecutor can crash it,
+        # ros2/rclpy#1644); a status both deliver is the same status twice, which changes nothing.
+        self.status_resubscribed += 1
+        self._status_sub = self._subscribe_status()
+        self._silent_since = time.monotonic()
 
     def _on_status_from_bound(self, raw: bytes) -> None:
         if self.unit_lost:
@@ -439,6 +457,9 @@ class EquipmentModule(GuardedNode):
             self.refused_statuses += 1
             self.get_logger().warning(f"status refused: {exc}"[:200], throttle_duration_sec=10.0)
             return
+        now = self.status
+        if self.status_resubscribed and now is not None and view.sequence < now.sequence:
+            return  # an older status by another of this EM's readers (subscribed again)
         with self.hooks.lock:
             self._status_raw = raw
         self._on_status(view)

@@ -14,6 +14,7 @@ from packml_interfaces.srv import SetEmActive
 from packml_ros2 import qos
 from packml_ros2.core import Cmd, State
 from packml_ros2.equipment_module import EquipmentModule, StateContext
+from packml_ros2.ros import interface
 from packml_ros2.testing.processes import wait_until
 from packml_ros2.unit_node import UnitNode
 from test.ros.cells import UnitClient, unit_config_of, write_cell
@@ -408,7 +409,7 @@ def test_an_em_that_hears_no_status_from_a_unit_on_the_graph_says_so(ros, tmp_pa
     SILENCE leases; a unit that is not there yet is no news."""
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-    from packml_ros2.equipment_module import SILENCE
+    from packml_ros2.equipment_module import RESUBSCRIBE, SILENCE
 
     _, cell_name = write_cell(tmp_path, {"u": {"equipment_modules": {"robot": {}}}})
     robot = em(ros, Resetter, cell_name, lease=0.4)
@@ -420,6 +421,35 @@ def test_an_em_that_hears_no_status_from_a_unit_on_the_graph_says_so(ros, tmp_pa
     wait_until(lambda: robot.silence_warned, 10, what="the EM saying it hears nothing")
     assert time.monotonic() - seen >= SILENCE * 0.4 - 0.3  # counted from the writer's arrival
     assert robot.status is None and writer.get_subscription_count() == 0
+    # it subscribes again, every SILENCE leases, RESUBSCRIBE times at most
+    wait_until(lambda: robot.status_resubscribed == RESUBSCRIBE, 10, what="the resubscriptions")
+    time.sleep(SILENCE * 0.4 + 0.3)
+    assert robot.status_resubscribed == RESUBSCRIBE
+
+
+def test_an_em_deaf_to_its_units_status_subscribes_again_and_follows(ros, cell) -> None:
+    """Seen in CI: an EM whose reader never got the status of the unit that had its
+    heartbeats (the unit stuck in Resetting, waiting for it). Here its first reader drops
+    everything: the EM subscribes again after SILENCE leases and follows the unit."""
+
+    class DeafFirst(Resetter):
+        def _subscribe_status(self):  # type: ignore[no-untyped-def]
+            if getattr(self, "_deafened", False):
+                return super()._subscribe_status()
+            self._deafened = True
+            status = interface.TOPIC["status"]
+            return self.create_subscription(
+                status.type, status.name, lambda *_: None, status.qos, raw=True
+            )
+
+    cell_name, client = cell
+    robot = em(ros, DeafFirst, cell_name, lease=0.4)
+    online(client)
+    wait_until(lambda: robot.status is not None, 10, what="the status through the new reader")
+    assert robot.silence_warned and robot.status_resubscribed == 1
+    client.trigger("reset")
+    client.wait_state("IDLE")
+    assert robot.names()[-1].startswith("resetting")
 
 
 def test_an_em_that_follows_its_unit_says_nothing_of_silence(ros, cell) -> None:
