@@ -327,10 +327,14 @@ class EquipmentModule(GuardedNode):
         self._candidate: tuple[bytes, bytes] | None = None  # (writer, raw) last refused
         self.unit_lost = False  # the unit's status writer is gone: in the safe state
         self._silent_since = time.monotonic()  # for the silence of a unit seen on the graph
-        self.silence_warned = False
         #: status subscriptions made again because none of them heard the unit (_watch_silence)
         self.status_resubscribed = 0
         self._status_sub = self._subscribe_status()
+
+    @property
+    def silence_warned(self) -> bool:
+        """This EM said it heard no status from a unit on the graph (and subscribed again)."""
+        return self.status_resubscribed > 0
 
     def _subscribe_status(self) -> Any:
         status = interface.TOPIC["status"]
@@ -394,7 +398,6 @@ class EquipmentModule(GuardedNode):
         if waited < SILENCE * self.lease:
             return
         if not self.silence_warned:
-            self.silence_warned = True
             self.get_logger().warning(
                 f"unit {self.unit_name}: {len(writers)} status writer(s) on the graph, but no "
                 f"status reached this EM in {waited:.1f} s ({self.refused_statuses} refused): "

@@ -27,11 +27,11 @@ class Collector(Generic[M]):
     a writer seen but never matched is a discovery that went one way, one matched that sent
     nothing a writer or a transport that failed."""
 
-    def __init__(self) -> None:
+    def __init__(self, graph: Callable[[], int] | None = None) -> None:
         self.messages: list[M] = []
         self._cond = threading.Condition()
         self.matched = 0  #: writers matched now (the subscription's matched event)
-        self._graph: Callable[[], int] | None = None  # writers of the topic in the graph
+        self._graph = graph  # writers of the topic in the graph
 
     def on_matched(self, info: QoSSubscriptionMatchedInfo) -> None:
         self.matched = info.current_count
@@ -159,15 +159,14 @@ class RosHarness:
         return node
 
     def subscribe(self, msg_type: type[M], topic: str, qos: QoSProfile | int = 10) -> Collector[M]:
-        collector: Collector[M] = Collector()
-        sub = self.node.create_subscription(
+        collector: Collector[M] = Collector(lambda: self.node.count_publishers(topic))
+        self.node.create_subscription(
             msg_type,
             topic,
             collector,
             qos,
             event_callbacks=SubscriptionEventCallbacks(matched=collector.on_matched),
         )
-        collector._graph = lambda: self.node.count_publishers(sub.topic_name)
         return collector
 
     def call(self, srv_type: Any, name: str, request: Any = None, timeout: float = 10.0) -> Any:
