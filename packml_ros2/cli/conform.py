@@ -268,7 +268,7 @@ def conform(args: argparse.Namespace) -> int:
 
 def _conform(args: argparse.Namespace) -> int:
     from ..conform import report
-    from ..conform.plan import describe, plan
+    from ..conform.plan import describe, order, plan
     from ..conform.runner import Options, Runner
     from ..conform.target import Unreachable
     from ..core.rules import rules_of
@@ -302,6 +302,9 @@ def _conform(args: argparse.Namespace) -> int:
         return EXIT_UNAVAILABLE
     try:
         found = target.shown().last
+        cases = order(
+            rules, cases, *((found.mode, found.state) if found is not None else (None, None))
+        )
         where = (
             "unknown"
             if found is None

@@ -1,8 +1,8 @@
 """A conformance run: drive a :class:`~.target.Target` through the cases of a plan and judge
 every answer and every state it shows by the rule book (:mod:`.expect`).
 
-Pure: no ROS, no OPC UA (the target is the face); the clock is a parameter. For each case the
-runner first brings the target to the case's mode and state by the fewest commands the standard
+Pure: no ROS, no OPC UA (the target is the face); the clock is a parameter. The cases come in
+the order :func:`.plan.order` gives them (a tour). For each case the runner first brings the target to the case's mode and state by the fewest commands the standard
 accepts (a command that misbehaves on the way is a finding of its own and is not used again),
 then acts and judges:
 

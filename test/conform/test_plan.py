@@ -9,7 +9,7 @@ from xml.etree import ElementTree as ET
 import pytest
 
 from packml_ros2.conform import expect, report
-from packml_ros2.conform.plan import Case, groups_of, plan
+from packml_ros2.conform.plan import Case, _Tour, groups_of, order, plan
 from packml_ros2.conform.runner import Result, Run
 from packml_ros2.conform.target import History
 from packml_ros2.core.config import unit_config
@@ -73,6 +73,39 @@ def test_the_plan_of_each_profile() -> None:
     # the 2015 table: no Hold from Suspended, no Complete from Held or Suspended
     old = rules_of(unit_config("v", table=build_table("2015")))
     assert not expect.command(old, 1, S.SUSPENDED, Cmd.HOLD).accepted
+
+
+@pytest.mark.parametrize("profile", ["core", "modes", "all"])
+def test_a_run_takes_the_checks_as_a_tour_and_keeps_the_other_cases_in_place(profile: str) -> None:
+    cases = plan(RULES, profile, [1, 2, 3])
+    toured = order(RULES, cases, 1, S.STOPPED)
+    assert sorted(map(repr, toured)) == sorted(map(repr, cases))  # each case once
+    assert [i for i, c in enumerate(toured) if c.kind != "command"] == [
+        i for i, c in enumerate(cases) if c.kind != "command"
+    ]
+    assert [c for c in toured if c.kind != "command"] == [c for c in cases if c.kind != "command"]
+    for mode in (1, 2, 3):  # a mode's checks: the tour travels far less than the plan's order
+        mine = [c for c in cases if c.kind == "command" and c.mode == mode]
+        if not mine:
+            continue
+        tour = _Tour(RULES, mode)
+        start = S.STOPPED if mode == 1 and profile == "core" else mine[0].state
+        ran = [c for c in toured if c.kind == "command" and c.mode == mode]
+        assert tour.travel(start, ran) <= 0.6 * tour.travel(start, mine), mode
+    if profile == "core":
+        ran = [(c.state, Cmd(c.cmd)) for c in toured]
+        # from Stopped first the refusals there (nothing moves), then Reset: Idle is next
+        assert ran[:2] == [(S.STOPPED, Cmd.START), (S.STOPPED, Cmd.STOP)]
+        assert ran[8] == (S.STOPPED, Cmd.RESET) and ran[9][0] is S.IDLE
+        assert _Tour(RULES, 1).travel(S.STOPPED, toured) == 27  # the plan's order: 51
+
+
+def test_a_tour_from_where_the_target_was_found_or_from_nowhere() -> None:
+    cases = plan(RULES, "core", [1])
+    assert order(RULES, cases, 1, S.ABORTED)[0].state is S.ABORTED
+    assert order(RULES, cases, 1, S.ABORTING)[0].state is S.ABORTED  # it settles there
+    assert order(RULES, cases, None, None)[0].state is S.STOPPED  # the plan's first
+    assert order(RULES, cases, 2, S.HELD)[0].state is S.STOPPED  # another mode: the plan's
 
 
 def test_history_keeps_changes_only_and_waits() -> None:
