@@ -117,6 +117,9 @@ class Runner:
         self.run = Run()
         self._sequence_stuck = False  # the target's sequence number did not move once
         self._unreachable_modes: dict[int, str] = {}  # mode -> why a change to it failed
+        #: the last two Admin readings of a stay, with the history's mark they were taken at: the
+        #: time checks of one stay share them (the target did not move since)
+        self._readings: tuple[int, AdminView, AdminView] | None = None
 
     # -- names -------------------------------------------------------------------------------------
     def mode_name(self, mode: int) -> str:
@@ -545,9 +548,12 @@ class Runner:
         return self._counters_reset(case)
 
     def _two_readings(self, case: Case) -> tuple[AdminView, AdminView] | Result:
-        """Two Admin readings :data:`TIME_WINDOW` apart while the target stays put."""
+        """Two Admin readings :data:`TIME_WINDOW` apart while the target stays put (those of
+        the check before, when the target has shown nothing since)."""
         history = self.target.shown()
         mark = history.mark()
+        if self._readings is not None and self._readings[0] == mark:
+            return self._readings[1], self._readings[2]
         if self._admin(None) is None:
             return Result(case, "skip", "the target shows no Admin PackTags")
         entered = history.last.at if history.last is not None else None
@@ -566,6 +572,7 @@ class Runner:
             )
         if history.since(mark):
             return Result(case, "fail", "the target moved while it was left alone")
+        self._readings = (mark, first, second)
         return first, second
 
     def _growth(
