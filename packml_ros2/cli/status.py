@@ -68,6 +68,7 @@ def wait_cell(cell: CellProxy, timeout: float) -> dict[str, str]:
     for u in cell.units.values():
         u.on_change = cell.on_change
     deadline = time.monotonic() + timeout
+    again_at = deadline - timeout / 2  # a unit's writer on the graph, nothing came: subscribe again
     while True:
         changed.clear()
         lost = lost_units(cell)
@@ -80,6 +81,12 @@ def wait_cell(cell: CellProxy, timeout: float) -> dict[str, str]:
         remaining = deadline - time.monotonic()
         if not waiting or remaining <= 0:
             break
+        if time.monotonic() >= again_at:
+            again_at = float("inf")
+            for unit in waiting:
+                deaf = [t for t in ("status", "admin") if unit.deaf(t)]
+                if deaf:  # (none given: resubscribe() takes every topic)
+                    unit.resubscribe(*deaf)
         changed.wait(min(remaining, 0.25))  # (a lease the coordinator ends sends a cell status)
     lost = lost_units(cell)
     return {
