@@ -54,3 +54,39 @@ def test_a_wait_that_times_out_says_which_writers_the_subscription_had(ros) -> N
         seen.wait_for(lambda m: m.data == "never", 0.2, "a probe")
     pub.publish(String(data="hello"))
     assert seen.wait_for(lambda m: True, 10).data == "hello"
+
+
+def test_a_latched_subscription_deaf_half_way_through_a_wait_is_replaced(ros) -> None:
+    """A first reader that drops everything (as the deaf reader seen in CI): half way through
+    the wait, with the writer on the graph, the harness subscribes again and the new reader
+    takes the latched sample; the old one is gone, so nothing arrives twice."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+    from std_msgs.msg import String
+
+    latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    pub = ros.node.create_publisher(String, "/harness_latched", latched)
+    pub.publish(String(data="latched"))
+    real = ros.node.create_subscription
+    calls: list[str] = []
+
+    def deaf_first(msg_type, topic, callback, *args, **kwargs):  # type: ignore[no-untyped-def]
+        calls.append(topic)
+        return real(msg_type, topic, callback if len(calls) > 1 else (lambda m: None), *args,
+                    **kwargs)  # fmt: skip
+
+    ros.node.create_subscription = deaf_first
+    try:
+        seen = ros.subscribe(String, "/harness_latched", latched)
+        assert seen.wait_for(lambda m: True, 6, "the latched sample").data == "latched"
+    finally:
+        del ros.node.create_subscription
+    assert seen.resubscribed and calls == ["/harness_latched"] * 2
+    pub.publish(String(data="next"))
+    assert seen.wait_for(lambda m: m.data == "next", 10).data == "next"
+    assert [m.data for m in seen.messages] == ["latched", "next"]  # the deaf one was destroyed
+    # a volatile subscription is never replaced: a message it missed is not sent again
+    plain = ros.subscribe(String, "/harness_plain", 10)
+    ros.node.create_publisher(String, "/harness_plain", 10)
+    with pytest.raises(TimeoutError):
+        plain.wait_for(lambda m: True, 0.4)
+    assert not plain.resubscribed

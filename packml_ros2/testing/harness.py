@@ -14,7 +14,7 @@ from rclpy.context import Context
 from rclpy.event_handler import QoSSubscriptionMatchedInfo, SubscriptionEventCallbacks
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import QoSProfile
+from rclpy.qos import DurabilityPolicy, QoSProfile
 
 from ..executors import MultiThreadedExecutor
 
@@ -27,11 +27,16 @@ class Collector(Generic[M]):
     a writer seen but never matched is a discovery that went one way, one matched that sent
     nothing a writer or a transport that failed."""
 
-    def __init__(self, graph: Callable[[], int] | None = None) -> None:
+    def __init__(
+        self, graph: Callable[[], int] | None = None, again: Callable[[], None] | None = None
+    ) -> None:
         self.messages: list[M] = []
         self._cond = threading.Condition()
         self.matched = 0  #: writers matched now (the subscription's matched event)
         self._graph = graph  # writers of the topic in the graph
+        #: a latched topic's new subscription in place of the old one (once; see wait_for)
+        self._again = again
+        self.resubscribed = False
 
     def on_matched(self, info: QoSSubscriptionMatchedInfo) -> None:
         self.matched = info.current_count
@@ -61,23 +66,37 @@ class Collector(Generic[M]):
         self, predicate: Callable[[M], bool], timeout: float = 10.0, what: str = "", start: int = 0
     ) -> M:
         """The first message (already received or coming) for which ``predicate`` holds, looking
-        at messages from index ``start`` on (``len(collector)`` before an action: only newer ones)."""
-        deadline = time.monotonic() + timeout
+        at messages from index ``start`` on (``len(collector)`` before an action: only newer ones).
+        A latched topic's subscription that has received nothing half way through the wait,
+        while a writer is on the graph, is replaced by a new one, once: a reader DDS never
+        served the latched sample stays deaf (seen in CI), a new one takes it at once."""
+        now = time.monotonic()
+        deadline, again_at = now + timeout, now + timeout / 2
         seen = start
-        with self._cond:
-            while True:
-                for msg in self.messages[seen:]:
-                    if predicate(msg):
-                        return msg
-                seen = len(self.messages)
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    tail = self.messages[-3:]
-                    raise TimeoutError(
-                        f"no message {what or 'matching'} within {timeout:g} s "
-                        f"({self._writers()}); last: {tail}"
-                    )
-                self._cond.wait(remaining)
+        while True:
+            with self._cond:
+                while True:
+                    for msg in self.messages[seen:]:
+                        if predicate(msg):
+                            return msg
+                    seen = len(self.messages)
+                    now = time.monotonic()
+                    if now >= deadline:
+                        tail = self.messages[-3:]
+                        raise TimeoutError(
+                            f"no message {what or 'matching'} within {timeout:g} s "
+                            f"({self._writers()}); last: {tail}"
+                        )
+                    if self._again is not None and not self.messages and now >= again_at:
+                        break
+                    wake = deadline if self._again is None or self.messages else again_at
+                    self._cond.wait(wake - now)
+            again_at = deadline  # (outside the lock: the executor's thread may be waiting on it)
+            if self._graph is not None and self._graph() > 0:
+                again, self._again = self._again, None
+                if again is not None:
+                    again()
+                    self.resubscribed = True
 
     def wait_count(self, n: int, timeout: float = 10.0) -> list[M]:
         deadline = time.monotonic() + timeout
@@ -159,14 +178,30 @@ class RosHarness:
         return node
 
     def subscribe(self, msg_type: type[M], topic: str, qos: QoSProfile | int = 10) -> Collector[M]:
-        collector: Collector[M] = Collector(lambda: self.node.count_publishers(topic))
-        self.node.create_subscription(
-            msg_type,
-            topic,
-            collector,
-            qos,
-            event_callbacks=SubscriptionEventCallbacks(matched=collector.on_matched),
+        """A subscription's messages; a latched one (transient local) is replaced by a new one
+        when a wait finds it deaf (:meth:`Collector.wait_for`)."""
+        subs: list[Any] = []
+
+        def make() -> None:
+            subs.append(
+                self.node.create_subscription(
+                    msg_type,
+                    topic,
+                    collector,
+                    qos,
+                    event_callbacks=SubscriptionEventCallbacks(matched=collector.on_matched),
+                )
+            )
+
+        def again() -> None:
+            make()
+            self.node.destroy_subscription(subs.pop(0))
+
+        latched = isinstance(qos, QoSProfile) and qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
+        collector: Collector[M] = Collector(
+            lambda: self.node.count_publishers(topic), again if latched else None
         )
+        make()
         return collector
 
     def call(self, srv_type: Any, name: str, request: Any = None, timeout: float = 10.0) -> Any:

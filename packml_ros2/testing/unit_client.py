@@ -35,16 +35,8 @@ class UnitClient:
 
     def ready(self, timeout: float = 15.0) -> None:
         self.ros.wait_for_service(Command, f"{self.base}/command", timeout)
-        try:
-            self.status.wait_for(lambda m: True, timeout / 2, "any status")
-        except TimeoutError:
-            # A reader that never got the latched status of a unit on the graph (seen in CI, as
-            # an EM's: equipment_module._watch_silence): a new one takes it as soon as it matches.
-            topic = interface.TOPIC["status"]
-            self.ros.node.create_subscription(
-                topic.type, topic.path(self.base), self.status, topic.qos
-            )
-            self.status.wait_for(lambda m: True, timeout / 2, "any status (subscribed again)")
+        # (a status reader that stays deaf is replaced half way: Collector.wait_for)
+        self.status.wait_for(lambda m: True, timeout, "any status")
 
     def forget(self) -> None:
         """Drop everything received so far (e.g. before restarting the unit)."""
