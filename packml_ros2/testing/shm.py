@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 SHM = Path("/dev/shm")
@@ -47,13 +48,33 @@ def _in_use() -> set[str]:
     return used
 
 
-def stale_files() -> list[Path]:
-    """The Fast DDS files no process holds; none when that cannot be known for sure."""
+#: Seconds a file must have been left alone before it can be stale: a participant that is
+#: starting while the processes are scanned may have made its files and not yet opened or
+#: mapped them where the scan looked. (Deleting a live participant's port files is what made
+#: readers deaf to writers on their graph: the writer kept sending into the old, deleted
+#: segment; subscribing again did not help, the port is the participant's.)
+MIN_AGE = 10.0
+
+
+def _age(path: Path, now: float) -> float:
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        return 0.0
+    return now - max(st.st_mtime, st.st_ctime)
+
+
+def stale_files(min_age: float = MIN_AGE) -> list[Path]:
+    """The Fast DDS files no process holds and nothing changed for ``min_age`` seconds; none
+    when that cannot be known for sure. The files are listed before the processes are scanned:
+    a file made during the scan is not a candidate at all."""
+    candidates = [p for pattern in PATTERNS for p in SHM.glob(pattern)]
     try:
         used = _in_use()
     except _Unreadable:
         return []
-    return [p for pattern in PATTERNS for p in SHM.glob(pattern) if str(p) not in used]
+    now = time.time()
+    return [p for p in candidates if str(p) not in used and _age(p, now) >= min_age]
 
 
 def cleanup() -> int:
