@@ -158,10 +158,13 @@ class UnitProxy:
         if self._deaf_tries >= DEAF_TRIES or all(getattr(self, t) is not None for t in latched):
             self._deaf_timer.cancel()
             return
-        deaf = [t for t in latched if self.deaf(t)]
-        if deaf:
-            self._deaf_tries += 1
-            self.resubscribe(*deaf)
+        try:
+            deaf = [t for t in latched if self.deaf(t)]
+            if deaf:
+                self._deaf_tries += 1
+                self.resubscribe(*deaf)
+        except RuntimeError:  # (rclpy's InvalidHandle, RCLError) the node is being destroyed
+            self._deaf_tries = DEAF_TRIES  # a tool that gave up and closes: nothing to watch
 
     def publishers(self, topic: str) -> int:
         """How many writers of a followed ``topic`` this proxy's subscription has matched."""
@@ -292,6 +295,7 @@ class UnitProxy:
 
     def destroy(self) -> None:
         if self._deaf_timer is not None:
+            self._deaf_timer.cancel()
             self.node.destroy_timer(self._deaf_timer)
         for sub in self._subs.values():
             self.node.destroy_subscription(sub)

@@ -51,7 +51,10 @@ class Session:
         except RuntimeError as exc:
             # rclpy 9.1: MultiThreadedExecutor.shutdown closes its thread pool while spin() may
             # still hand it a callback (ros2/rclpy#1724); nothing is lost at the end of a verb.
-            if not (self._closing and "after shutdown" in str(exc)):
+            # Also a callback that ends as the node is destroyed (InvalidHandle: "destruction was
+            # requested"), e.g. a proxy's deaf watch firing as a verb gives up and closes.
+            closed = "after shutdown" in str(exc) or "destruction was requested" in str(exc)
+            if not (self._closing and closed):
                 raise
 
     def close(self) -> None:
