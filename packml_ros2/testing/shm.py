@@ -24,43 +24,36 @@ def _in_use() -> set[str]:
     for proc in Path("/proc").iterdir():
         if not proc.name.isdigit():
             continue
-        # fds before maps: a file a process maps and then closes (open, mmap, close) is seen in
-        # one or the other, whenever the scan comes by
         try:
-            fds = list((proc / "fd").iterdir())
-            for fd in fds:
-                try:
-                    target = os.readlink(fd)
-                except FileNotFoundError:
-                    continue  # closed meanwhile: that one file is no longer held through it
-                except PermissionError:
-                    raise  # (the process is not this user's: below)
-                except OSError as exc:
-                    raise _Unreadable(f"{fd}: {exc}") from None
-                if target.startswith("/dev/shm/"):
-                    used.add(target)
             maps = (proc / "maps").read_text()
+            fds = list((proc / "fd").iterdir())
         except (FileNotFoundError, ProcessLookupError):
             continue  # the process has ended: its files are not in use
         except PermissionError:
             continue  # not this user's to read at all (a sandbox's init): not a node it started
-        except _Unreadable:
-            raise
         except OSError as exc:
             raise _Unreadable(f"{proc}: {exc}") from None
         for line in maps.splitlines():
             if "/dev/shm/" in line:
                 used.add(line[line.index("/dev/shm/") :].split(" (deleted)")[0])
+        for fd in fds:
+            try:
+                target = os.readlink(fd)
+            except FileNotFoundError:
+                continue  # closed meanwhile: that one file is no longer held through it
+            except OSError as exc:
+                raise _Unreadable(f"{fd}: {exc}") from None
+            if target.startswith("/dev/shm/"):
+                used.add(target)
     return used
 
 
-#: Deleting a live participant's port files is what made readers deaf to writers on their graph
-#: (the writers kept sending into the deleted port; subscribing again did not help, the port is
-#: the participant's): the files are listed before the processes are scanned, each process's
-#: fds before its maps. ``min_age``: seconds a file must have been left alone, for callers that
-#: want a margin (the default removes a killed process's files at once, as Fast DDS prefers a
-#: fresh port to a dead one it has to reclaim).
-MIN_AGE = 0.0
+#: Seconds a file must have been left alone before it can be stale: a participant that is
+#: starting while the processes are scanned may have made its files and not yet opened or
+#: mapped them where the scan looked. (Deleting a live participant's port files is what made
+#: readers deaf to writers on their graph: the writer kept sending into the old, deleted
+#: segment; subscribing again did not help, the port is the participant's.)
+MIN_AGE = 10.0
 
 
 def _age(path: Path, now: float) -> float:
