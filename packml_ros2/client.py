@@ -159,10 +159,8 @@ class UnitProxy:
             self._deaf_timer.cancel()
             return
         try:
-            deaf = [t for t in latched if self.deaf(t)]
-            if deaf:
+            if self.hear_again(*latched):
                 self._deaf_tries += 1
-                self.resubscribe(*deaf)
         except RuntimeError:  # (rclpy's InvalidHandle, RCLError) the node is being destroyed
             self._deaf_tries = DEAF_TRIES  # a tool that gave up and closes: nothing to watch
 
@@ -241,8 +239,14 @@ class UnitProxy:
                 else:
                     return True
             again_at = float("inf")  # (outside the lock: a subscription takes the node's locks)
-            if self.deaf(topic):
-                self.resubscribe(topic)
+            self.hear_again(topic)
+
+    def hear_again(self, *topics: str) -> bool:
+        """Subscribe again to those of ``topics`` that are :meth:`deaf`; whether any was."""
+        deaf = [t for t in topics if self.deaf(t)]
+        if deaf:  # (none given, resubscribe() would take every topic)
+            self.resubscribe(*deaf)
+        return bool(deaf)
 
     def deaf(self, topic: str) -> bool:
         """Whether this proxy follows ``topic``, has never received it, and its writer is on

@@ -84,9 +84,7 @@ def wait_cell(cell: CellProxy, timeout: float) -> dict[str, str]:
         if time.monotonic() >= again_at:
             again_at = float("inf")
             for unit in waiting:
-                deaf = [t for t in ("status", "admin") if unit.deaf(t)]
-                if deaf:  # (none given: resubscribe() takes every topic)
-                    unit.resubscribe(*deaf)
+                unit.hear_again("status", "admin")
         changed.wait(min(remaining, 0.25))  # (a lease the coordinator ends sends a cell status)
     lost = lost_units(cell)
     return {

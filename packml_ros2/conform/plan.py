@@ -170,12 +170,13 @@ class _Tour:
     def __init__(self, rules: Rules, mode: int) -> None:
         self.rules, self.mode = rules, mode
         self.dist: Callable[[State, State], float] = cache(self._dist)
+        self.land: Callable[[Case], State] = cache(self._land)  # (asked again in every rollout)
 
     def _dist(self, a: State, b: State) -> float:
         way = expect.route(self.rules, self.mode, a, [b])
         return float("inf") if way is None else len(way)
 
-    def land(self, case: Case) -> State:
+    def _land(self, case: Case) -> State:
         """Where the case's command leaves the target (refused: where it was)."""
         settle = expect.command(self.rules, self.mode, case.state, case.cmd).settle
         return case.state if settle is None else settle
