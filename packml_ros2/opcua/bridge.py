@@ -27,7 +27,7 @@ from typing import Any
 
 from asyncua import ua
 
-from ..client import CellProxy, Unavailable
+from ..client import CellProxy, Unavailable, UnitProxy
 from ..core.config import UnitConfig
 from ..core.limits import speed_limit, speed_refusal
 from ..core.numbers import Cmd
@@ -64,6 +64,7 @@ class RosSide:
         on_message: Callable[[str, str, Any], None],
         on_presence: Callable[[str, Seen], None],
         lease: float,
+        cell_object: bool = False,
     ) -> None:
         import rclpy
         from rclpy.context import Context
@@ -75,8 +76,9 @@ class RosSide:
         self._on_message = on_message
         self._on_presence = on_presence
         #: the presence of each unit as the loop knows it, and an event set while it is lost
-        self.seen: dict[str, Seen] = {u: Seen(None, time.time()) for u in units}
-        self._lost = {u: asyncio.Event() for u in units}
+        names = [*units, cell] if cell_object else list(units)
+        self.seen: dict[str, Seen] = {u: Seen(None, time.time()) for u in names}
+        self._lost = {u: asyncio.Event() for u in names}
         self.context = Context()
         rclpy.init(
             context=self.context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO
@@ -88,16 +90,61 @@ class RosSide:
         for proxy in self.cell.units.values():
             for service in USED_SERVICES:
                 proxy.client(service)
+        #: what a method calls, by object name: the units, and the cell's coordinator
+        self.proxies: dict[str, UnitProxy] = dict(self.cell.units)
         self.presence = Presence(
             self.node,
             [proxy.path for proxy in self.cell.units.values()],
             lease,
             on_change=self._presence_changed,
         )
+        self.cell_presence: Presence | None = None
+        if cell_object:
+            self._follow_cell(cell, lease)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self._stopping = threading.Event()
         self._thread = threading.Thread(target=self._spin, name="packml-opcua-ros", daemon=True)
+
+    def _follow_cell(self, cell: str, lease: float) -> None:
+        """The cell object's side (:mod:`.cell`): the coordinator's status and stop episodes,
+        translated to a unit's Status and Admin, its presence, and its command services."""
+        from packml_interfaces.msg import CellStatus, LineEpisode
+
+        from .. import qos
+        from . import cell as cell_object
+
+        path = cell_object.coordinator_path(cell)
+        proxy = self.proxies[cell] = UnitProxy(self.node, path, None, topics=())
+        for service in cell_object.SERVICES:
+            proxy.client(service)
+
+        def hand(topic: str, msg: Any) -> None:
+            with contextlib.suppress(RuntimeError):  # the loop is closed: shutting down
+                self.loop.call_soon_threadsafe(self._on_message, cell, topic, msg)
+
+        def on_status(msg: Any) -> None:
+            proxy.status = status = cell_object.cell_status(msg)
+            hand("status", status)
+
+        events = qos.quiet_events()
+        self.node.create_subscription(
+            CellStatus, f"{path}/status", on_status, qos.CELL_STATUS, event_callbacks=events
+        )
+        self.node.create_subscription(
+            LineEpisode,
+            f"{path}/line/episodes",
+            lambda msg: hand("admin", cell_object.cell_admin(msg)),
+            qos.LINE_EPISODES,
+            event_callbacks=events,
+        )
+        self.cell_presence = Presence(
+            self.node,
+            [path],
+            lease,
+            on_change=lambda _, seen: self._presence_of(cell, seen),
+            message_type=CellStatus,
+        )
 
     def start(self) -> None:
         self._thread.start()
@@ -114,8 +161,11 @@ class RosSide:
             self.loop.call_soon_threadsafe(self._on_message, unit, topic, msg)
 
     def _presence_changed(self, path: str, seen: Seen) -> None:
+        self._presence_of(path.rsplit("/", 1)[-1], seen)
+
+    def _presence_of(self, name: str, seen: Seen) -> None:
         with contextlib.suppress(RuntimeError):
-            self.loop.call_soon_threadsafe(self._apply_presence, path.rsplit("/", 1)[-1], seen)
+            self.loop.call_soon_threadsafe(self._apply_presence, name, seen)
 
     def _apply_presence(self, unit: str, seen: Seen) -> None:
         """In the loop: remember, wake the calls waiting on a lost unit, tell the server."""
@@ -129,12 +179,12 @@ class RosSide:
     def gone(self, unit: str) -> str:
         """Why ``unit`` cannot be called now ('' = it can)."""
         seen = self.seen[unit]
-        return seen.describe(self.cell.units[unit].path) if seen.present is False else ""
+        return seen.describe(self.proxies[unit].path) if seen.present is False else ""
 
     async def call(self, unit: str, service: str, timeout: float, **fields: Any) -> Any:
         """Call a unit's service from the asyncio loop; :class:`Unavailable` when it does not
         answer in time, or at once when the unit is (or becomes) lost."""
-        proxy = self.cell.units[unit]
+        proxy = self.proxies[unit]
         client = proxy.client(service)
         lost = self._lost[unit]
         deadline = time.monotonic() + timeout
@@ -166,6 +216,8 @@ class RosSide:
         if self._thread.is_alive():
             self._thread.join(5.0)
         self.presence.destroy()
+        if self.cell_presence is not None:
+            self.cell_presence.destroy()
         self.executor.shutdown(timeout_sec=1.0)
         self.node.destroy_node()
         self.context.try_shutdown()
@@ -367,7 +419,7 @@ class Methods:
 
     def _valid_now(self, command: Cmd) -> bool:
         ros = self._ros()
-        status = ros.cell.units[self.unit].status if ros is not None else None
+        status = ros.proxies[self.unit].status if ros is not None else None
         return status is not None and int(command) in status.commands_valid
 
     def _set_unit_mode(self, values: list[Any]) -> tuple[str, Steps]:
@@ -400,3 +452,38 @@ class Methods:
             text = f"SetRecipe({recipe}): SelectedRecipe is the ID of a recipe, 1 or more"
             return refuse(S.BadInvalidArgument, "INVALID_ARGUMENT", text, [S.BadOutOfRange])
         return f"SetRecipe({recipe})", [("set_recipe", {"recipe_id": recipe, "recipe_name": ""})]
+
+
+class CellMethods(Methods):
+    """The method callbacks of the cell object (:mod:`.cell`): the state commands and
+    SetUnitMode go to the coordinator (``command``, ``set_mode``: every unit, in the cell's
+    order, all or nothing); what a cell has no one value for is refused BadNotImplemented."""
+
+    def _not_for_a_cell(self, what: str) -> ua.CallMethodResult:
+        return refuse(
+            S.BadNotImplemented,
+            "NOT_SUPPORTED",
+            f"{what} is not a cell command: call it on each unit (PackMLObjects/<unit>)",
+        )
+
+    def _state_command(self, name: str) -> Handler:
+        plain = super()._state_command(name)
+
+        def handle(values: list[Any]) -> tuple[str, Steps] | ua.CallMethodResult:
+            if values and values[0]:  # Start(Parameter[]) with parameters
+                return self._not_for_a_cell(f"{name} with parameters")
+            return plain(values)
+
+        return handle
+
+    def _set_mach_speed(self, values: list[Any]) -> ua.CallMethodResult:
+        return self._not_for_a_cell("SetMachSpeed")
+
+    def _set_parameter(self, values: list[Any]) -> ua.CallMethodResult:
+        return self._not_for_a_cell("SetParameter")
+
+    def _set_product(self, values: list[Any]) -> ua.CallMethodResult:
+        return self._not_for_a_cell("SetProduct")
+
+    def _set_recipe(self, values: list[Any]) -> ua.CallMethodResult:
+        return self._not_for_a_cell("SetRecipe")

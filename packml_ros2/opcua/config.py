@@ -23,6 +23,9 @@
       call_timeout: 10.0           # seconds a method waits for the unit's answer
       max_mach_speed: 60           # highest speed SetMachSpeed accepts: a number for every unit,
                                    #   or {unit: number}; default: each unit's mach_design_speed
+      cell_object: false           # also the whole cell as one PackML object, PackMLObjects/<cell>:
+                                   #   its state the coordinator's, its commands the cell commands
+                                   #   (for a line of cells or an MES; needs the coordinator)
 
 Relative paths are relative to the cell file. Errors name the key path (``opcua.users.mes``).
 """
@@ -61,7 +64,7 @@ KEYS = {
     "host", "port", "units", "allow_anonymous", "allow_anonymous_write", "users",
     "user_certificates", "security_policies", "certificate", "private_key",
     "trusted_client_certificates", "state_dir", "application_uri", "call_timeout",
-    "max_mach_speed",
+    "max_mach_speed", "cell_object",
 }  # fmt: skip
 
 
@@ -83,6 +86,7 @@ class OpcUaConfig:
     application_uri: str = ""
     call_timeout: float = 10.0
     max_mach_speed: dict[str, float] = field(default_factory=dict)  # unit -> highest speed
+    cell_object: bool = False  #: the cell as one PackML object too (:mod:`.cell`)
 
     @property
     def endpoint(self) -> str:
@@ -185,7 +189,16 @@ def parse_opcua(cell: CellConfig, base: Path | None = None) -> OpcUaConfig:
         state_dir=root.get("state_dir", path, Path(DEFAULT_STATE_DIR).expanduser() / "opcua"),
         application_uri=root.get("application_uri", sc.text, ""),
         call_timeout=root.get("call_timeout", sc.number(positive=True), 10.0),
+        cell_object=root.get("cell_object", sc.boolean, False),
     )
+    if config.cell_object and not cell.coordinator.enabled:
+        root.child("cell_object", True).error(
+            "the cell object is the coordinator's: enable the coordinator or leave this out"
+        )
+    if config.cell_object and cell.cell in cell.units:
+        root.child("cell_object", True).error(
+            f"a unit is named {cell.cell!r} like the cell: the cell object would take its name"
+        )
     if not config.allow_anonymous and not config.users and not config.user_certificates:
         root.child("allow_anonymous", False).error(
             "nobody could connect: allow anonymous sessions or configure users"

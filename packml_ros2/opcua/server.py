@@ -35,7 +35,9 @@ from ..core.persistence import move_aside, not_a_file, one_line, os_reason
 from ..presence import Seen
 from . import line, security
 from .available import unit_graph
-from .bridge import Methods, RosSide
+from .bridge import CellMethods, Methods, RosSide
+from .cell import cell_unit, coordinator_path
+from .cell import valid as cell_valid
 from .config import OpcUaConfig
 from .mapping import (
     Step,
@@ -192,7 +194,11 @@ class PackMLServer:
         self.ros: RosSide | None = None
         self._last: dict[tuple[str, str], tuple[Value, int]] = {}
         self._messages: dict[tuple[str, str], Any] = {}  # the newest status / admin per unit
-        self._present: dict[str, bool | None] = dict.fromkeys(config.units)
+        #: the rules each object is drawn with: the exposed units', and the cell object's
+        self.configs: dict[str, UnitConfig] = {name: cell.units[name] for name in config.units}
+        if config.cell_object:
+            self.configs[cell.cell] = cell_unit(cell)
+        self._present: dict[str, bool | None] = dict.fromkeys(self.configs)
         # per unit, mode and state
         self._available: dict[tuple[str, int, int], dict[str, Value]] = {}
         self._methods_now: dict[tuple[str, int, int], frozenset[str]] = {}
@@ -240,12 +246,13 @@ class PackMLServer:
             "0",
             dt.datetime.now(dt.UTC),
         )
-        for name in config.units:
-            unit = self.cell.units[name]
-            methods = Methods(unit, config, space.model, ros=lambda: self.ros)
+        for name, unit in self.configs.items():
+            is_cell = name == self.cell.cell and config.cell_object
+            kind = CellMethods if is_cell else Methods
+            methods = kind(unit, config, space.model, ros=lambda: self.ros)
             nodes = self.units[name] = await space.build_unit(
                 name,
-                f"/{self.cell.cell}/{name}",
+                coordinator_path(name) if is_cell else f"/{self.cell.cell}/{name}",
                 unit.description,
                 {m.number: m.name for m in sorted(unit.modes.values(), key=lambda m: m.number)},
                 version(unit.table.model),
@@ -268,6 +275,7 @@ class PackMLServer:
             self._on_message,
             self._on_presence,
             self.cell.coordinator.unit_lease,
+            cell_object=config.cell_object,
         )
         self.line.attach(self.ros.node, asyncio.get_running_loop())
         self.ros.start()
@@ -315,7 +323,7 @@ class PackMLServer:
         key = (unit, int(msg.unit_mode_current), int(msg.state_current))
         available = self._available.get(key)
         if available is None:
-            graph = unit_graph(self.cell.units[unit], key[1], key[2])
+            graph = unit_graph(self.configs[unit], key[1], key[2])
             extra = self.units[unit].extra_transitions
             available = self._available[key] = available_values(space.model, graph, space.p, extra)
         values.update(available)
@@ -333,9 +341,12 @@ class PackMLServer:
         methods = self._methods_now.get(key)
         if methods is None:
             assert self.space is not None
-            graph = unit_graph(self.cell.units[unit], mode, state)
+            graph = unit_graph(self.configs[unit], mode, state)
             methods = self._methods_now[key] = method_paths(self.space.model, graph)
-        return path in methods
+        if path not in methods:
+            return False
+        # the cell object: the coordinator's all-or-nothing view of every unit decides too
+        return unit != self.cell.cell or not self.config.cell_object or cell_valid(status, path)
 
     async def _apply(self, unit: str, topic: str, msg: Any) -> None:
         assert self.server is not None
@@ -399,6 +410,13 @@ class PackMLServer:
             f"  units: {', '.join(config.units)} under Objects/PackMLObjects (OPC 30050 v1.01 "
             f"PackMLBaseObjectType; lost after {self.cell.coordinator.unit_lease:g} s without a sign of life)",
             f"  the line: Objects/Lines/{config.cell} (OEE of the shift, the current stop episode)",
+            *(
+                [
+                    f"  the cell: Objects/PackMLObjects/{config.cell} (its coordinator's state and commands)"
+                ]
+                if config.cell_object
+                else []
+            ),
             f"  security policies: {policies}",
             f"  anonymous: {anonymous}; users for commands: {users}",
         ]

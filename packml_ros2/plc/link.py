@@ -238,6 +238,10 @@ class _Batches:
             return
         dv = data.monitored_item.Value
         status = dv.StatusCode if dv is not None else None
+        why = unknown_state(path, status)
+        if why:
+            self.lost(why)
+            return
         stamp = dv.SourceTimestamp or dv.ServerTimestamp if dv is not None else None
         self.batch.append((path, self.convert(path, value, status), stamp))
         if len(self.batch) == 1:
@@ -264,6 +268,16 @@ class _Batches:
             self.lost("the connection to the PLC closed")  # (asyncua's word for a lost transport)
         else:
             self.lost(f"the PLC ended the subscription: {code.name}")
+
+
+def unknown_state(path: str, status: Any) -> str:
+    """Why the PLC does not know the unit's state or mode now ('' = it does): a Bad value of a
+    :data:`~.mirror.REQUIRED` variable (e.g. a gateway whose machine is gone, or a cell object
+    whose coordinator is: this project's own face writes BadCommunicationError then). The unit
+    is then as unreachable as a PLC that is gone, not online in an UNDEFINED state."""
+    if path not in REQUIRED or status is None or not status.is_bad():
+        return ""
+    return f"the PLC has no usable {path} for the unit ({status.name})"
 
 
 class _Watched(Subscription):
@@ -302,6 +316,7 @@ class Link:
         self._methods: dict[str, tuple[ua.NodeId, ua.NodeId]] = {}
         self._packml_ns = 0
         self._last_sign = 0.0
+        self._calls = 0  #: method calls in flight
         self._lost_reason = ""
         self._stop: asyncio.Event | None = None
         self._thread = threading.Thread(
@@ -423,6 +438,10 @@ class Link:
         paths = list(variables)
         nodes = [client.get_node(variables[p]) for p in paths]
         values = await asyncio.wait_for(client.read_attributes(nodes), config.call_timeout)
+        for p, dv in zip(paths, values, strict=True):
+            why = unknown_state(p, dv.StatusCode)
+            if why:
+                raise Lost(why)
         snapshot = {
             p: self._convert(p, dv.Value.Value if dv.Value else None, dv.StatusCode)
             for p, dv in zip(paths, values, strict=True)
@@ -500,7 +519,12 @@ class Link:
                 raise Lost("the connection to the PLC closed")
             last = max(self._last_sign, subscription.sign_of_life)
             silent = time.monotonic() - last
-            if silent > lease - TICK:
+            # A server may serve one session's requests in order (asyncua does): while a method
+            # runs (a cell's ordered start through its cell object takes seconds) no publish is
+            # answered. That call has its own timeout; its answer is the next sign of life.
+            if self._calls:
+                self._last_sign = time.monotonic()
+            elif silent > lease - TICK:
                 raise Lost(f"no sign of life from the PLC for {silent:.1f} s (lease {lease:g} s)")
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(asyncio.shield(lost), TICK)
@@ -598,6 +622,7 @@ class Link:
         request.Parameters.MethodsToCall = [
             ua.CallMethodRequest(ObjectId=owner, MethodId=method_id, InputArguments=list(args))
         ]
+        self._calls += 1  # (the PLC is busy with it: _watch)
         try:
             protocol = client.uaclient.protocol
             if protocol is None:
@@ -607,6 +632,8 @@ class Link:
             return Outcome(exc.code, ua.StatusCode(exc.code).name, describe_error(exc))
         except (OSError, asyncio.TimeoutError, ConnectionError) as exc:
             return Outcome(S.BadNoCommunication, "BadNoCommunication", describe_error(exc))
+        finally:
+            self._calls -= 1
         self._last_sign = time.monotonic()
         response = struct_from_binary(ua.CallResponse, data)
         service = response.ResponseHeader.ServiceResult

@@ -21,7 +21,7 @@ import shutil
 import signal
 import subprocess
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -128,6 +128,28 @@ class Network:
                 problems.append(f"ip netns del {ns}: {result.stderr.strip()}")
         self.created.clear()
         return problems
+
+
+@contextlib.contextmanager
+def private_network(hosts: Sequence[str], subnet: str, prefix: str = "pk") -> Iterator[Network]:
+    """A :class:`Network` for one test, torn down after it (its problems printed); the test is
+    skipped with the reason where namespaces cannot be made here."""
+    import pytest
+
+    reason = why_no_namespaces()
+    if reason:
+        pytest.skip(reason)
+    net = Network(hosts, subnet, prefix)
+    try:
+        net.setup()
+    except (RuntimeError, OSError, subprocess.TimeoutExpired) as exc:
+        net.teardown()
+        pytest.skip(f"cannot create network namespaces here: {exc}")
+    try:
+        yield net
+    finally:
+        for problem in net.teardown():
+            print(problem)
 
 
 class NsProcess:

@@ -624,3 +624,18 @@ def test_iteration_counts_are_bounded_at_load_and_unknown_names_never_logged(
     assert users.get_user(None, "x" * 1_000_000, "guess") is None
     assert users.get_user(None, "op", "pw12") is None
     assert caplog.records == []
+
+
+def test_cell_object_is_checked(tmp_path: Path) -> None:
+    cell = load_cell(_cell(tmp_path, {"cell_object": True}))
+    assert parse_opcua(cell).cell_object
+    assert not parse_opcua(load_cell(_cell(tmp_path, {}))).cell_object
+    off = parse_cell({"cell": "c", "units": {"u": {}}, "coordinator": {"enabled": False},
+                      "opcua": {"cell_object": True}})  # fmt: skip
+    with pytest.raises(ConfigError) as err:
+        parse_opcua(off)
+    assert "enable the coordinator" in dict(err.value.problems)["opcua.cell_object"]
+    same = parse_cell({"cell": "u", "units": {"u": {}}, "opcua": {"cell_object": True}})
+    with pytest.raises(ConfigError) as err:
+        parse_opcua(same)
+    assert "named 'u' like the cell" in dict(err.value.problems)["opcua.cell_object"]

@@ -25,7 +25,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import subprocess
 import sys
 import threading
 import time
@@ -35,7 +34,7 @@ from typing import Any
 
 import pytest
 
-from packml_ros2.testing.netns import Network, NsProcess, why_no_namespaces
+from packml_ros2.testing.netns import Network, NsProcess, private_network
 
 REPO = Path(__file__).resolve().parents[2]
 SUBNET = "10.213.0"
@@ -47,21 +46,8 @@ HOSTS = ("units", "ems", "coord", "obs")
 # ====================================================================================================
 @pytest.fixture
 def network() -> Iterator[Network]:
-    reason = why_no_namespaces()
-    if reason:
-        pytest.skip(reason)
-    net = Network(HOSTS, SUBNET)
-    try:
-        net.setup()
-    except (RuntimeError, OSError, subprocess.TimeoutExpired) as exc:
-        net.teardown()
-        pytest.skip(f"cannot create network namespaces here: {exc}")
-    try:
+    with private_network(HOSTS, SUBNET) as net:
         yield net
-    finally:
-        problems = net.teardown()
-        if problems:
-            print("\n".join(problems))
 
 
 # ====================================================================================================
