@@ -1,6 +1,6 @@
 """A plant, measured: N cells over several hosts in three discovery setups. Prints JSON.
 
-    sudo .venv/bin/python bench/plant.py [--cells 20] [--hosts 5] [--window 60] [--idle 20]
+    sudo .venv/bin/python bench/plant.py [--cells 20] [--hosts 5] [--window 60] [--rest 30] [--idle 20]
         [--setups simple,server,domains] [--processes] [--cycles 10] [--lease 3] [--em-lease 2]
         [--keep DIR]
 
@@ -23,9 +23,9 @@ The setups, side by side (each cell names its domain and server in its cell file
 
 For each: the time from the launch until every unit is ready (its status seen by the measuring
 client with every EM online); the traffic on the veths (bytes and packets, from the bridge
-ports' counters) in the first ``--window`` seconds after the launch and then per window at rest;
+ports' counters) in the first ``--window`` seconds after the launch and then per minute at rest;
 CPU (percent of one core, /proc/<pid>/stat) and RSS per cell and in total, at rest in Stopped (over
-``--window``) and in Execute (over ``--idle``); a line-wide reset and start of every unit (all
+``--rest``, its traffic per minute) and in Execute (over ``--idle``); a line-wide reset and start of every unit (all
 Trigger calls sent at once, until every unit's status shows the state) p50/p99 over ``--cycles``,
 beside the floor measured in the same run: the same number of Trigger calls, sent at once by the
 same client, to bare rclpy servers (one per host, in the setup's first domain) whose handler
@@ -436,7 +436,7 @@ def run_setup(args: argparse.Namespace, net: Network, setup: str, domains: list[
         result["ready_spread_s"] = {"first": round(ready[0], 3),
                                     "median": round(statistics.median(ready), 3)}  # fmt: skip
         stage = "rest_stopped"
-        result["rest_stopped"] = plant.at_rest(args.window)
+        result["rest_stopped"] = plant.at_rest(args.rest)
         stage = "line"
         result["line"] = plant.line()
         stage = "rest_execute"
@@ -485,7 +485,9 @@ def main() -> int:
     parser.add_argument("--processes", action="store_true", help="one process per node")
     parser.add_argument("--setups", default=",".join(SETUPS))
     parser.add_argument("--window", type=float, default=60.0,
-                        help="s: the first traffic window after the launch, and the rest in Stopped")  # fmt: skip
+                        help="s: the first traffic window after the launch")  # fmt: skip
+    parser.add_argument("--rest", type=float, default=30.0,
+                        help="s: the rest in Stopped (CPU, traffic per minute)")  # fmt: skip
     parser.add_argument("--idle", type=float, default=20.0, help="s: the rest in Execute")
     parser.add_argument("--cycles", type=int, default=10, help="line-wide reset/start cycles")
     parser.add_argument("--lease", type=float, default=3.0, help="s: the units' unit_lease")
@@ -524,6 +526,7 @@ def main() -> int:
         "nodes": args.cells * (1 + args.ems),
         "processes_per_node": args.processes,
         "window_s": args.window,
+        "rest_s": args.rest,
         "idle_s": args.idle,
         "em_lease_s": args.em_lease,
         "goals_for_20_cells": GOALS,

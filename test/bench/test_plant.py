@@ -39,7 +39,7 @@ def namespaces_of(pid: int) -> list[str]:
 def test_plant_json_has_every_figure_beside_its_goal(tmp_path: Path) -> None:
     kept = tmp_path / "kept"
     proc = subprocess.Popen(
-        [*PLANT, "--cells", "2", "--hosts", "2", "--window", "3", "--idle", "2", "--cycles", "2",
+        [*PLANT, "--cells", "2", "--hosts", "2", "--window", "3", "--rest", "3", "--idle", "2", "--cycles", "2",
          "--lease", "2", "--setups", "simple", "--em-lease", "3", "--keep", str(kept)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
     )  # fmt: skip
@@ -84,7 +84,7 @@ def test_plant_json_has_every_figure_beside_its_goal(tmp_path: Path) -> None:
 
 def test_a_stage_that_fails_keeps_what_was_measured_before_it() -> None:
     proc = subprocess.Popen(
-        [*PLANT, "--cells", "1", "--hosts", "1", "--window", "1", "--setups", "domains",
+        [*PLANT, "--cells", "1", "--hosts", "1", "--window", "1", "--rest", "1", "--setups", "domains",
          "--ready-timeout", "0.5"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
     )  # fmt: skip
