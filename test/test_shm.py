@@ -90,3 +90,27 @@ def test_a_file_made_while_the_processes_are_scanned_is_never_removed(
         assert born in shm.stale_files(min_age=0)
     finally:
         born.unlink(missing_ok=True)
+
+
+def test_a_live_ports_mutex_stays_while_its_port_lives() -> None:
+    """Fast DDS holds a port's named mutex (``sem.fastdds_port<N>_mutex``) neither open nor
+    mapped between uses: it is removed with its port only, never under a live one."""
+    port = Path(f"/dev/shm/fastdds_port_packml_{os.getpid()}")
+    mutex = port.with_name(f"sem.{port.name}_mutex")
+    port.write_bytes(b"x")
+    mutex.write_bytes(b"x")
+    fd = os.open(port, os.O_RDONLY)  # the port's listener
+    try:
+        stale = shm.stale_files(min_age=0)
+        assert port not in stale and mutex not in stale
+        os.close(fd)
+        fd = -1
+        stale = shm.stale_files(min_age=0)  # the port is free: both go
+        assert port in stale and mutex in stale
+        port.unlink()
+        assert mutex in shm.stale_files(min_age=0)  # a mutex whose port is gone is stale
+    finally:
+        if fd >= 0:
+            os.close(fd)
+        port.unlink(missing_ok=True)
+        mutex.unlink(missing_ok=True)

@@ -74,7 +74,23 @@ def stale_files(min_age: float = MIN_AGE) -> list[Path]:
     except _Unreadable:
         return []
     now = time.time()
-    return [p for p in candidates if str(p) not in used and _age(p, now) >= min_age]
+    stale = [p for p in candidates if str(p) not in used and _age(p, now) >= min_age]
+    gone = set(stale)
+    return [p for p in stale if not _lives_on(p, gone)]
+
+
+def _lives_on(path: Path, gone: set[Path]) -> bool:
+    """Whether ``path`` is a named mutex (``sem.<segment>_mutex``) whose segment stays. Fast DDS
+    holds a port's mutex neither open nor mapped between uses (seen: every live port's
+    ``sem.fastdds_port<N>_mutex`` free of every process), so it goes with its segment only:
+    removed under a live port, the next participant to open that port would meet a port without
+    its mutex. (Looked at for a restarted unit that neither its EM nor the test heard, in CI;
+    deleting the mutexes alone did not make a restarted writer unheard here.)"""
+    name = path.name
+    if not (name.startswith("sem.") and name.endswith("_mutex")):
+        return False
+    segment = path.with_name(name[len("sem.") : -len("_mutex")])
+    return segment.exists() and segment not in gone
 
 
 def cleanup() -> int:
