@@ -24,11 +24,9 @@ Everything stays on this machine (loopback, domains of its own).
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import signal
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -39,47 +37,15 @@ from typing import Any
 
 import yaml
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from plant import Domain, summary_ms  # (one way to follow a domain and to sum up)
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
 GOAL_RATIO = 1.5  # issue 29: a line-wide start p50 against its bare-client floor
 PASSWORD = "bench-line-pw"
 ZERO = dict.fromkeys(("resetting", "starting", "stopping", "clearing", "aborting"), 0.0)
-
-
-def pct(values: list[float], q: float) -> float:
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, round(q * (len(ordered) - 1)))]
-
-
-def summary_ms(values: list[float]) -> dict[str, float]:
-    return {"p50_ms": round(statistics.median(values) * 1000, 1),
-            "p99_ms": round(pct(values, 0.99) * 1000, 1), "n": len(values)}  # fmt: skip
-
-
-class Domain:
-    """An rclpy context, node and executor thread in one ROS domain."""
-
-    def __init__(self, domain: int) -> None:
-        import rclpy
-        from rclpy.context import Context
-        from rclpy.executors import MultiThreadedExecutor
-        from rclpy.node import Node
-
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain)
-        self.node = Node(f"bench_line_{os.getpid()}_{domain}", context=self.context)
-        self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
-        self.executor.add_node(self.node)
-        threading.Thread(target=self._spin, daemon=True).start()
-
-    def _spin(self) -> None:
-        with contextlib.suppress(Exception):  # (shutdown)
-            self.executor.spin()
-
-    def close(self) -> None:
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        self.context.try_shutdown()
 
 
 class Cells:
@@ -211,7 +177,7 @@ def main() -> int:
     for cell in cells:
         launch(cell, str(work / cell / "cell.yaml"), "--opcua")
     launch("line", str(work / "line.yaml"))
-    ros = {d: Domain(d) for d in {line_domain, *domains.values()}}
+    ros = {d: Domain(d, "bench_line") for d in {line_domain, *domains.values()}}
     watch = Cells()
     watch.follow(ros[line_domain], line)
     for cell in cells:

@@ -593,10 +593,10 @@ def table(setups: dict[str, dict[str, Any]]) -> list[str]:
 # ====================================================================================================
 # The observer (runs in the "obs" namespace)
 # ====================================================================================================
-class _Domain:
-    """A context, a node and its executor thread in one ROS domain."""
+class Domain:
+    """A context, a node and its executor thread in one ROS domain (also bench/line.py's)."""
 
-    def __init__(self, domain: int) -> None:
+    def __init__(self, domain: int, name: str = "plant_observer") -> None:
         import rclpy
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
@@ -604,7 +604,7 @@ class _Domain:
 
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain)
-        self.node = Node(f"plant_observer_{os.getpid()}_{domain}", context=self.context)
+        self.node = Node(f"{name}_{os.getpid()}_{domain}", context=self.context)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.thread = threading.Thread(target=self._spin, daemon=True)
@@ -638,11 +638,11 @@ class _Watch:
         self.latest: dict[str, Any] = {}
         self.ready: dict[str, float | None] = dict.fromkeys(units)
         self.present: dict[str, tuple[bool | None, float, str]] = {}
-        self.domains: dict[int, _Domain] = {}
+        self.domains: dict[int, Domain] = {}
         self.clients: dict[tuple[str, str], Any] = {}
         self.units, self.floors = units, floors
         for d in sorted({*units.values(), floor_domain}):
-            self.domains[d] = _Domain(d)
+            self.domains[d] = Domain(d)
 
         def on_status(msg: Any, path: str) -> None:
             with self.cond:

@@ -196,8 +196,10 @@ class PackMLServer:
         self._messages: dict[tuple[str, str], Any] = {}  # the newest status / admin per unit
         #: the rules each object is drawn with: the exposed units', and the cell object's
         self.configs: dict[str, UnitConfig] = {name: cell.units[name] for name in config.units}
-        if config.cell_object:
-            self.configs[cell.cell] = cell_unit(cell)
+        #: the name of the cell object ('' = none: :mod:`.cell`)
+        self.cell_object = cell.cell if config.cell_object else ""
+        if self.cell_object:
+            self.configs[self.cell_object] = cell_unit(cell)
         self._present: dict[str, bool | None] = dict.fromkeys(self.configs)
         # per unit, mode and state
         self._available: dict[tuple[str, int, int], dict[str, Value]] = {}
@@ -247,7 +249,7 @@ class PackMLServer:
             dt.datetime.now(dt.UTC),
         )
         for name, unit in self.configs.items():
-            is_cell = name == self.cell.cell and config.cell_object
+            is_cell = name == self.cell_object
             kind = CellMethods if is_cell else Methods
             methods = kind(unit, config, space.model, ros=lambda: self.ros)
             nodes = self.units[name] = await space.build_unit(
@@ -346,7 +348,7 @@ class PackMLServer:
         if path not in methods:
             return False
         # the cell object: the coordinator's all-or-nothing view of every unit decides too
-        return unit != self.cell.cell or not self.config.cell_object or cell_valid(status, path)
+        return unit != self.cell_object or cell_valid(status, path)
 
     async def _apply(self, unit: str, topic: str, msg: Any) -> None:
         assert self.server is not None

@@ -83,9 +83,14 @@ class Cell:
 
     def plc(self, state_dir: Path) -> dict[str, Any]:
         """The line's ``plc:`` block for this cell's object."""
-        return {"endpoint": f"opc.tcp://127.0.0.1:{self.port}/", "browse_path": f"PackMLObjects/{self.name}",
-                "user": "line", "password": "env:LINE_PLC_PASSWORD", "security_policy": "Basic256Sha256",
-                "state_dir": str(state_dir), "reconnect_min": 0.2, "reconnect_max": 1.0}  # fmt: skip
+        return plc_block(f"127.0.0.1:{self.port}", self.name, "env:LINE_PLC_PASSWORD", state_dir)
+
+
+def plc_block(address: str, cell: str, password: str, state_dir: Path) -> dict[str, Any]:
+    """A line's ``plc:`` block for the object of ``cell`` served at ``address`` (host:port)."""
+    return {"endpoint": f"opc.tcp://{address}/", "browse_path": f"PackMLObjects/{cell}",
+            "user": "line", "password": password, "security_policy": "Basic256Sha256",
+            "state_dir": str(state_dir), "reconnect_min": 0.2, "reconnect_max": 1.0}  # fmt: skip
 
 
 def test_a_line_of_two_cells_over_their_opcua_faces(tmp_path: Path, ros: Any, processes: Processes) -> None:  # fmt: skip
@@ -244,11 +249,8 @@ def test_a_line_of_cells_on_three_hosts_rides_through_a_cell_host_cut_off(hosts:
         cells[label] = doc["cell"]
         units[f"cell_{label}"] = {
             "remote_commands_enabled": True,
-            "plc": {"endpoint": f"opc.tcp://{hosts.address[host]}:4840/",
-                    "browse_path": f"PackMLObjects/{doc['cell']}", "user": "line",
-                    "password": f"file:{secret}", "security_policy": "Basic256Sha256",
-                    "state_dir": str(tmp_path / f"bridge_{label}"),
-                    "reconnect_min": 0.2, "reconnect_max": 1.0},
+            "plc": plc_block(f"{hosts.address[host]}:4840", doc["cell"], f"file:{secret}",
+                             tmp_path / f"bridge_{label}"),
         }  # fmt: skip
         start(host, f"robot_{label}", "packml_ros2.unit_node", str(path), "robot")
         start(host, f"gripper_{label}", "packml_ros2.sim_em", str(path), "robot", "gripper")
